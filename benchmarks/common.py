@@ -1,0 +1,54 @@
+"""Shared helpers of the benchmark scripts: where the data is, running evaluate, tables."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from topoloc.evaluation.pipeline import EvaluateOptions, build_report, evaluate
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("TOPOLOC_DATA", REPO.parent / "shared" / "data")).resolve()
+RESULTS = REPO / "docs" / "results"
+GP = DATA / "gardens_point"
+WEBCAM = DATA / "webcam_daynight"
+WEBCAM_TOURS = sorted((WEBCAM / "map").glob("tour_*"))
+
+# The papers train their vocabularies on images apart from the evaluation data:
+# gardens_point runs use a vocabulary trained on webcam_daynight's map tours and
+# webcam_daynight runs one trained on all three gardens_point traverses.
+VOCAB_FOR_GP = [WEBCAM / "map"]
+VOCAB_FOR_WEBCAM = [GP]
+
+GP_PAIRS = [("day_left", "day_right"), ("day_right", "night_right"), ("day_left", "night_right")]
+
+
+def require_data() -> None:
+    if not GP.is_dir() or not WEBCAM.is_dir():
+        raise SystemExit(f"shared data not found under {DATA} (set TOPOLOC_DATA)")
+
+
+def run(method: str, maps: list[Path], query: Path, out: Path, *, vocab_train: list[Path],
+        tolerance: str, params: dict[str, str] | None = None, **kw: Any) -> Path:
+    """One `topoloc evaluate` run (same code path as the CLI); returns its folder."""
+    evaluate(EvaluateOptions(method=method, maps=maps, query=query, out=out, vocab_train=vocab_train,
+                             tolerance=tolerance, params=params or {}, **kw))
+    m = json.loads((out / "metrics.json").read_text())
+    print(f"{out.name}: AUC {m['auc']:.3f} R@1 {m['recall_at_1']:.3f} ms/q {m['ms_per_query']:.2f}", flush=True)
+    return out
+
+
+def anchors_table() -> str:
+    a = json.loads((REPO / "benchmarks" / "anchors.json").read_text())
+    lines = ["| system | " + " | ".join(f"{c} AUC / R@1" for c in a["columns"]) + " |\n",
+             "| --- |" + " --- |" * len(a["columns"]) + "\n"]
+    for row in a["rows"]:
+        cells = " | ".join(f"{auc:g} / {r1:g}" for auc, r1 in row["auc_r1"])
+        lines.append(f"| {row['system']} | {cells} |\n")
+    return f"{a['source']}\n\n" + "".join(lines)
+
+
+def report(run_dirs: list[Path], out: Path, title: str) -> Path:
+    return build_report(run_dirs, out, title=title)

@@ -1,0 +1,224 @@
+"""``topoloc`` command line: evaluate, report, vocab, synth, demo."""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from topoloc.cli.progress import console, rich_progress
+from topoloc.errors import TopolocError
+
+app = typer.Typer(
+    name="topoloc",
+    help="Appearance-based localisation: evaluate place-recognition methods on image traverses.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+vocab_app = typer.Typer(help="Visual vocabularies.", no_args_is_help=True)
+app.add_typer(vocab_app, name="vocab")
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _fail(message: str) -> typer.Exit:
+    # One line on stderr, non-zero exit: the contract for bad input.
+    print(f"topoloc: error: {message}", file=sys.stderr)
+    return typer.Exit(code=2)
+
+
+def handle_errors(fn: F) -> F:
+    """Turn :class:`TopolocError` into a one-line message and exit status 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except TopolocError as exc:
+            raise _fail(str(exc)) from None
+        except KeyboardInterrupt:
+            raise _fail("interrupted") from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+@app.callback()
+def _setup(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
+) -> None:
+    from rich.logging import RichHandler
+
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+        handlers=[RichHandler(console=console, show_path=False)],
+    )
+
+
+def _parse_params(items: list[str]) -> dict[str, str]:
+    out = {}
+    for it in items:
+        if "=" not in it:
+            raise TopolocError(f"--param {it!r} is not KEY=VALUE")
+        k, v = it.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+@app.command()
+@handle_errors
+def evaluate(
+    method: Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")],
+    map: Annotated[list[Path], typer.Option("--map", help="Map traverse folder (repeatable).")],
+    query: Annotated[Path, typer.Option(help="Query traverse folder.")],
+    out: Annotated[Path, typer.Option(help="Output folder.")],
+    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
+    vocab_train: Annotated[
+        list[Path] | None,
+        typer.Option("--vocab-train", help="Folders (searched recursively) to train a vocabulary on."),
+    ] = None,
+    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
+    tolerance: Annotated[str, typer.Option(help="Ground-truth tolerance HARD:SOFT in place ids.")] = "0:8",
+    tolerance_m: Annotated[
+        str | None, typer.Option("--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")
+    ] = None,
+    ground_truth: Annotated[
+        Path | None, typer.Option(help="VPR-Bench ground_truth_new.npy or .npz with GThard/GTsoft.")
+    ] = None,
+    sequence: Annotated[int, typer.Option(help="Sequence matching over each query and the N before it (0 = off).")] = 0,
+    param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
+    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
+    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+) -> None:
+    """Run one method on map and query traverses and score it (PROTOCOL.md)."""
+    from topoloc.evaluation.pipeline import TABLE_HEADER, EvaluateOptions, table_row
+    from topoloc.evaluation.pipeline import evaluate as run
+
+    opts = EvaluateOptions(
+        method=method, maps=list(map), query=query, out=out, vocab=vocab,
+        vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
+        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence,
+        params=_parse_params(param or []), features=features, max_features=max_features,
+        cache_dir=cache_dir,
+    )
+    with rich_progress(not quiet) as progress:
+        metrics = run(opts, progress=progress)
+    typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
+    typer.echo(f"wrote {out}/S.npy, metrics.json, pr.png, report.md")
+
+
+@app.command()
+@handle_errors
+def report(
+    runs: Annotated[list[Path], typer.Argument(help="Output folders of `topoloc evaluate`.")],
+    out: Annotated[Path, typer.Option(help="Folder for report.md and pr_curves.png.")],
+    title: Annotated[str, typer.Option(help="Title of the report.")] = "Results",
+) -> None:
+    """Put several evaluate runs side by side: one table and one PNG of PR curves."""
+    from topoloc.evaluation.pipeline import build_report
+
+    path = build_report(list(runs), out, title=title)
+    typer.echo(path.read_text(), nl=False)
+
+
+@app.command()
+def methods() -> None:
+    """List the methods `evaluate` accepts, with their parameters."""
+    from topoloc.methods import available_methods, get_method
+
+    for name in available_methods():
+        cls = get_method(name)
+        params = ", ".join(f"{k}={v!r}" for k, v in _defaults(cls).items())
+        typer.echo(f"{name}: {params}")
+
+
+def _defaults(cls: type) -> dict[str, Any]:
+    import inspect
+
+    sig = inspect.signature(cls.__init__)  # type: ignore[misc]
+    return {p.name: p.default for p in sig.parameters.values() if p.kind is p.KEYWORD_ONLY}
+
+
+@vocab_app.command("train")
+@handle_errors
+def vocab_train_cmd(
+    folders: Annotated[list[Path], typer.Argument(help="Image folders, searched recursively.")],
+    out: Annotated[Path, typer.Option(help="Vocabulary file to write.")],
+    words: Annotated[int, typer.Option(help="Number of visual words.")] = 10000,
+    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
+    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    cache_dir: Annotated[Path | None, typer.Option(help="Feature cache folder.")] = None,
+) -> None:
+    """Train a visual vocabulary (k-means) on the images under FOLDERS."""
+    from topoloc.features import FeatureConfig, FeatureExtractor
+    from topoloc.vocabulary import train_vocabulary
+
+    extractor = FeatureExtractor(FeatureConfig(method=features, max_features=max_features),
+                                 cache_dir=cache_dir)
+    with rich_progress() as progress:
+        voc = train_vocabulary(list(folders), extractor=extractor, n_words=words, seed=seed,
+                               progress=progress)
+    voc.save(out)
+    typer.echo(json.dumps({"out": str(out), **voc.provenance_}, default=str))
+
+
+@app.command()
+@handle_errors
+def synth(
+    out: Annotated[Path, typer.Argument(help="Folder to write the tours into.")],
+    places: Annotated[int, typer.Option(help="Number of places along the route.")] = 60,
+    hours: Annotated[str, typer.Option(help="Comma-separated times of day of the tours.")] = "9,13,17,22",
+    width: Annotated[int, typer.Option(help="Image width.")] = 320,
+    height: Annotated[int, typer.Option(help="Image height.")] = 240,
+    seed: Annotated[int, typer.Option(help="World seed.")] = 0,
+) -> None:
+    """Generate a synthetic route (tours at several times of day) for tests and demos."""
+    from topoloc.datasets.synthetic import RouteConfig, generate_route
+
+    tours = _tours(hours)
+    dirs = generate_route(out, config=RouteConfig(n_places=places, width=width, height=height,
+                                                  seed=seed), tours=tours)
+    for d in dirs:
+        typer.echo(str(d))
+
+
+def _tours(hours: str) -> list[tuple[str, float]]:
+    try:
+        hs = [float(h) for h in hours.split(",") if h.strip()]
+    except ValueError:
+        raise TopolocError(f"--hours {hours!r} is not a comma-separated list of numbers") from None
+    return [(f"tour_{int(h):02d}{round((h % 1) * 60):02d}", h) for h in hs]
+
+
+@app.command()
+@handle_errors
+def demo(
+    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("demo_out"),
+    places: Annotated[int, typer.Option(help="Places along the generated route.")] = 60,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+) -> None:
+    """Generate a route at several times of day, run the methods, print a table, plot PR curves."""
+    from topoloc.demo import run_demo
+
+    with rich_progress(not quiet) as progress:
+        report_path = run_demo(out, n_places=places, progress=progress)
+    typer.echo(report_path.read_text(), nl=False)
+    typer.echo(f"\nPR curves: {report_path.parent / 'pr_curves.png'}")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,217 @@
+"""Traverses: folders of images taken along a route on one occasion.
+
+The format is the one of ``PROTOCOL.md``:
+
+* without a sidecar, images are ordered by natural sort of their file names and
+  the image at position ``k`` shows place ``k``;
+* with ``places.csv`` (header ``image,place`` and optional ``time`` as ISO 8601,
+  ``x``, ``y`` in metres), each row names an image of the folder and its integer
+  place id; images not listed are not part of the traverse.  An image may be
+  listed only once, but several images may show the same place (for example
+  queries of one place on several days).
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from topoloc.errors import input_error
+
+IMAGE_SUFFIXES = frozenset(
+    {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
+)
+SIDECAR = "places.csv"
+
+
+def natural_key(name: str) -> list[object]:
+    """Sort key that orders ``Image2`` before ``Image10``."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+@dataclass(frozen=True, eq=False)
+class Traverse:
+    """One traverse (tour) of a route.
+
+    Attributes
+    ----------
+    root : Path
+        The folder.
+    images : tuple of Path, length n
+        Image files in traverse order.
+    places : ndarray of int64, shape (n,)
+        Place id shown by each image.
+    times : ndarray of datetime64[s], shape (n,), or None
+        Capture time of each image when ``places.csv`` has a ``time`` column.
+    xy : ndarray of float64, shape (n, 2), or None
+        Position in metres when ``places.csv`` has ``x`` and ``y`` columns.
+    """
+
+    root: Path
+    images: tuple[Path, ...]
+    places: np.ndarray
+    times: np.ndarray | None = None
+    xy: np.ndarray | None = None
+    name: str = field(default="")
+
+    def __post_init__(self) -> None:
+        if len(self.images) != len(self.places):
+            raise ValueError("images and places differ in length")
+        if not self.name:
+            object.__setattr__(self, "name", self.root.name)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def place_ids(self) -> np.ndarray:
+        """Sorted unique place ids visited, shape (n_places,)."""
+        return np.unique(self.places)
+
+    def median_time_of_day(self) -> float | None:
+        """Median capture time of day in hours (0-24), or None without times."""
+        if self.times is None:
+            return None
+        day = self.times.astype("datetime64[D]")
+        hours = (self.times - day).astype("timedelta64[s]").astype(np.float64) / 3600.0
+        return float(np.median(hours))
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return sorted(
+        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+        key=lambda p: natural_key(p.name),
+    )
+
+
+def _parse_time(text: str, csv_path: Path, line: int) -> np.datetime64:
+    try:
+        return np.datetime64(datetime.fromisoformat(text.strip()).replace(tzinfo=None), "s")
+    except ValueError:
+        raise input_error(f"{csv_path}:{line}: time {text!r} is not ISO 8601", None) from None
+
+
+def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
+    try:
+        with csv_path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+            fields = set(rows[0].keys()) if rows else set()
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise input_error(f"cannot read places.csv ({exc})", csv_path) from None
+    if not rows:
+        raise input_error("places.csv lists no images", csv_path)
+    if not {"image", "place"} <= fields:
+        raise input_error("places.csv needs a header with columns image,place", csv_path)
+    has_time = "time" in fields
+    has_xy = {"x", "y"} <= fields
+    images: list[Path] = []
+    places: list[int] = []
+    times: list[np.datetime64] = []
+    xy: list[tuple[float, float]] = []
+    seen: set[str] = set()
+    for i, row in enumerate(rows, start=2):
+        name = (row.get("image") or "").strip()
+        if not name:
+            raise input_error(f"{csv_path}:{i}: empty image name", None)
+        if name in seen:
+            raise input_error(f"{csv_path}:{i}: image {name!r} is listed twice", None)
+        seen.add(name)
+        img = folder / name
+        if not img.is_file():
+            raise input_error(f"{csv_path}:{i}: image {name!r} does not exist", img)
+        raw = (row.get("place") or "").strip()
+        try:
+            pid = int(raw)
+        except ValueError:
+            raise input_error(f"{csv_path}:{i}: place id {raw!r} is not an integer", None) from None
+        images.append(img)
+        places.append(pid)
+        if has_time:
+            times.append(_parse_time(row["time"] or "", csv_path, i))
+        if has_xy:
+            try:
+                xy.append((float(row["x"]), float(row["y"])))
+            except (TypeError, ValueError):
+                raise input_error(f"{csv_path}:{i}: x,y are not numbers", None) from None
+    return Traverse(
+        root=folder,
+        images=tuple(images),
+        places=np.asarray(places, dtype=np.int64),
+        times=np.asarray(times, dtype="datetime64[s]") if has_time else None,
+        xy=np.asarray(xy, dtype=np.float64).reshape(-1, 2) if has_xy else None,
+    )
+
+
+def load_traverse(folder: str | Path) -> Traverse:
+    """Load a traverse folder (with or without ``places.csv``).
+
+    Raises
+    ------
+    TopolocError
+        For a missing folder, a folder without images, or a malformed sidecar.
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        raise input_error("traverse folder does not exist", folder)
+    if not folder.is_dir():
+        raise input_error("traverse is not a folder", folder)
+    sidecar = folder / SIDECAR
+    if sidecar.is_file():
+        return _read_sidecar(folder, sidecar)
+    images = _list_images(folder)
+    if not images:
+        raise input_error("traverse folder holds no images", folder)
+    return Traverse(root=folder, images=tuple(images), places=np.arange(len(images), dtype=np.int64))
+
+
+def find_images(folders: list[Path] | list[str]) -> list[Path]:
+    """All image files below ``folders``, searched recursively, in natural order.
+
+    Raises
+    ------
+    TopolocError
+        If a folder is missing or no image is found under it.
+    """
+    out: list[Path] = []
+    for f in map(Path, folders):
+        if not f.is_dir():
+            raise input_error("image folder does not exist", f)
+        found = sorted(
+            (p for p in f.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+            key=lambda p: natural_key(str(p.relative_to(f))),
+        )
+        if not found:
+            raise input_error("no images found under folder", f)
+        out.extend(found)
+    return out
+
+
+def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
+    """Read an image with OpenCV.
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W) if ``gray`` else (H, W, 3) BGR
+
+    Raises
+    ------
+    TopolocError
+        If the file is missing, empty or cannot be decoded.
+    """
+    path = Path(path)
+    try:
+        buf = np.fromfile(path, dtype=np.uint8)
+    except OSError:
+        raise input_error("cannot open image", path) from None
+    if buf.size == 0:
+        raise input_error("image file is empty", path)
+    img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+    if img is None or img.size == 0:
+        raise input_error("image is corrupt or not a supported format", path)
+    return img

@@ -1,0 +1,5 @@
+"""Evaluation: metrics of PROTOCOL.md, the evaluate pipeline, reports."""
+
+from topoloc.evaluation.metrics import Scores, compute_metrics
+
+__all__ = ["Scores", "compute_metrics"]

@@ -1,0 +1,149 @@
+"""Precision-recall metrics of ``PROTOCOL.md`` (VPR_Tutorial conventions).
+
+Single best match per query:
+
+1. cells in ``GTsoft`` but not in ``GThard`` are set to ``min(S)`` so they can
+   never be the best match (and are therefore neither right nor wrong);
+2. the best remaining match of each query is *right* iff it lies in ``GThard``;
+3. the PR curve sweeps an acceptance threshold over the best-match scores;
+   precision = right accepted / accepted, recall = right accepted / number of
+   queries that have a correct place.
+
+The curve starts at (recall 0, precision 1); AUC is trapezoidal over it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from topoloc.datasets.groundtruth import GroundTruth
+
+
+def check_shapes(S: np.ndarray, gt: GroundTruth) -> None:
+    """Raise ``ValueError`` unless ``S`` is 2-D, finite-or-inf and shaped like ``gt``."""
+    if S.ndim != 2:
+        raise ValueError(f"S must be 2-D (places, queries), got shape {S.shape}")
+    if S.shape != gt.shape:
+        raise ValueError(f"S has shape {S.shape} but ground truth has {gt.shape}")
+    if np.isnan(S).any():
+        raise ValueError("S contains NaN")
+
+
+def _masked(S: np.ndarray, gt: GroundTruth) -> np.ndarray:
+    S = np.asarray(S, dtype=np.float64).copy()
+    S[gt.soft & ~gt.hard] = S.min()
+    return S
+
+
+def best_matches(S: np.ndarray, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best match of each query after masking soft-only cells.
+
+    Returns
+    -------
+    idx : ndarray of int, shape (n_queries,)
+        Row of the best match.
+    score : ndarray of float, shape (n_queries,)
+    right : ndarray of bool, shape (n_queries,)
+        Whether the best match is in ``GThard``.
+    """
+    check_shapes(S, gt)
+    Sm = _masked(S, gt)
+    idx = np.argmax(Sm, axis=0)
+    cols = np.arange(S.shape[1])
+    return idx, Sm[idx, cols], gt.hard[idx, cols]
+
+
+def pr_curve(S: np.ndarray, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
+    """Precision and recall for every threshold over best-match scores.
+
+    Returns
+    -------
+    precision, recall : ndarray of float, shape (n_thresholds + 1,)
+        Starting at (precision 1, recall 0); one point per distinct score,
+        from the strictest threshold to accepting everything.
+    """
+    _, score, right = best_matches(S, gt)
+    n_pos = int(gt.hard.any(axis=0).sum())
+    order = np.argsort(-score, kind="stable")
+    s, r = score[order], right[order].astype(np.int64)
+    tp = np.cumsum(r)
+    fp = np.cumsum(1 - r)
+    # Queries with equal scores are accepted together by any threshold, so
+    # only the last position of each run of ties is a reachable point.
+    last = np.r_[s[1:] != s[:-1], True] if s.size else np.zeros(0, bool)
+    tp, fp = tp[last], fp[last]
+    precision = np.r_[1.0, tp / np.maximum(tp + fp, 1)]
+    recall = np.r_[0.0, tp / max(n_pos, 1)]
+    return precision, recall
+
+
+def auc_pr(precision: np.ndarray, recall: np.ndarray) -> float:
+    """Trapezoidal area under the PR curve."""
+    return float(np.trapezoid(precision, recall))
+
+
+def recall_at_100_precision(precision: np.ndarray, recall: np.ndarray) -> float:
+    """Largest recall reached while precision is exactly 1."""
+    ok = precision >= 1.0
+    return float(recall[ok].max()) if ok.any() else 0.0
+
+
+def recall_at_k(S: np.ndarray, gt: GroundTruth, ks: tuple[int, ...] = (1, 5, 10)) -> dict[int, float]:
+    """Fraction of queries with a correct place whose top K rows contain one.
+
+    Soft-only cells are masked as for the PR curve, so they cannot occupy a
+    top-K slot.  Ties are ordered by row index, as ``argmax`` orders them for
+    the single best match, so R@1 agrees with the best-match correctness.
+    """
+    check_shapes(S, gt)
+    has_pos = gt.hard.any(axis=0)
+    if not has_pos.any():
+        return dict.fromkeys(ks, 0.0)
+    Sm = _masked(S, gt)[:, has_pos]
+    hard = gt.hard[:, has_pos]
+    first = np.empty(Sm.shape[1], dtype=np.int64)
+    step = max(1, 2_000_000 // max(Sm.shape[0], 1))  # bound the argsort's memory
+    for a in range(0, Sm.shape[1], step):
+        order = np.argsort(-Sm[:, a:a + step], axis=0, kind="stable")
+        hit = np.take_along_axis(hard[:, a:a + step], order, axis=0)
+        first[a:a + step] = np.argmax(hit, axis=0)
+    return {k: float((first < k).mean()) for k in ks}
+
+
+@dataclass(frozen=True)
+class Scores:
+    """The accuracy part of ``metrics.json``."""
+
+    auc: float
+    recall_at_100_precision: float
+    recall_at_1: float
+    recall_at_5: float
+    recall_at_10: float
+    precision: np.ndarray
+    recall: np.ndarray
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "auc": self.auc,
+            "recall_at_100_precision": self.recall_at_100_precision,
+            "recall_at_1": self.recall_at_1,
+            "recall_at_5": self.recall_at_5,
+            "recall_at_10": self.recall_at_10,
+        }
+
+
+def compute_metrics(S: np.ndarray, gt: GroundTruth) -> Scores:
+    """All accuracy metrics of ``PROTOCOL.md`` for ``S`` of shape (places, queries)."""
+    p, r = pr_curve(S, gt)
+    rk = recall_at_k(S, gt)
+    return Scores(
+        auc=auc_pr(p, r),
+        recall_at_100_precision=recall_at_100_precision(p, r),
+        recall_at_1=rk[1],
+        recall_at_5=rk[5],
+        recall_at_10=rk[10],
+        precision=p,
+        recall=r,
+    )

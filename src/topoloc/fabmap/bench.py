@@ -1,0 +1,400 @@
+"""Synthetic bag-of-words streams and FAB-MAP timings (``topoloc bench fabmap2``).
+
+Synthetic data
+--------------
+:func:`zipf_occurrence` draws images whose words follow Zipf's law: the word of
+frequency rank ``r`` has weight ``r^-s`` (``s = 1``: the classic law of word
+frequencies), and an image holds ~``words_per_image`` distinct words.  Word
+``q`` occurs in an image independently with probability
+``pi_q = 1 - exp(-lambda w_q)``, ``lambda`` set so that ``sum pi_q`` equals the
+words per image: the inclusion probabilities of drawing features from the
+Zipf distribution until that many distinct words are seen (Poisson
+approximation).  At ``s = 1``, 10,000 words and 300 words per image the most
+common words are in every image, the 50th in ~65 % and the 1,000th in ~5 %.
+Rank-to-id assignment is a seeded permutation.  Queries are revisits of
+random map places: each word of the place is re-detected with probability
+``keep`` and fresh words drawn from the same law are added so that the query
+again has ~``words_per_image`` words.
+
+Timings
+-------
+:func:`bench_fabmap2` times the full FAB-MAP 2.0 filter update per query:
+word states, the inverted-index likelihood of every place (Eq. 4-5, two-level
+models), the sampled new-place term (Eq. 10, an index over training images)
+and the posterior (Eq. 3).  :func:`bench_bailout` compares FAB-MAP 1.0
+exhaustive evaluation with the Bennett bail-out (and the exact sparse
+evaluation).  :func:`bench_chowliu` times Chow-Liu training.
+"""
+
+from __future__ import annotations
+
+import time
+import tracemalloc
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import brentq
+
+from topoloc.errors import TopolocError
+from topoloc.fabmap.chowliu import chow_liu_tree
+from topoloc.fabmap.likelihood import (
+    InvertedIndex,
+    ObservationModel,
+    PlaceModels,
+    location_posterior,
+    log_likelihood_bailout,
+    log_mean_exp,
+    training_index,
+)
+from topoloc.fabmap.model import FabMapModel
+
+
+def zipf_inclusion(n_words: int, words_per_image: float, exponent: float = 1.0) -> np.ndarray:
+    """Per-rank inclusion probabilities ``pi_r`` (module docstring), shape (n_words,).
+
+    Raises
+    ------
+    TopolocError
+        If ``words_per_image`` is not in ``(0, n_words)``.
+    """
+    if not 0 < words_per_image < n_words:
+        raise TopolocError(f"words_per_image must be in (0, {n_words}), got {words_per_image}")
+    w = 1.0 / np.arange(1, n_words + 1, dtype=np.float64) ** exponent
+    lam = brentq(lambda lam_: float((-np.expm1(-lam_ * w)).sum()) - words_per_image, 1e-12, 1e15,
+                 xtol=1e-12, rtol=1e-12, maxiter=500)
+    return np.asarray(-np.expm1(-lam * w))
+
+
+def zipf_occurrence(
+    n_images: int,
+    *,
+    n_words: int = 10000,
+    words_per_image: float = 300,
+    exponent: float = 1.0,
+    seed: int = 0,
+    permutation_seed: int | None = None,
+) -> sp.csr_matrix:
+    """Binary image x word matrix with Zipf-distributed word occurrence.
+
+    Parameters
+    ----------
+    n_images, n_words : int
+    words_per_image : float
+        Expected distinct words per image.
+    exponent : float
+        Zipf exponent ``s``.
+    seed : int
+        Seed of the occurrences.
+    permutation_seed : int, optional
+        Seed of the rank -> word id map (default ``seed``); use the same value
+        for training, map and queries so that they share one distribution.
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix of uint8, shape (n_images, n_words)
+    """
+    pi_rank = zipf_inclusion(n_words, words_per_image, exponent)
+    perm = np.random.default_rng(seed if permutation_seed is None else permutation_seed).permutation(
+        n_words
+    )
+    pi = np.empty(n_words)
+    pi[perm] = pi_rank  # word perm[r] has rank r
+    rng = np.random.default_rng(seed)
+    n = int(n_images)
+    counts = np.zeros(n_words, dtype=np.int64)
+    img_parts: list[np.ndarray] = []
+    # Word by word (in chunks), the images holding the word are the partial sums
+    # of geometric gaps: exactly Bernoulli(pi_q) per image, cost O(nnz).  The
+    # result is built word-major (CSC) and converted once.
+    q_all = np.arange(n_words)
+    chunk_budget = 4_000_000
+    start = 0
+    while start < n_words:
+        p_rest = pi[start:]
+        expect = n * p_rest
+        draws = np.ceil(expect + 6.0 * np.sqrt(expect * (1 - p_rest)) + 8).astype(np.int64)
+        draws[p_rest <= 0] = 0
+        stop = start + max(1, int(np.searchsorted(np.cumsum(draws), chunk_budget)))
+        qs = q_all[start:stop]
+        m = draws[: stop - start]
+        seg_end = np.cumsum(m)
+        gaps = rng.geometric(np.repeat(np.maximum(pi[qs], 1e-300), m)).astype(np.int64)
+        cs = np.cumsum(gaps)
+        before = np.repeat(np.concatenate([[0], cs[seg_end[:-1] - 1]]) if m.size else cs[:0], m)
+        pos = cs - before - 1  # 0-based image index within the word's run
+        del gaps, cs, before
+        owner = np.repeat(np.arange(qs.size), m)
+        keep = pos < n
+        chunk_imgs = pos[keep].astype(np.int32)
+        chunk_owner = owner[keep]
+        # top up the (very unlikely) words whose draws did not reach the last image
+        nonempty = m > 0
+        last = np.full(qs.size, n, dtype=np.int64)
+        last[nonempty] = pos[seg_end[nonempty] - 1]
+        extra_imgs: list[int] = []
+        extra_owner: list[int] = []
+        for k in np.flatnonzero(last < n - 1):
+            p = int(last[k])
+            while True:
+                p += int(rng.geometric(pi[qs[k]]))
+                if p >= n:
+                    break
+                extra_imgs.append(p)
+                extra_owner.append(int(k))
+        if extra_imgs:
+            chunk_imgs = np.concatenate([chunk_imgs, np.asarray(extra_imgs, dtype=np.int32)])
+            chunk_owner = np.concatenate([chunk_owner, np.asarray(extra_owner, dtype=np.int64)])
+            order = np.lexsort((chunk_imgs, chunk_owner))
+            chunk_imgs, chunk_owner = chunk_imgs[order], chunk_owner[order]
+        counts[qs] = np.bincount(chunk_owner, minlength=qs.size)
+        img_parts.append(chunk_imgs)
+        del pos, owner, keep, chunk_owner
+        start = stop
+    indptr = np.zeros(n_words + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    indices = np.concatenate(img_parts) if img_parts else np.zeros(0, dtype=np.int32)
+    del img_parts
+    x = sp.csc_matrix((np.ones(indices.size, dtype=np.uint8), indices, indptr), shape=(n, n_words))
+    out = x.tocsr()
+    out.sort_indices()
+    return out
+
+
+def revisit_queries(
+    places: sp.csr_matrix,
+    n_queries: int,
+    *,
+    keep: float = 0.7,
+    words_per_image: float = 300,
+    exponent: float = 1.0,
+    permutation_seed: int = 0,
+    seed: int = 1,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Noisy revisits of random places (module docstring).
+
+    Returns
+    -------
+    queries : list of int arrays
+        Word ids of each query.
+    truth : ndarray of int64, shape (n_queries,)
+        The place each query revisits.
+    """
+    rng = np.random.default_rng(seed)
+    x = sp.csr_matrix(places)
+    truth = rng.integers(0, x.shape[0], size=n_queries)
+    fresh = zipf_occurrence(
+        n_queries, n_words=x.shape[1], words_per_image=words_per_image, exponent=exponent,
+        seed=seed + 7919, permutation_seed=permutation_seed,
+    )
+    out = []
+    for k, i in enumerate(truth):
+        words = x.indices[x.indptr[i]:x.indptr[i + 1]]
+        kept = words[rng.random(words.size) < keep]
+        new = np.setdiff1d(fresh.indices[fresh.indptr[k]:fresh.indptr[k + 1]], kept)
+        n_add = max(0, round(words_per_image) - kept.size)
+        add = rng.choice(new, size=min(n_add, new.size), replace=False) if n_add else new[:0]
+        out.append(np.union1d(kept, add).astype(np.int64))
+    return out, truth.astype(np.int64)
+
+
+def _train_model(
+    n_train: int, n_words: int, words_per_image: float, exponent: float, seed: int
+) -> tuple[FabMapModel, float]:
+    x = zipf_occurrence(n_train, n_words=n_words, words_per_image=words_per_image,
+                        exponent=exponent, seed=seed + 101, permutation_seed=seed)
+    t0 = time.perf_counter()
+    model = FabMapModel.train(x, n_words=n_words)
+    return model, time.perf_counter() - t0
+
+
+def bench_fabmap2(
+    *,
+    n_places: int,
+    n_words: int = 10000,
+    words_per_image: int = 300,
+    n_queries: int = 200,
+    n_train: int = 2000,
+    n_samples: int = 1000,
+    exponent: float = 1.0,
+    p_new: float = 0.9,
+    seed: int = 0,
+    model: FabMapModel | None = None,
+) -> dict[str, Any]:
+    """Median and 95th-percentile milliseconds of a FAB-MAP 2.0 filter update at ``n_places``.
+
+    Parameters
+    ----------
+    n_places : int
+        Places in the map (one synthetic image each).
+    n_words, words_per_image, exponent : int, int, float
+        Synthetic bag-of-words stream (:func:`zipf_occurrence`).
+    n_queries : int
+        Timed queries (revisits of random places, :func:`revisit_queries`).
+    n_train : int
+        Training images for the Chow-Liu model (ignored with ``model``).
+    n_samples : int
+        Sampled training places of the new-place term (Eq. 10).
+    p_new : float
+        Prior of a new place.
+    seed : int
+    model : FabMapModel, optional
+        Reuse a trained model (same ``n_words``).
+
+    Returns
+    -------
+    dict
+        ``ms_per_query_median``, ``ms_per_query_p95``, ``ms_per_query_mean``,
+        ``n_places``, ``n_words``, ``words_per_image`` (measured mean),
+        ``n_queries``, ``recall_at_1`` (revisit found at rank 1), ``build_s``,
+        ``train_s``, ``n_lut_words``, ``n_postings``, ``exponent``.
+    """
+    if n_places < 1 or n_queries < 1:
+        raise TopolocError("bench fabmap2 needs n_places >= 1 and n_queries >= 1")
+    train_s = 0.0
+    if model is None:
+        model, train_s = _train_model(n_train, n_words, words_per_image, exponent, seed)
+    elif model.n_words != n_words:
+        raise TopolocError(f"model has {model.n_words} words, bench asked for {n_words}")
+    om = ObservationModel(model)
+    x = zipf_occurrence(n_places, n_words=n_words, words_per_image=words_per_image,
+                        exponent=exponent, seed=seed + 202, permutation_seed=seed)
+    t0 = time.perf_counter()
+    index = InvertedIndex(om, x)
+    samples = training_index(om, n_samples=n_samples, seed=seed)
+    build_s = time.perf_counter() - t0
+    queries, truth = revisit_queries(x, n_queries, words_per_image=words_per_image,
+                                     exponent=exponent, permutation_seed=seed, seed=seed + 303)
+    del x
+    # one warm-up query (allocations, caches) outside the timings
+    _ = index.log_likelihood(om.observe(queries[0]))
+    ms = np.empty(n_queries)
+    hits = 0
+    for k, words in enumerate(queries):
+        t = time.perf_counter()
+        obs = om.observe(words)
+        ll = index.log_likelihood(obs)
+        new_ll = log_mean_exp(samples.log_likelihood(obs))
+        post = location_posterior(ll, None, new_ll, p_new=p_new)
+        ms[k] = 1e3 * (time.perf_counter() - t)
+        hits += int(np.argmax(post[:-1]) == truth[k])
+    return {
+        "ms_per_query_median": float(np.median(ms)),
+        "ms_per_query_p95": float(np.percentile(ms, 95)),
+        "ms_per_query_mean": float(ms.mean()),
+        "n_places": int(n_places),
+        "n_words": int(n_words),
+        "words_per_image": float(np.mean([q.size for q in queries])),
+        "n_queries": int(n_queries),
+        "recall_at_1": hits / n_queries,
+        "build_s": build_s,
+        "train_s": train_s,
+        "n_lut_words": index.n_lut_words,
+        "n_postings": index.n_postings,
+        "n_samples": samples.n_places,
+        "exponent": float(exponent),
+    }
+
+
+def bench_bailout(
+    *,
+    n_places: int = 1000,
+    n_words: int = 10000,
+    words_per_image: int = 300,
+    n_queries: int = 20,
+    n_train: int = 2000,
+    exponent: float = 1.0,
+    p_bailout: float = 1e-6,
+    seed: int = 0,
+    model: FabMapModel | None = None,
+) -> dict[str, Any]:
+    """Speed-up of the Bennett bail-out over exhaustive FAB-MAP 1.0 evaluation.
+
+    Returns
+    -------
+    dict
+        ``fraction_evaluated`` (mean fraction of places evaluated over all words),
+        ``fraction_terms`` (of the ``n_places * n_words`` terms), ``speedup``
+        (exhaustive / bail-out median time), ``top1_agree`` (fraction of queries
+        with the same best place), ``near_best_exact`` (fraction of queries where
+        every place within ``log(1 / p_bailout)`` of the best was evaluated
+        exactly: the places whose posterior can matter), ``ms_exhaustive``,
+        ``ms_bailout``, ``ms_sparse_exact`` (medians), ``n_places``, ``n_words``.
+    """
+    if model is None:
+        model, _ = _train_model(n_train, n_words, words_per_image, exponent, seed)
+    om = ObservationModel(model)
+    x = zipf_occurrence(n_places, n_words=n_words, words_per_image=words_per_image,
+                        exponent=exponent, seed=seed + 202, permutation_seed=seed)
+    places = PlaceModels(om)
+    for lo in range(0, n_places, 256):
+        rows = range(lo, min(n_places, lo + 256))
+        places.add(np.stack([om.new_place(om.observe(x.indices[x.indptr[i]:x.indptr[i + 1]]))
+                             for i in rows]))
+    queries, _ = revisit_queries(x, n_queries, words_per_image=words_per_image,
+                                 exponent=exponent, permutation_seed=seed, seed=seed + 303)
+    t_ex, t_bo, t_sp, frac_p, frac_t, top1, near_ok = [], [], [], [], [], 0, 0
+    for words in queries:
+        obs = om.observe(words)
+        t = time.perf_counter()
+        full = places.log_likelihood_exhaustive(obs)
+        t_ex.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        res = log_likelihood_bailout(places, obs, p_bailout=p_bailout)
+        t_bo.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        places.log_likelihood(obs)
+        t_sp.append(time.perf_counter() - t)
+        frac_p.append(res.fraction_evaluated)
+        frac_t.append(res.fraction_terms)
+        top1 += int(np.argmax(full) == np.argmax(res.log_lik))
+        near = full >= full.max() - np.log(1.0 / p_bailout)
+        near_ok += int(res.evaluated[near].all() and np.allclose(res.log_lik[near], full[near]))
+    return {
+        "fraction_evaluated": float(np.mean(frac_p)),
+        "fraction_terms": float(np.mean(frac_t)),
+        "speedup": float(np.median(t_ex) / np.median(t_bo)),
+        "top1_agree": top1 / n_queries,
+        "near_best_exact": near_ok / n_queries,
+        "ms_exhaustive": 1e3 * float(np.median(t_ex)),
+        "ms_bailout": 1e3 * float(np.median(t_bo)),
+        "ms_sparse_exact": 1e3 * float(np.median(t_sp)),
+        "n_places": int(n_places),
+        "n_words": int(n_words),
+        "n_queries": int(n_queries),
+    }
+
+
+def bench_chowliu(
+    *,
+    n_images: int = 2000,
+    n_words: int = 10000,
+    words_per_image: int = 300,
+    exponent: float = 1.0,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Time and peak traced memory of Chow-Liu training on synthetic Zipf data.
+
+    Returns
+    -------
+    dict
+        ``seconds``, ``peak_mb`` (tracemalloc peak of the tree construction:
+        numpy and scipy allocations), ``n_images``, ``n_words``, ``nnz``.
+    """
+    x = zipf_occurrence(n_images, n_words=n_words, words_per_image=words_per_image,
+                        exponent=exponent, seed=seed)
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    t0 = time.perf_counter()
+    tree = chow_liu_tree(x)
+    seconds = time.perf_counter() - t0
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return {
+        "seconds": seconds,
+        "peak_mb": peak / 2**20,
+        "n_images": int(n_images),
+        "n_words": int(n_words),
+        "nnz": int(x.nnz),
+        "total_mi": tree.total_mi,
+    }

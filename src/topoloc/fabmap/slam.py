@@ -1,0 +1,707 @@
+"""Online FAB-MAP: appearance-only SLAM with loop-closure detection (``topoloc slam``).
+
+For every image of a traverse, in order (overview paper, Sec. 5):
+
+1. **Location prior** (motion model): the belief over places after the
+   previous step is moved along the *topological* adjacency of the map (two
+   places are adjacent when they were observed at consecutive time steps):
+   a place keeps ``p_stay`` of its mass and spreads the rest evenly over its
+   neighbours (openFABMAP's default is a third each way on a chain); a small
+   uniform part ``p_uniform`` allows unexpected jumps.  The map's places share
+   ``1 - p_new``; the new-place hypothesis gets ``p_new``.
+2. **Likelihoods** ``p(Z_k | L_i)`` of all places (Eq. 4-5; FAB-MAP 1.0 dense
+   models or the FAB-MAP 2.0 inverted index) and the **new-place** term, sampled
+   (Eq. 10) or mean-field.
+3. **Posterior** (Eq. 3) after the smoothing of Eq. 6 (``smoothing`` = sigma).
+4. **Data association**: if the most probable hypothesis is an existing place
+   with posterior >= ``threshold``, the observation updates that place
+   (Eq. 11); otherwise it starts a new place (prior + Eq. 11).  Several
+   observations of one place are thus merged into one appearance model.
+
+An accepted association is reported as a **loop closure** when the robot
+arrives at a place last observed at least ``min_gap`` images earlier, and for
+the following images as long as it stays at that place; associations with a
+place seen within the last ``min_gap`` images are the robot lingering at the
+same place, not closing a loop (as RTAB-Map excludes its short-term memory of
+the last 10 images from loop-closure detection).
+
+The default ``threshold`` is 0.98: with the smoothing of Eq. 6 at
+``sigma = 0.99`` and ``p_new = 0.9`` (openFABMAP's defaults) every hypothesis keeps
+a floor of ``(1 - sigma) / n_k`` of the likelihood, which caps the posterior of
+a place in a map of a few dozen places at about 0.99, so a 0.99 threshold would
+rarely be reachable there.
+
+Outputs (:func:`write_slam_outputs`), under ``out_dir``:
+
+``posterior.npy``
+    float64 (n_images, n_places + 1): row ``k`` holds the posterior over the
+    places that existed when image ``k`` arrived (columns ``0..n_k - 1``, places
+    numbered in creation order; NaN for places created later) and, in the
+    **last column**, the probability of a new place.  Each row sums to 1 over
+    its non-NaN entries.
+``loop_closures.csv``
+    header ``image,matched_image,probability``: 0-based image indices in
+    traverse order; ``matched_image`` is the image that founded the matched
+    place; one row per accepted loop closure (posterior >= ``threshold``,
+    default 0.98).
+``loop_closures.png``
+    the loop-closure matrix: entry (k, j) is the posterior, at image ``k``, of
+    the place founded by image ``j``; accepted loop closures are circled.
+``assignments.csv``
+    ``image,place,founder_image,new_place,loop_closure``: the place each image was
+    assigned to.
+``slam.json``
+    parameters and counts.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc.datasets.traverse import Traverse, load_traverse
+from topoloc.errors import TopolocError
+from topoloc.fabmap.likelihood import (
+    InvertedIndex,
+    Observation,
+    ObservationModel,
+    PlaceModels,
+    SampledNormaliser,
+    WordCounts,
+    location_posterior,
+    log_likelihood_bailout,
+    log_mean_exp,
+    mean_field_log_likelihood,
+    training_index,
+)
+from topoloc.fabmap.model import FabMapModel
+from topoloc.io.container import atomic_write_bytes
+
+VARIANTS = ("fabmap", "fabmap2")
+NORMALISERS = ("sampled", "mean_field")
+
+# ---------------------------------------------------------------------------------------
+# Maps of places: FAB-MAP 1.0 (dense models) and FAB-MAP 2.0 (inverted index)
+# ---------------------------------------------------------------------------------------
+
+
+class DenseMap:
+    """FAB-MAP 1.0 map: dense place models, exact likelihoods, optional bail-out.
+
+    Parameters
+    ----------
+    obs_model : ObservationModel
+    normaliser : {"sampled", "mean_field"}
+        New-place term (Eq. 10 or the mean-field approximation).
+    n_samples : int
+        Training images used as sampled places (all if <= 0).
+    seed : int
+    bailout : bool
+        Evaluate likelihoods with the Bennett bail-out (ICRA 2008).
+    p_bailout : float
+        Bail-out probability bound.
+    """
+
+    def __init__(
+        self,
+        obs_model: ObservationModel,
+        *,
+        normaliser: str = "sampled",
+        n_samples: int = 1000,
+        seed: int = 0,
+        bailout: bool = False,
+        p_bailout: float = 1e-6,
+    ) -> None:
+        _check_choice("normaliser", normaliser, NORMALISERS)
+        self.obs_model = obs_model
+        self.places = PlaceModels(obs_model)
+        self.normaliser = normaliser
+        self.n_samples = n_samples
+        self.seed = seed
+        self.bailout = bailout
+        self.p_bailout = p_bailout
+        self._sampled: SampledNormaliser | None = None
+
+    @property
+    def n_places(self) -> int:
+        return self.places.n_places
+
+    def add(self, obs: Observation) -> int:
+        """New place from one observation (Eq. 11 from the prior); returns its index."""
+        return self.places.add_observation(obs)
+
+    def add_beliefs(self, e: np.ndarray) -> int:
+        """Append places with given beliefs (k, V); returns the first index."""
+        return self.places.add(e)
+
+    def update(self, i: int, obs: Observation) -> None:
+        """Merge an observation into place ``i`` (Eq. 11)."""
+        self.places.update(i, obs)
+
+    def log_likelihood(self, obs: Observation) -> np.ndarray:
+        """``log p(Z | L_i)`` of every place (Eq. 4-5), shape (n_places,)."""
+        if self.bailout and self.n_places > 1:
+            return log_likelihood_bailout(self.places, obs, p_bailout=self.p_bailout).log_lik
+        return self.places.log_likelihood(obs)
+
+    def prepare_normaliser(self) -> None:
+        """Build the sampled places now (otherwise on the first query)."""
+        if self.normaliser == "sampled" and self._sampled is None:
+            self._sampled = SampledNormaliser(self.obs_model, n_samples=self.n_samples,
+                                              seed=self.seed)
+
+    def new_place_log_likelihood(self, obs: Observation) -> float:
+        """The new-place term: Eq. 10 (sampled) or mean-field."""
+        if self.normaliser == "mean_field":
+            return mean_field_log_likelihood(self.obs_model, obs)
+        self.prepare_normaliser()
+        assert self._sampled is not None
+        return self._sampled.log_likelihood(obs)
+
+
+class IndexMap:
+    """FAB-MAP 2.0 map: two-level place models scored through an inverted index.
+
+    Parameters are those of :class:`DenseMap` (no bail-out: the index already
+    touches only the words that matter).
+    """
+
+    def __init__(
+        self,
+        obs_model: ObservationModel,
+        *,
+        normaliser: str = "sampled",
+        n_samples: int = 1000,
+        seed: int = 0,
+    ) -> None:
+        _check_choice("normaliser", normaliser, NORMALISERS)
+        self.obs_model = obs_model
+        m = obs_model.model
+        self.counts = WordCounts(p_fp=m.p_fp, p_fn=m.p_fn)
+        self.index = InvertedIndex(obs_model)
+        self.normaliser = normaliser
+        self.n_samples = n_samples
+        self.seed = seed
+        self._samples: InvertedIndex | None = None
+
+    @property
+    def n_places(self) -> int:
+        return self.index.n_places
+
+    def add(self, obs: Observation) -> int:
+        """New place observed once; returns its index."""
+        i = self.counts.add(obs.words)
+        self.index.add_place(self.counts.word_set(i))
+        return i
+
+    def update(self, i: int, obs: Observation) -> None:
+        """Merge an observation into place ``i`` (Eq. 11 with two-level models)."""
+        self.counts.update(i, obs.words)
+        self.index.set_place(i, self.counts.word_set(i))
+
+    def build(self, observations: Sequence[Sequence[Observation]]) -> None:
+        """Bulk-create places, each from its list of observations (one index build)."""
+        if self.n_places:
+            raise TopolocError("IndexMap.build needs an empty map")
+        sets = []
+        for obs_list in observations:
+            if not obs_list:
+                raise TopolocError("every place needs at least one observation")
+            i = self.counts.add(obs_list[0].words)
+            for o in obs_list[1:]:
+                self.counts.update(i, o.words)
+            sets.append(self.counts.word_set(i))
+        self.index = InvertedIndex(self.obs_model, sets)
+
+    def log_likelihood(self, obs: Observation) -> np.ndarray:
+        """``log p(Z | L_i)`` under FAB-MAP 2.0 place models, shape (n_places,)."""
+        return self.index.log_likelihood(obs)
+
+    def prepare_normaliser(self) -> None:
+        """Index the sampled training places now (otherwise on the first query)."""
+        if self.normaliser == "sampled" and self._samples is None:
+            self._samples = training_index(self.obs_model, n_samples=self.n_samples,
+                                           seed=self.seed)
+
+    def new_place_log_likelihood(self, obs: Observation) -> float:
+        """The new-place term: Eq. 10 over an index of training places, or mean-field."""
+        if self.normaliser == "mean_field":
+            return mean_field_log_likelihood(self.obs_model, obs)
+        self.prepare_normaliser()
+        assert self._samples is not None
+        return log_mean_exp(self._samples.log_likelihood(obs))
+
+
+def _check_choice(name: str, value: str, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise TopolocError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
+
+
+def make_map(
+    obs_model: ObservationModel,
+    *,
+    variant: str = "fabmap",
+    normaliser: str = "sampled",
+    n_samples: int = 1000,
+    seed: int = 0,
+    bailout: bool = False,
+    p_bailout: float = 1e-6,
+) -> DenseMap | IndexMap:
+    """A :class:`DenseMap` (``"fabmap"``) or an :class:`IndexMap` (``"fabmap2"``)."""
+    _check_choice("variant", variant, VARIANTS)
+    if variant == "fabmap2":
+        return IndexMap(obs_model, normaliser=normaliser, n_samples=n_samples, seed=seed)
+    return DenseMap(obs_model, normaliser=normaliser, n_samples=n_samples, seed=seed,
+                    bailout=bailout, p_bailout=p_bailout)
+
+
+# ---------------------------------------------------------------------------------------
+# Location prior (motion model)
+# ---------------------------------------------------------------------------------------
+
+
+def motion_prior(
+    belief: np.ndarray,
+    edges: np.ndarray,
+    *,
+    p_stay: float = 1.0 / 3.0,
+    p_uniform: float = 0.01,
+) -> np.ndarray:
+    """Location prior over the map's places from the previous belief (overview Sec. 5).
+
+    Parameters
+    ----------
+    belief : ndarray, shape (n,)
+        ``p(L_i | Z^{k-1})`` after the previous data association (sums to 1).
+    edges : ndarray of int, shape (m, 2)
+        Undirected topological adjacencies (unique pairs, ``i != j``).
+    p_stay : float
+        Probability of staying at the same place; the rest is split evenly
+        among the neighbours (a place without neighbours keeps its mass).
+    p_uniform : float
+        Weight of a uniform distribution mixed in.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        The prior over the map's places (sums to 1; the caller scales it by
+        ``1 - p_new``).
+    """
+    b = np.asarray(belief, dtype=np.float64)
+    n = b.size
+    if n == 0:
+        return b.copy()
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    deg = np.bincount(e.ravel(), minlength=n).astype(np.float64)
+    moving = np.where(deg > 0, 1.0 - p_stay, 0.0)
+    out = b * (1.0 - moving)
+    if e.size:
+        share = np.divide(b * moving, deg, out=np.zeros(n), where=deg > 0)
+        out += np.bincount(e[:, 1], weights=share[e[:, 0]], minlength=n)
+        out += np.bincount(e[:, 0], weights=share[e[:, 1]], minlength=n)
+    total = out.sum()
+    out = out / total if total > 0 else np.full(n, 1.0 / n)
+    return np.asarray((1.0 - p_uniform) * out + p_uniform / n)
+
+
+# ---------------------------------------------------------------------------------------
+# The filter
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SlamStep:
+    """What happened at one image.
+
+    Attributes
+    ----------
+    image : int
+        0-based image index in traverse order.
+    posterior : ndarray of float64, shape (n_places_before + 1,)
+        Posterior over the places existing before this image, then the new place.
+    place : int
+        Place the image was assigned to.
+    new_place : bool
+        Whether that place was created by this image.
+    loop_closure : bool
+        Accepted association that closes a loop (module docstring).
+    probability : float
+        Posterior of the chosen hypothesis.
+    """
+
+    image: int
+    posterior: np.ndarray
+    place: int
+    new_place: bool
+    loop_closure: bool
+    probability: float
+
+
+@dataclass
+class SlamResult:
+    """All steps of a run, with the outputs of the module docstring."""
+
+    steps: list[SlamStep] = field(default_factory=list)
+    founders: list[int] = field(default_factory=list)
+    params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.steps)
+
+    @property
+    def n_places(self) -> int:
+        return len(self.founders)
+
+    @property
+    def image_place(self) -> np.ndarray:
+        """Place assigned to each image, shape (n_images,)."""
+        return np.array([s.place for s in self.steps], dtype=np.int64)
+
+    def loop_closures(self) -> list[tuple[int, int, float]]:
+        """``(image, matched_image, probability)`` of every accepted loop closure."""
+        return [(s.image, self.founders[s.place], s.probability) for s in self.steps
+                if s.loop_closure]
+
+    def posterior_matrix(self) -> np.ndarray:
+        """``posterior.npy``: (n_images, n_places + 1), NaN-padded, new place last."""
+        out = np.full((self.n_images, self.n_places + 1), np.nan)
+        for s in self.steps:
+            n = s.posterior.size - 1
+            out[s.image, :n] = s.posterior[:n]
+            out[s.image, -1] = s.posterior[-1]
+        return out
+
+    def loop_closure_matrix(self) -> np.ndarray:
+        """(n_images, n_images): posterior at image ``k`` of the place founded by image ``j``."""
+        out = np.zeros((self.n_images, self.n_images))
+        founders = np.asarray(self.founders, dtype=np.int64)
+        for s in self.steps:
+            n = s.posterior.size - 1
+            if n:
+                out[s.image, founders[:n]] = s.posterior[:n]
+        return out
+
+
+class FabMapSlam:
+    """Online FAB-MAP filter (module docstring).
+
+    Parameters
+    ----------
+    model : FabMapModel
+        Trained model (training images, not the traverse).
+    variant : {"fabmap", "fabmap2"}
+        FAB-MAP 1.0 dense models or FAB-MAP 2.0 inverted index.
+    naive_bayes : bool
+        Ignore the Chow-Liu tree.
+    normaliser : {"sampled", "mean_field"}
+        New-place term (Eq. 10 or mean-field).
+    n_samples : int
+        Sampled training places (all if <= 0).
+    p_new : float
+        Prior probability of a new place, ``p(L_new | Z^{k-1})``.
+    threshold : float
+        Posterior needed to associate an observation with an existing place.
+    smoothing : float
+        ``sigma`` of Eq. 6 (1 = off).
+    p_stay, p_uniform : float
+        Motion model (:func:`motion_prior`).
+    min_gap : int
+        Associations with places seen within this many images are not loop closures.
+    bailout : bool
+        Bennett bail-out for the FAB-MAP 1.0 likelihoods.
+    seed : int
+    """
+
+    def __init__(
+        self,
+        model: FabMapModel,
+        *,
+        variant: str = "fabmap",
+        naive_bayes: bool = False,
+        normaliser: str = "sampled",
+        n_samples: int = 1000,
+        p_new: float = 0.9,
+        threshold: float = 0.98,
+        smoothing: float = 0.99,
+        p_stay: float = 1.0 / 3.0,
+        p_uniform: float = 0.01,
+        min_gap: int = 10,
+        bailout: bool = False,
+        seed: int = 0,
+    ) -> None:
+        if not 0.0 < threshold <= 1.0:
+            raise TopolocError(f"threshold must be in (0, 1], got {threshold}")
+        if not 0.0 <= p_new < 1.0:
+            raise TopolocError(f"p_new must be in [0, 1), got {p_new}")
+        if not 0.0 <= p_stay <= 1.0 or not 0.0 <= p_uniform <= 1.0:
+            raise TopolocError("p_stay and p_uniform must be in [0, 1]")
+        self.obs_model = ObservationModel(model, naive_bayes=naive_bayes)
+        self.map = make_map(self.obs_model, variant=variant, normaliser=normaliser,
+                            n_samples=n_samples, seed=seed, bailout=bailout)
+        self.map.prepare_normaliser()
+        self.params: dict[str, Any] = {
+            "variant": variant, "naive_bayes": naive_bayes, "normaliser": normaliser,
+            "n_samples": n_samples, "p_new": p_new, "threshold": threshold,
+            "smoothing": smoothing, "p_stay": p_stay, "p_uniform": p_uniform,
+            "min_gap": min_gap, "bailout": bailout, "seed": seed,
+            "p_fp": model.p_fp, "p_fn": model.p_fn,
+        }
+        self.p_new = p_new
+        self.threshold = threshold
+        self.smoothing = smoothing
+        self.p_stay = p_stay
+        self.p_uniform = p_uniform
+        self.min_gap = int(min_gap)
+        self.result = SlamResult(params=dict(self.params))
+        self._belief = np.zeros(0)
+        self._edges: set[tuple[int, int]] = set()
+        self._edge_cache = np.zeros((0, 2), dtype=np.int64)
+        self._last_seen: list[int] = []
+        self._prev_place: int | None = None
+        self._prev_closure = False
+
+    def _edge_array(self) -> np.ndarray:
+        if self._edge_cache.shape[0] != len(self._edges):
+            self._edge_cache = np.array(sorted(self._edges), dtype=np.int64).reshape(-1, 2)
+        return self._edge_cache
+
+    def step(self, words: np.ndarray | Sequence[int]) -> SlamStep:
+        """Process the next image's visual words; returns what happened."""
+        k = self.result.n_images
+        obs = self.obs_model.observe(words)
+        n = self.map.n_places
+        if n == 0:
+            post = np.ones(1)
+        else:
+            prior = motion_prior(self._belief, self._edge_array(), p_stay=self.p_stay,
+                                 p_uniform=self.p_uniform)
+            ll = self.map.log_likelihood(obs)
+            new_ll = self.map.new_place_log_likelihood(obs)
+            post = location_posterior(ll, prior, new_ll, p_new=self.p_new,
+                                      smoothing=self.smoothing)
+        best = int(np.argmax(post[:n])) if n else -1
+        if n and post[best] >= self.threshold:
+            place, is_new, prob = best, False, float(post[best])
+            self.map.update(place, obs)
+            if place == self._prev_place:
+                closure = self._prev_closure  # a revisit continues while it stays at the place
+            else:
+                closure = k - self._last_seen[place] >= self.min_gap
+            belief = post[:n].copy()
+            belief[place] += post[n]  # the observation was assigned here
+        else:
+            place, is_new, prob, closure = self.map.add(obs), True, float(post[n]), False
+            self.result.founders.append(k)
+            self._last_seen.append(k)
+            belief = post.copy()
+        total = belief.sum()
+        self._belief = belief / total if total > 0 else np.full(belief.size, 1.0 / belief.size)
+        if self._prev_place is not None and self._prev_place != place:
+            self._edges.add((min(self._prev_place, place), max(self._prev_place, place)))
+        self._prev_place = place
+        self._prev_closure = closure
+        self._last_seen[place] = k
+        s = SlamStep(image=k, posterior=post, place=place, new_place=is_new,
+                     loop_closure=closure, probability=prob)
+        self.result.steps.append(s)
+        return s
+
+    def run(self, word_lists: Sequence[np.ndarray]) -> SlamResult:
+        """Process a whole traverse's images in order."""
+        for w in word_lists:
+            self.step(w)
+        return self.result
+
+
+# ---------------------------------------------------------------------------------------
+# Outputs and the entry point of ``topoloc slam``
+# ---------------------------------------------------------------------------------------
+
+
+def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = True) -> dict[str, Path]:
+    """Write ``posterior.npy``, ``loop_closures.csv``, ``loop_closures.png``,
+    ``assignments.csv`` and ``slam.json`` (module docstring) atomically.
+
+    Returns
+    -------
+    dict of str to Path
+        The files written.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    buf = io.BytesIO()
+    np.save(buf, result.posterior_matrix())
+    paths["posterior"] = out / "posterior.npy"
+    atomic_write_bytes(paths["posterior"], buf.getvalue())
+
+    text = io.StringIO()
+    w = csv.writer(text, lineterminator="\n")
+    w.writerow(["image", "matched_image", "probability"])
+    for img, matched, p in result.loop_closures():
+        w.writerow([img, matched, f"{p:.6f}"])
+    paths["loop_closures"] = out / "loop_closures.csv"
+    atomic_write_bytes(paths["loop_closures"], text.getvalue().encode())
+
+    text = io.StringIO()
+    w = csv.writer(text, lineterminator="\n")
+    w.writerow(["image", "place", "founder_image", "new_place", "loop_closure"])
+    for s in result.steps:
+        w.writerow([s.image, s.place, result.founders[s.place], int(s.new_place),
+                    int(s.loop_closure)])
+    paths["assignments"] = out / "assignments.csv"
+    atomic_write_bytes(paths["assignments"], text.getvalue().encode())
+
+    summary = {
+        "n_images": result.n_images,
+        "n_places": result.n_places,
+        "n_loop_closures": len(result.loop_closures()),
+        "params": result.params,
+    }
+    paths["summary"] = out / "slam.json"
+    atomic_write_bytes(paths["summary"], (json.dumps(summary, indent=2) + "\n").encode())
+
+    if plot:
+        paths["plot"] = out / "loop_closures.png"
+        atomic_write_bytes(paths["plot"], _plot_png(result))
+    return paths
+
+
+def _plot_png(result: SlamResult) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    m = result.loop_closure_matrix()
+    fig, ax = plt.subplots(figsize=(6.4, 5.6), dpi=100)
+    im = ax.imshow(m, cmap="viridis", vmin=0.0, vmax=1.0, origin="upper", interpolation="nearest")
+    lc = result.loop_closures()
+    if lc:
+        ax.scatter([b for _, b, _ in lc], [a for a, _, _ in lc], s=30, facecolors="none",
+                   edgecolors="red", linewidths=1.0, label="accepted loop closure")
+        ax.legend(loc="lower left", fontsize=8)
+    ax.set_xlabel("image that founded the place")
+    ax.set_ylabel("image (time)")
+    ax.set_title(f"FAB-MAP loop closures ({len(lc)} accepted, p >= {result.params.get('threshold')})")
+    fig.colorbar(im, ax=ax, label="posterior p(L | Z^k)")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def train_model_from_resources(resources: Any, **kwargs: Any) -> FabMapModel:
+    """Train a model on ``resources.training_words()`` with ``resources.vocabulary``.
+
+    Raises
+    ------
+    TopolocError
+        If the resources cannot provide training images.
+    """
+    fn = getattr(resources, "training_words", None)
+    if fn is None:
+        raise TopolocError(
+            "FAB-MAP needs training images that are not the map: pass --vocab-train DIR "
+            "(or a pre-trained model with --param model_path=FILE)"
+        )
+    words = fn()
+    if words is None or len(words) < 2:
+        raise TopolocError(
+            "FAB-MAP needs at least 2 training images that are not the map: pass --vocab-train DIR"
+        )
+    voc = resources.vocabulary
+    return FabMapModel.train(list(words), n_words=int(voc.n_words_), vocabulary=voc, **kwargs)
+
+
+def load_or_train_model(
+    model: FabMapModel | str | Path | None, resources: Any = None
+) -> FabMapModel:
+    """A model given directly, loaded from a file (checked against the run's vocabulary),
+    or trained from ``resources.training_words()``."""
+    if isinstance(model, FabMapModel):
+        return model
+    voc = None
+    if resources is not None and getattr(resources, "has_vocabulary", True):
+        voc = resources.vocabulary
+    if model is not None and str(model):
+        return FabMapModel.load(model, vocabulary=voc)
+    if resources is None:
+        raise TopolocError("FAB-MAP needs a trained model (model=...) or resources to train one")
+    return train_model_from_resources(resources)
+
+
+def run_slam(
+    traverse: Traverse | str | Path,
+    *,
+    out_dir: str | Path,
+    model: FabMapModel | str | Path | None = None,
+    resources: Any = None,
+    words: Sequence[np.ndarray] | None = None,
+    variant: str = "fabmap",
+    threshold: float = 0.98,
+    p_new: float = 0.9,
+    min_gap: int = 10,
+    naive_bayes: bool = False,
+    normaliser: str = "sampled",
+    n_samples: int = 1000,
+    smoothing: float = 0.99,
+    p_stay: float = 1.0 / 3.0,
+    p_uniform: float = 0.01,
+    bailout: bool = False,
+    seed: int = 0,
+    plot: bool = True,
+) -> SlamResult:
+    """Run online FAB-MAP over one traverse in order and write the outputs.
+
+    Parameters
+    ----------
+    traverse : Traverse or path
+        The images, processed in traverse order.
+    out_dir : path
+        Output folder (module docstring for the files).
+    model : FabMapModel, path, or None
+        Trained model, a saved model file (checked against ``resources.vocabulary``),
+        or None to train on ``resources.training_words()``.
+    resources : Resources, optional
+        Provides ``words(traverse)`` (features quantised with the run's
+        vocabulary), ``vocabulary`` and ``training_words()``.
+    words : sequence of int arrays, optional
+        Visual words of each image, instead of ``resources.words(traverse)``.
+    variant, threshold, p_new, min_gap, naive_bayes, normaliser, n_samples, smoothing,
+    p_stay, p_uniform, bailout, seed
+        See :class:`FabMapSlam`.
+    plot : bool
+        Write ``loop_closures.png``.
+
+    Returns
+    -------
+    SlamResult
+    """
+    tr = traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
+    if words is None:
+        if resources is None:
+            raise TopolocError("run_slam needs resources (features + vocabulary) or words")
+        words = resources.words(tr)
+    if len(words) != len(tr):
+        raise TopolocError(f"got words for {len(words)} images but the traverse has {len(tr)}")
+    fm = load_or_train_model(model, resources)
+    slam = FabMapSlam(
+        fm, variant=variant, naive_bayes=naive_bayes, normaliser=normaliser,
+        n_samples=n_samples, p_new=p_new, threshold=threshold, smoothing=smoothing,
+        p_stay=p_stay, p_uniform=p_uniform, min_gap=min_gap, bailout=bailout, seed=seed,
+    )
+    result = slam.run(words)
+    result.params["traverse"] = str(tr.root)
+    result.params["images"] = [p.name for p in tr.images]
+    write_slam_outputs(result, out_dir, plot=plot)
+    return result

@@ -1,0 +1,513 @@
+"""Local features (keypoints and descriptors) with OpenCV, cached on disk.
+
+Supported methods and their descriptors (``FeatureConfig.descriptor_kind``):
+
+==========  =====================  ==================================================
+method      descriptor_kind        notes
+==========  =====================  ==================================================
+sift        sift-128-float32       Lowe 2004, OpenCV ``SIFT``
+rootsift    rootsift-128-float32   SIFT, L1-normalised then square-rooted
+                                   (Arandjelovic & Zisserman, CVPR 2012); rows have
+                                   unit L2 norm, so Euclidean distance on RootSIFT
+                                   equals the Hellinger kernel on SIFT
+orb         orb-32-uint8           Rublee et al. 2011, 256-bit binary
+akaze       akaze-61-uint8         Alcantarilla et al. 2013, 486-bit binary (MLDB).
+                                   OpenCV 5 moved AKAZE to opencv-contrib; it is used
+                                   when ``cv2.AKAZE_create`` or
+                                   ``cv2.xfeatures2d.AKAZE_create`` exists
+==========  =====================  ==================================================
+
+Keypoints are returned strongest first (by detector response) and capped at
+``max_features``; their coordinates are always in pixels of the *original*
+image, even when it was downscaled for extraction.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from topoloc.datasets.traverse import read_image
+from topoloc.errors import TopolocError, input_error
+from topoloc.features.cache import default_cache_dir, file_sha1
+from topoloc.io import read_container, write_container
+
+log = logging.getLogger(__name__)
+
+FEATURES_SCHEMA = 1
+"""Version of the feature computation and cache-entry layout; part of every cache key."""
+
+METHODS = ("sift", "rootsift", "orb", "akaze")
+
+# method -> (descriptor columns, dtype name)
+_DESCRIPTORS: dict[str, tuple[int, str]] = {
+    "sift": (128, "float32"),
+    "rootsift": (128, "float32"),
+    "orb": (32, "uint8"),
+    "akaze": (61, "uint8"),
+}
+
+_KEYPOINT_COLUMNS = 5  # x, y, size, angle_degrees, response
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """What local features to extract.
+
+    Parameters
+    ----------
+    method : {"sift", "rootsift", "orb", "akaze"}
+        Detector and descriptor.
+    max_features : int
+        Keep at most this many keypoints per image, the strongest by response.
+    max_side : int
+        If > 0, images whose longer side exceeds it are downscaled (area
+        interpolation) to that size before extraction; keypoints are still
+        reported in original-image pixels.  0 disables resizing.
+    contrast_threshold : float
+        SIFT/RootSIFT contrast threshold (OpenCV default 0.04); lower finds more
+        keypoints in dark or low-contrast images.
+    fast_threshold : int
+        ORB FAST threshold (OpenCV default 20).
+    akaze_threshold : float
+        AKAZE detector response threshold (OpenCV default 0.001).
+    """
+
+    method: str = "sift"
+    max_features: int = 1000
+    max_side: int = 0
+    contrast_threshold: float = 0.04
+    fast_threshold: int = 20
+    akaze_threshold: float = 0.001
+
+    def __post_init__(self) -> None:
+        method = str(self.method).lower()
+        if method not in METHODS:
+            raise TopolocError(
+                f"unknown feature method {self.method!r} (choose from {', '.join(METHODS)})"
+            )
+        object.__setattr__(self, "method", method)
+        if int(self.max_features) < 1:
+            raise TopolocError(f"max_features must be >= 1, got {self.max_features}")
+        if int(self.max_side) < 0:
+            raise TopolocError(f"max_side must be >= 0 (0 = no resizing), got {self.max_side}")
+        # Normalise types so that equal settings always give the same key().
+        object.__setattr__(self, "max_features", int(self.max_features))
+        object.__setattr__(self, "max_side", int(self.max_side))
+        object.__setattr__(self, "contrast_threshold", float(self.contrast_threshold))
+        object.__setattr__(self, "fast_threshold", int(self.fast_threshold))
+        object.__setattr__(self, "akaze_threshold", float(self.akaze_threshold))
+
+    def key(self) -> str:
+        """Stable short identifier of these settings, e.g. ``"sift-3f2a9c0d1b7e"``.
+
+        A hash of every field, :data:`FEATURES_SCHEMA` and the OpenCV version
+        (whose detectors may change between releases), used as cache key.
+        """
+        payload = json.dumps(
+            {"schema": FEATURES_SCHEMA, "opencv": cv2.__version__, **asdict(self)}, sort_keys=True
+        )
+        return f"{self.method}-{hashlib.sha1(payload.encode()).hexdigest()[:12]}"
+
+    @property
+    def descriptor_dim(self) -> int:
+        """Number of descriptor columns (bytes for binary descriptors)."""
+        return _DESCRIPTORS[self.method][0]
+
+    @property
+    def descriptor_dtype(self) -> np.dtype:
+        """dtype of the descriptors: float32 or uint8."""
+        return np.dtype(_DESCRIPTORS[self.method][1])
+
+    @property
+    def descriptor_kind(self) -> str:
+        """``"<method>-<columns>-<dtype>"``, e.g. ``"sift-128-float32"``, ``"orb-32-uint8"``."""
+        dim, dtype = _DESCRIPTORS[self.method]
+        return f"{self.method}-{dim}-{dtype}"
+
+    @property
+    def is_binary(self) -> bool:
+        """True for bit-string descriptors (ORB, AKAZE) compared by Hamming distance."""
+        return self.descriptor_dtype == np.uint8
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureSet:
+    """Local features of one image.
+
+    Attributes
+    ----------
+    keypoints : ndarray of float32, shape (n, 5)
+        Columns x, y (original-image pixels, origin at the centre of the top-left
+        pixel), size (diameter in pixels), angle (degrees), response; strongest
+        first.
+    descriptors : ndarray, shape (n, d)
+        float32 for SIFT/RootSIFT (d=128), uint8 bit strings for ORB (d=32) and
+        AKAZE (d=61).
+    image_shape : tuple of int
+        ``(height, width)`` of the original image.
+    extract_ms : float
+        Milliseconds spent decoding the image and extracting its features
+        (excluding cache look-up and writing); kept through the cache, so a
+        cached result reports the original extraction time.
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    image_shape: tuple[int, int]
+    extract_ms: float = 0.0
+
+    def __post_init__(self) -> None:
+        kp, desc = self.keypoints, self.descriptors
+        if kp.ndim != 2 or kp.shape[1] != _KEYPOINT_COLUMNS:
+            raise ValueError(f"keypoints must have shape (n, 5), got {kp.shape}")
+        if desc.ndim != 2 or desc.shape[0] != kp.shape[0]:
+            raise ValueError(
+                f"descriptors must have shape ({kp.shape[0]}, d), got {desc.shape}"
+            )
+        if len(self.image_shape) != 2:
+            raise ValueError(f"image_shape must be (height, width), got {self.image_shape}")
+        object.__setattr__(self, "image_shape", (int(self.image_shape[0]), int(self.image_shape[1])))
+        object.__setattr__(self, "extract_ms", float(self.extract_ms))
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
+
+    @property
+    def xy(self) -> np.ndarray:
+        """Keypoint positions, shape (n, 2), float32, original-image pixels."""
+        return self.keypoints[:, :2]
+
+
+# -- extraction ----------------------------------------------------------------------------
+
+# OpenCV's type stubs do not list every factory of every build; look them up untyped.
+_cv2: Any = cv2
+
+
+def _akaze_factory() -> Callable[..., Any] | None:
+    factory = getattr(cv2, "AKAZE_create", None)
+    if factory is None:
+        factory = getattr(getattr(cv2, "xfeatures2d", None), "AKAZE_create", None)
+    return factory
+
+
+def check_method_available(method: str) -> None:
+    """Raise :class:`TopolocError` if this OpenCV build lacks the detector for ``method``."""
+    if method == "akaze" and _akaze_factory() is None:
+        raise TopolocError(
+            f"AKAZE is not available in OpenCV {cv2.__version__} (OpenCV 5 moved it to "
+            "opencv-contrib): install opencv-contrib-python-headless or use sift, rootsift or orb"
+        )
+
+
+def _create_detector(config: FeatureConfig) -> Any:
+    m = config.method
+    if m in ("sift", "rootsift"):
+        # nfeatures makes SIFT keep the strongest before computing descriptors (cheaper);
+        # ties can still yield a few more, so the cap is enforced again afterwards.
+        return _cv2.SIFT_create(
+            nfeatures=config.max_features, contrastThreshold=config.contrast_threshold
+        )
+    if m == "orb":
+        # ORB spreads nfeatures over its pyramid levels (best per level); asking for
+        # twice the cap and keeping the strongest overall honours "strongest by response".
+        return _cv2.ORB_create(
+            nfeatures=2 * config.max_features, fastThreshold=config.fast_threshold
+        )
+    check_method_available(m)
+    factory = _akaze_factory()
+    assert factory is not None
+    return factory(threshold=config.akaze_threshold)
+
+
+# OpenCV Feature2D objects keep per-call buffers and are not safe to share between
+# threads, so every thread builds its own (cheap) detector per configuration.
+_tls = threading.local()
+
+
+def _detector(config: FeatureConfig) -> Any:
+    cache: dict[FeatureConfig, Any] | None = getattr(_tls, "detectors", None)
+    if cache is None:
+        cache = _tls.detectors = {}
+    det = cache.get(config)
+    if det is None:
+        det = cache[config] = _create_detector(config)
+    return det
+
+
+def _to_gray(image: np.ndarray) -> np.ndarray:
+    if image.dtype != np.uint8:
+        raise ValueError(f"expected a uint8 image, got dtype {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 2:
+        return np.ascontiguousarray(image)
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    raise ValueError(f"expected a gray (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
+
+
+def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float, float]:
+    """Shrink so the longer side is ``max_side``; return image and x/y scale back to original."""
+    h, w = gray.shape
+    if max_side <= 0 or max(h, w) <= max_side:
+        return gray, 1.0, 1.0
+    s = max_side / max(h, w)
+    nw, nh = max(1, round(w * s)), max(1, round(h * s))
+    small = cv2.resize(gray, (nw, nh), interpolation=cv2.INTER_AREA)
+    return small, w / nw, h / nh
+
+
+def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
+    """Detect and describe local features of one image.
+
+    Parameters
+    ----------
+    image : ndarray of uint8, shape (H, W) or (H, W, 3) BGR
+        The image; colour images are converted to gray.
+    config : FeatureConfig
+        What to extract.
+
+    Returns
+    -------
+    FeatureSet
+        ``n <= config.max_features`` keypoints, strongest first, in original-image
+        pixels; ``extract_ms`` is the time this call took.  An image without
+        features gives arrays of shape (0, 5) and (0, d).
+
+    Raises
+    ------
+    ValueError
+        If ``image`` is not uint8 gray/BGR.
+    TopolocError
+        If the method is not available in this OpenCV build.
+    """
+    t0 = time.perf_counter()
+    gray = _to_gray(image)
+    h, w = gray.shape
+    work, sx, sy = _downscale(gray, config.max_side)
+    dim, dtype = config.descriptor_dim, config.descriptor_dtype
+    kps, desc = _detector(config).detectAndCompute(work, None)
+    n = len(kps)
+    if n == 0 or desc is None:
+        keypoints = np.empty((0, _KEYPOINT_COLUMNS), np.float32)
+        descriptors = np.empty((0, dim), dtype)
+    else:
+        keypoints = np.array(
+            [(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in kps], dtype=np.float32
+        )
+        descriptors = np.asarray(desc, dtype=dtype)
+        if descriptors.shape != (n, dim):
+            raise AssertionError(
+                f"{config.method}: OpenCV returned descriptors of shape {descriptors.shape}, "
+                f"expected ({n}, {dim})"
+            )
+        # Strongest first (stable, so equal responses keep OpenCV's order), then cap.
+        order = np.argsort(-keypoints[:, 4], kind="stable")[: config.max_features]
+        keypoints, descriptors = keypoints[order], descriptors[order]
+        if sx != 1.0 or sy != 1.0:
+            # Pixel-centre convention of cv2.resize: x_orig = (x_small + 0.5) * sx - 0.5.
+            keypoints[:, 0] = (keypoints[:, 0] + 0.5) * sx - 0.5
+            keypoints[:, 1] = (keypoints[:, 1] + 0.5) * sy - 0.5
+            keypoints[:, 2] *= 0.5 * (sx + sy)
+        if config.method == "rootsift":
+            descriptors = _rootsift(descriptors)
+    keypoints = np.ascontiguousarray(keypoints)
+    descriptors = np.ascontiguousarray(descriptors)
+    # Read-only, like the arrays loaded from the cache: FeatureSets are shared and memoised.
+    keypoints.flags.writeable = False
+    descriptors.flags.writeable = False
+    return FeatureSet(
+        keypoints=keypoints,
+        descriptors=descriptors,
+        image_shape=(h, w),
+        extract_ms=1e3 * (time.perf_counter() - t0),
+    )
+
+
+def _rootsift(desc: np.ndarray) -> np.ndarray:
+    """RootSIFT: L1-normalise each (non-negative) SIFT row, then take the square root."""
+    l1 = np.abs(desc).sum(axis=1, keepdims=True, dtype=np.float32)
+    return np.sqrt(desc / np.maximum(l1, np.float32(1e-12))).astype(np.float32)
+
+
+# -- extractor with disk cache -------------------------------------------------------------
+
+def _n_workers(n_jobs: int) -> int:
+    cpus = os.cpu_count() or 1
+    return max(1, cpus if n_jobs < 0 else n_jobs)
+
+
+class FeatureExtractor:
+    """Extract local features from image files, in parallel, with a disk cache.
+
+    Parameters
+    ----------
+    config : FeatureConfig, optional
+        What to extract (default: SIFT, 1000 features, no resizing).
+    cache_dir : path-like, optional
+        Cache root (default: ``$TOPOLOC_CACHE_DIR`` or ``~/.cache/topoloc``).
+        Entries live in ``<cache_dir>/features/<config.key()>/<sha1 of image
+        bytes>.tlf``.
+    use_cache : bool
+        Read and write the cache.  A corrupt or truncated entry is detected by
+        its checksum, logged as a warning and extracted again.
+    n_jobs : int
+        Threads for :meth:`extract_paths` (-1: all cores; OpenCV releases the GIL).
+    """
+
+    def __init__(
+        self,
+        config: FeatureConfig | None = None,
+        *,
+        cache_dir: str | Path | None = None,
+        use_cache: bool = True,
+        n_jobs: int = -1,
+    ) -> None:
+        self.config = config if config is not None else FeatureConfig()
+        check_method_available(self.config.method)
+        self.cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+        self.use_cache = use_cache
+        self.n_jobs = n_jobs
+
+    def __repr__(self) -> str:
+        return (
+            f"FeatureExtractor({self.config!r}, cache_dir={str(self.cache_dir)!r}, "
+            f"use_cache={self.use_cache}, n_jobs={self.n_jobs})"
+        )
+
+    @property
+    def feature_dir(self) -> Path:
+        """Folder of this configuration's cache entries."""
+        return self.cache_dir / "features" / self.config.key()
+
+    def cache_path(self, path: str | Path) -> Path:
+        """Cache entry of image file ``path`` (named by the SHA-1 of its bytes)."""
+        return self.feature_dir / f"{file_sha1(path)}.tlf"
+
+    def extract_path(self, path: str | Path) -> FeatureSet:
+        """Features of the image file ``path``, from the cache when possible.
+
+        Raises
+        ------
+        TopolocError
+            If the image is missing, empty or cannot be decoded.
+        """
+        path = Path(path)
+        if not self.use_cache:
+            return self._extract_file(path)
+        entry = self.cache_path(path)
+        if entry.is_file():
+            cached = self._load_entry(entry)
+            if cached is not None:
+                return cached
+        fs = self._extract_file(path)
+        self._store_entry(entry, fs)
+        return fs
+
+    def extract_paths(
+        self,
+        paths: Iterable[str | Path],
+        *,
+        progress: Callable[[str, int], Callable[[int], None]] | None = None,
+        description: str | None = None,
+    ) -> list[FeatureSet]:
+        """Features of many image files, in order, on a thread pool.
+
+        Parameters
+        ----------
+        paths : iterable of path-like
+            Image files.
+        progress : callable, optional
+            ``progress(description, total)`` returning ``advance(n)``, called once
+            per image (see ``topoloc.methods.base.ProgressFactory``).
+        description : str, optional
+            Progress label (default ``"features <method>"``).
+
+        Returns
+        -------
+        list of FeatureSet, one per path
+        """
+        files = [Path(p) for p in paths]
+        advance = (
+            progress(description or f"features {self.config.method}", len(files))
+            if progress is not None
+            else None
+        )
+
+        def one(p: Path) -> FeatureSet:
+            fs = self.extract_path(p)
+            if advance is not None:
+                advance(1)
+            return fs
+
+        workers = min(_n_workers(self.n_jobs), len(files))
+        if workers <= 1:
+            return [one(p) for p in files]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return list(pool.map(one, files))
+
+    # -- internals ----------------------------------------------------------------------
+    def _extract_file(self, path: Path) -> FeatureSet:
+        t0 = time.perf_counter()
+        image = read_image(path)
+        fs = extract_features(image, self.config)
+        # Decoding is part of the per-image cost a method pays, so it is included.
+        return replace(fs, extract_ms=1e3 * (time.perf_counter() - t0))
+
+    def _load_entry(self, entry: Path) -> FeatureSet | None:
+        """The cached FeatureSet, or None (with a warning) if the entry is unusable."""
+        try:
+            meta, arrays = read_container(entry, "features", FEATURES_SCHEMA)
+            kp, desc = arrays["keypoints"], arrays["descriptors"]
+            if meta.get("config_key") != self.config.key():
+                raise input_error("feature cache entry was written for other settings", entry)
+            if (
+                kp.dtype != np.float32
+                or desc.dtype != self.config.descriptor_dtype
+                or desc.ndim != 2
+                or desc.shape[1] != self.config.descriptor_dim
+            ):
+                raise input_error("feature cache entry has unexpected array types", entry)
+            return FeatureSet(
+                keypoints=kp,
+                descriptors=desc,
+                image_shape=(int(meta["image_shape"][0]), int(meta["image_shape"][1])),
+                extract_ms=float(meta["extract_ms"]),
+            )
+        except (TopolocError, KeyError, TypeError, ValueError, IndexError) as exc:
+            log.warning("ignoring unusable feature cache entry, extracting again (%s)", exc)
+            return None
+
+    def _store_entry(self, entry: Path, fs: FeatureSet) -> None:
+        try:
+            write_container(
+                entry,
+                "features",
+                FEATURES_SCHEMA,
+                {"keypoints": fs.keypoints, "descriptors": fs.descriptors},
+                meta={
+                    "config_key": self.config.key(),
+                    "descriptor_kind": self.config.descriptor_kind,
+                    "image_shape": list(fs.image_shape),
+                    "extract_ms": fs.extract_ms,
+                },
+            )
+        except OSError as exc:
+            # A read-only or full cache disk must not stop the run; features are still returned.
+            log.warning("cannot write feature cache entry %s (%s)", entry, exc)

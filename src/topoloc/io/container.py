@@ -1,0 +1,169 @@
+"""A small versioned binary container for maps, vocabularies and caches.
+
+Layout (all integers little-endian)::
+
+    offset  size  field
+    0       8     magic  b"TOPOLOC\\x00"
+    8       4     container format version (uint32, currently 1)
+    12      8     header length H in bytes (uint64)
+    20      H     header: UTF-8 JSON {"kind", "kind_version", "meta",
+                  "arrays": [{"name", "dtype", "shape", "offset", "nbytes"}],
+                  "payload_nbytes", "payload_crc32"}
+    20+H    ...   payload: the arrays' raw C-order bytes, each 64-byte aligned
+
+``kind`` says what the file holds (``"vocabulary"``, ``"features"``...) and
+``kind_version`` the version of that object's schema, so readers can refuse
+files they do not understand.  The CRC-32 of the payload and its length are
+checked on load, which turns a truncated or corrupted file into a clear error
+instead of silently wrong arrays.  Files are written to a temporary name in
+the same folder and renamed into place, so a crash never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import tempfile
+import zlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc.errors import input_error
+
+MAGIC = b"TOPOLOC\x00"
+CONTAINER_VERSION = 1
+_ALIGN = 64
+_PREFIX = struct.Struct("<8sIQ")
+
+
+def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
+    """Write ``chunks`` to ``path`` atomically (temporary file, fsync, rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(chunks, bytes):
+        chunks = [chunks]
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            for chunk in chunks:
+                fh.write(chunk)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_container(
+    path: str | Path,
+    kind: str,
+    kind_version: int,
+    arrays: Mapping[str, np.ndarray],
+    meta: Mapping[str, Any] | None = None,
+) -> None:
+    """Write named arrays and JSON metadata to ``path`` atomically.
+
+    Parameters
+    ----------
+    path : path-like
+        Destination file.
+    kind, kind_version : str, int
+        What the file holds and the version of that schema.
+    arrays : mapping of str to ndarray
+        Arrays to store (numeric or bool dtypes; object arrays are refused).
+    meta : mapping, optional
+        JSON-serialisable metadata.
+    """
+    entries = []
+    blobs: list[bytes] = []
+    offset = 0
+    crc = 0
+    for name, arr in arrays.items():
+        a = np.ascontiguousarray(arr)
+        if a.dtype.hasobject:
+            raise TypeError(f"array {name!r} has dtype object; not storable")
+        pad = (-offset) % _ALIGN
+        if pad:
+            blobs.append(b"\x00" * pad)
+            crc = zlib.crc32(b"\x00" * pad, crc)
+            offset += pad
+        raw = a.tobytes()
+        entries.append(
+            {"name": name, "dtype": a.dtype.str, "shape": list(a.shape),
+             "offset": offset, "nbytes": len(raw)}
+        )
+        blobs.append(raw)
+        crc = zlib.crc32(raw, crc)
+        offset += len(raw)
+    header = json.dumps(
+        {"kind": kind, "kind_version": kind_version, "meta": dict(meta or {}),
+         "arrays": entries, "payload_nbytes": offset, "payload_crc32": crc},
+        sort_keys=True,
+    ).encode()
+    atomic_write_bytes(path, [_PREFIX.pack(MAGIC, CONTAINER_VERSION, len(header)), header, *blobs])
+
+
+def read_container(
+    path: str | Path, kind: str, kind_version: int | None = None
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Read and validate a container written by :func:`write_container`.
+
+    Returns
+    -------
+    meta : dict
+        The stored metadata.
+    arrays : dict of str to ndarray
+        The stored arrays (read-only views on one buffer).
+
+    Raises
+    ------
+    TopolocError
+        If the file is missing, not a topoloc file, of another kind or schema
+        version, truncated, or corrupted.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise input_error(f"{kind} file not found", path)
+    data = path.read_bytes()
+    if len(data) < _PREFIX.size:
+        raise input_error(f"{kind} file is truncated (only {len(data)} bytes)", path)
+    magic, version, hlen = _PREFIX.unpack_from(data)
+    if magic != MAGIC:
+        raise input_error(f"not a topoloc {kind} file (bad magic bytes)", path)
+    if version != CONTAINER_VERSION:
+        raise input_error(f"unsupported topoloc container version {version}", path)
+    start = _PREFIX.size + hlen
+    if len(data) < start:
+        raise input_error(f"{kind} file is truncated inside its header", path)
+    try:
+        header = json.loads(data[_PREFIX.size:start])
+    except ValueError:
+        raise input_error(f"{kind} file has a corrupt header", path) from None
+    if header.get("kind") != kind:
+        raise input_error(f"expected a {kind} file but found a {header.get('kind')!r} file", path)
+    if kind_version is not None and header.get("kind_version") != kind_version:
+        raise input_error(
+            f"{kind} file has schema version {header.get('kind_version')}, "
+            f"this topoloc reads version {kind_version}",
+            path,
+        )
+    payload = memoryview(data)[start:]
+    if len(payload) != header["payload_nbytes"]:
+        raise input_error(
+            f"{kind} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",
+            path,
+        )
+    if zlib.crc32(payload) != header["payload_crc32"]:
+        raise input_error(f"{kind} file is corrupted (checksum mismatch)", path)
+    arrays = {}
+    for e in header["arrays"]:
+        n = int(np.prod(e["shape"], dtype=np.int64))
+        dt = np.dtype(e["dtype"])
+        arr = np.frombuffer(payload, dtype=dt, count=n, offset=e["offset"]) if n else np.empty(0, dt)
+        arrays[e["name"]] = arr.reshape(e["shape"])
+    return header["meta"], arrays

@@ -1,0 +1,37 @@
+"""Place-recognition methods and their registry.
+
+Methods are imported lazily so that the CLI starts fast; ``get_method(name)``
+returns the class.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from topoloc.errors import TopolocError
+from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+
+_REGISTRY: dict[str, str] = {
+    "bow": "topoloc.methods.bow:BagOfWords",
+    "seqslam": "topoloc.methods.seqslam:SeqSLAM",
+    "seqslam-single": "topoloc.methods.seqslam:SingleImageSeqSLAM",
+}
+
+
+def available_methods() -> list[str]:
+    """Names accepted by ``topoloc evaluate --method``."""
+    return sorted(_REGISTRY)
+
+
+def get_method(name: str) -> type[PlaceRecognizer]:
+    """The method class registered under ``name``."""
+    try:
+        module, cls = _REGISTRY[name].split(":")
+    except KeyError:
+        raise TopolocError(
+            f"unknown method {name!r} (available: {', '.join(available_methods())})"
+        ) from None
+    return getattr(importlib.import_module(module), cls)
+
+
+__all__ = ["PlaceRecognizer", "Resources", "available_methods", "get_method", "map_place_ids"]

@@ -1,0 +1,200 @@
+"""FAB-MAP (Cummins & Newman) as a localisation method: ``--method fabmap`` / ``fabmap2``.
+
+* **Training** (:mod:`topoloc.fabmap.model`): word marginals and the Chow-Liu
+  tree are learned from the vocabulary's training images
+  (``resources.training_words()``), never from the map; or a saved model is
+  loaded with ``--param model_path=FILE`` (it must belong to the run's
+  vocabulary).
+* **Map**: every map image is an observation of its place; the first
+  observation of a place creates its appearance model (prior + Eq. 11) and the
+  following ones (other images or other map traverses of the same place id)
+  update it with Eq. 11, so several map traverses merge into one model per
+  place.  ``fabmap`` keeps dense FAB-MAP 1.0 models; ``fabmap2`` keeps
+  FAB-MAP 2.0 two-level models in an inverted index.
+* **Scores** ``S`` (rows = sorted map place ids, columns = query images):
+
+  - ``output="loglik"`` (default): ``log p(Z_q | L_i)`` (Eq. 4-5, natural log),
+    the quantity FAB-MAP ranks places by;
+  - ``output="posterior"``: ``p(L_i | Z_q)`` of Eq. 3 with a uniform location
+    prior over the map (queries are independent), the new-place hypothesis of
+    prior ``p_new`` normalised by Eq. 10 (``normaliser="sampled"``) or
+    mean-field, and the smoothing of Eq. 6 (``smoothing``).  Columns sum to
+    ``1 - p(new place)``: a query unlike every map place scores low everywhere,
+    which makes one acceptance threshold meaningful across queries.
+
+Parameters (keyword-only, ``--param KEY=VALUE``): ``model_path``, ``output``,
+``naive_bayes`` (ignore the Chow-Liu tree), ``normaliser``, ``n_samples``,
+``p_new``, ``smoothing``, ``p_fp`` / ``p_fn`` (detector model, Eq. 2),
+``bailout`` / ``p_bailout`` (Bennett bail-out, ``fabmap`` only), ``seed``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar, Self
+
+import numpy as np
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.fabmap.likelihood import Observation, ObservationModel, location_posterior
+from topoloc.fabmap.model import DEFAULT_P_FN, DEFAULT_P_FP, FabMapModel
+from topoloc.fabmap.slam import DenseMap, IndexMap, load_or_train_model, make_map
+from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+
+OUTPUTS = ("loglik", "posterior")
+
+
+class FabMap(PlaceRecognizer):
+    """FAB-MAP 1.0: Chow-Liu appearance model with dense place models.
+
+    Parameters
+    ----------
+    model_path : str
+        Load a trained :class:`~topoloc.fabmap.model.FabMapModel` instead of
+        training on ``resources.training_words()``.
+    output : {"loglik", "posterior"}
+        What ``S`` holds (module docstring).
+    naive_bayes : bool
+        Naive-Bayes likelihood instead of the Chow-Liu tree.
+    normaliser : {"sampled", "mean_field"}
+        New-place term for ``output="posterior"`` (Eq. 10 / mean-field).
+    n_samples : int
+        Training images used as sampled places (0 = all).
+    p_new : float
+        Prior of a new place for ``output="posterior"``.
+    smoothing : float
+        ``sigma`` of Eq. 6 for ``output="posterior"`` (1 = off).
+    p_fp, p_fn : float
+        Detector false-positive ``p(z=1|e=0)`` and false-negative ``p(z=0|e=1)`` (Eq. 2).
+    bailout : bool
+        Bennett bail-out evaluation (``fabmap`` only): places that cannot win
+        get a surrogate score below the leader.
+    p_bailout : float
+        Bail-out probability bound.
+    seed : int
+        Seed of the sampled places.
+    """
+
+    name: ClassVar[str] = "fabmap"
+    uses_vocabulary: ClassVar[bool] = True
+    variant: ClassVar[str] = "fabmap"
+
+    def __init__(
+        self,
+        *,
+        model_path: str = "",
+        output: str = "loglik",
+        naive_bayes: bool = False,
+        normaliser: str = "sampled",
+        n_samples: int = 1000,
+        p_new: float = 0.9,
+        smoothing: float = 1.0,
+        p_fp: float = DEFAULT_P_FP,
+        p_fn: float = DEFAULT_P_FN,
+        bailout: bool = False,
+        p_bailout: float = 1e-6,
+        seed: int = 0,
+    ) -> None:
+        self.model_path = model_path
+        self.output = output
+        self.naive_bayes = naive_bayes
+        self.normaliser = normaliser
+        self.n_samples = n_samples
+        self.p_new = p_new
+        self.smoothing = smoothing
+        self.p_fp = p_fp
+        self.p_fn = p_fn
+        self.bailout = bailout
+        self.p_bailout = p_bailout
+        self.seed = seed
+
+    def _check_params(self) -> None:
+        if self.output not in OUTPUTS:
+            raise TopolocError(f"{self.name}: output must be loglik or posterior, got {self.output!r}")
+        if not 0.0 <= self.p_new < 1.0:
+            raise TopolocError(f"{self.name}: p_new must be in [0, 1), got {self.p_new}")
+        if not 0.0 < self.smoothing <= 1.0:
+            raise TopolocError(f"{self.name}: smoothing must be in (0, 1], got {self.smoothing}")
+
+    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
+        """Train (or load) the model and build one appearance model per map place."""
+        self._check_params()
+        model = load_or_train_model(self.model_path or None, resources)
+        if (model.p_fp, model.p_fn) != (self.p_fp, self.p_fn):
+            model = model.with_detector(p_fp=self.p_fp, p_fn=self.p_fn)
+        om = ObservationModel(model, naive_bayes=self.naive_bayes)
+        place_ids = map_place_ids(maps)
+        # all observations of each place, in map order (traverse by traverse)
+        per_place: list[list[Observation]] = [[] for _ in range(place_ids.size)]
+        for tr in maps:
+            words = resources.words(tr)
+            rows = np.searchsorted(place_ids, tr.places)
+            for r, w in zip(rows, words, strict=True):
+                per_place[int(r)].append(om.observe(w))
+        pmap = make_map(om, variant=self.variant, normaliser=self.normaliser,
+                        n_samples=self.n_samples, seed=self.seed, bailout=self.bailout,
+                        p_bailout=self.p_bailout)
+        if isinstance(pmap, IndexMap):
+            pmap.build(per_place)
+        else:
+            _build_dense(pmap, om, per_place)
+        if self.output == "posterior":
+            pmap.prepare_normaliser()  # not inside the timed queries
+        self.model_ = model
+        self.obs_model_ = om
+        self.map_ = pmap
+        self.place_ids_ = place_ids
+        return self
+
+    def encode(self, query: Traverse, *, resources: Resources) -> list[Any]:
+        """Visual-word ids of each query image (sorted, unique, int32)."""
+        return [np.unique(np.asarray(w, dtype=np.int64)).astype(np.int32)
+                for w in resources.words(query)]
+
+    def score(self, items: Sequence[Any]) -> np.ndarray:
+        """``S`` of shape (n_map_places, len(items)): log-likelihood or posterior."""
+        self.check_fitted()
+        n = len(self.place_ids_)
+        S = np.empty((n, len(items)), dtype=np.float32)
+        for j, words in enumerate(items):
+            obs = self.obs_model_.observe(words)
+            ll = self.map_.log_likelihood(obs)
+            if self.output == "posterior":
+                new_ll = self.map_.new_place_log_likelihood(obs)
+                S[:, j] = location_posterior(ll, None, new_ll, p_new=self.p_new,
+                                             smoothing=self.smoothing)[:n]
+            else:
+                S[:, j] = ll
+        return self._check_block(S, len(items))
+
+
+class FabMap2(FabMap):
+    """FAB-MAP 2.0: the same model with two-level place models and an inverted index.
+
+    Parameters are those of :class:`FabMap` (``bailout`` is ignored: the index
+    already only touches the words whose state differs from their default).
+    """
+
+    name: ClassVar[str] = "fabmap2"
+    variant: ClassVar[str] = "fabmap2"
+
+
+def _build_dense(pmap: DenseMap, om: ObservationModel, per_place: list[list[Observation]]) -> None:
+    """Dense place models in place-id order: prior + Eq. 11 for each observation."""
+    block: list[np.ndarray] = []
+    for obs_list in per_place:
+        if not obs_list:  # pragma: no cover - map_place_ids only lists observed places
+            raise TopolocError("a map place has no image")
+        e = om.new_place(obs_list[0])
+        for o in obs_list[1:]:
+            e = om.update(e, o)
+        block.append(e)
+        if len(block) == 256:
+            pmap.add_beliefs(np.stack(block))
+            block = []
+    if block:
+        pmap.add_beliefs(np.stack(block))
+
+
+__all__ = ["FabMap", "FabMap2", "FabMapModel"]

@@ -1,0 +1,130 @@
+"""Online FAB-MAP: motion model, data association (Eq. 11), loop closures and outputs."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.fabmap.bench import zipf_occurrence
+from topoloc.fabmap.model import FabMapModel
+from topoloc.fabmap.slam import FabMapSlam, motion_prior, run_slam
+
+V = 400
+
+
+@pytest.fixture(scope="module")
+def model() -> FabMapModel:
+    x = zipf_occurrence(300, n_words=V, words_per_image=40, seed=21, permutation_seed=0)
+    return FabMapModel.train(x, n_words=V)
+
+
+def _noisy(words: np.ndarray, rng: np.random.Generator, fresh: np.ndarray) -> np.ndarray:
+    kept = words[rng.random(words.size) < 0.75]
+    return np.union1d(kept, rng.choice(fresh, size=min(8, fresh.size), replace=False))
+
+
+def loop_sequence(n_places: int = 20, seed: int = 3) -> tuple[list[np.ndarray], np.ndarray]:
+    """Two passes over ``n_places`` distinct places: images 0..n-1, then n..2n-1 revisit them."""
+    rng = np.random.default_rng(seed)
+    places = zipf_occurrence(n_places, n_words=V, words_per_image=40, seed=seed,
+                             permutation_seed=0)
+    fresh = zipf_occurrence(2 * n_places, n_words=V, words_per_image=40, seed=seed + 1,
+                            permutation_seed=0)
+    seq, truth = [], []
+    for k in range(2 * n_places):
+        p = k % n_places
+        w = places.indices[places.indptr[p]:places.indptr[p + 1]]
+        f = fresh.indices[fresh.indptr[k]:fresh.indptr[k + 1]]
+        seq.append(_noisy(w, rng, f))
+        truth.append(p)
+    return seq, np.array(truth)
+
+
+def test_motion_prior_by_hand() -> None:
+    chain = np.array([[0, 1], [1, 2]])
+    # at place 1 of a chain: a third stays, a third to each neighbour
+    assert np.allclose(motion_prior(np.array([0.0, 1.0, 0.0]), chain, p_uniform=0.0),
+                       [1 / 3, 1 / 3, 1 / 3])
+    # at the end of the chain: a third stays, the rest goes to the single neighbour
+    assert np.allclose(motion_prior(np.array([1.0, 0.0, 0.0]), chain, p_uniform=0.0),
+                       [1 / 3, 2 / 3, 0.0])
+    # uniform mixing and an isolated place (keeps its mass)
+    out = motion_prior(np.array([0.0, 0.0, 0.0, 1.0]), chain, p_uniform=0.2)
+    assert np.allclose(out, 0.8 * np.array([0, 0, 0, 1.0]) + 0.05)
+    assert out.sum() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("variant", ["fabmap", "fabmap2"])
+def test_loop_closures_on_second_pass_only(model: FabMapModel, variant: str) -> None:
+    seq, truth = loop_sequence()
+    n = len(seq) // 2
+    slam = FabMapSlam(model, variant=variant, min_gap=5)
+    res = slam.run(seq)
+    founders = np.asarray(res.founders)
+    # first pass: every image founds its own place, no loop closure
+    assert all(s.new_place and not s.loop_closure for s in res.steps[:n])
+    assert res.n_places >= n
+    lc = res.loop_closures()
+    assert all(img >= n for img, _, _ in lc)
+    # second pass: most images close the loop with the image of the same place
+    correct = [img for img, matched, p in lc if truth[img] == truth[matched] and p >= 0.98]
+    assert len(correct) >= 0.75 * n
+    assert len(correct) == len(lc)  # no false loop closures
+    # merged places (Eq. 11): revisits updated the first-pass places
+    assert res.n_places < 2 * n
+    assert set(founders[res.image_place[n:][[s.loop_closure for s in res.steps[n:]]]]) <= set(
+        range(n))
+
+
+def test_posterior_rows_and_data_association(model: FabMapModel) -> None:
+    seq, _ = loop_sequence(n_places=8)
+    res = FabMapSlam(model, normaliser="mean_field", min_gap=2).run(seq)
+    post = res.posterior_matrix()
+    assert post.shape == (len(seq), res.n_places + 1)
+    for k, s in enumerate(res.steps):
+        n_k = s.posterior.size - 1
+        assert np.isfinite(post[k, :n_k]).all() and np.isnan(post[k, n_k:-1]).all()
+        assert np.nansum(post[k]) == pytest.approx(1.0)
+        if s.new_place:
+            assert post[k, :n_k].max(initial=0.0) < 0.98
+    assert post[0, -1] == 1.0  # the first image is always a new place
+
+
+def test_run_slam_writes_outputs(model: FabMapModel, tmp_path: Path) -> None:
+    seq, truth = loop_sequence(n_places=12)
+    images = tuple(tmp_path / f"{k}.jpg" for k in range(len(seq)))
+    tr = Traverse(root=tmp_path, images=images, places=np.arange(len(seq)))
+    model_file = tmp_path / "m.tfm"
+    model.save(model_file)
+    out = tmp_path / "out"
+    res = run_slam(tr, out_dir=out, model=model_file, words=seq, min_gap=5)
+    post = np.load(out / "posterior.npy")
+    assert post.shape == (len(seq), res.n_places + 1)
+    with (out / "loop_closures.csv").open() as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["image", "matched_image", "probability"]
+    assert len(rows) - 1 == len(res.loop_closures()) > 0
+    for img, matched, p in rows[1:]:
+        assert int(img) >= 12 and int(matched) < 12 and float(p) >= 0.98
+        assert truth[int(img)] == truth[int(matched)]
+    assert (out / "loop_closures.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "assignments.csv").is_file() and (out / "slam.json").is_file()
+    lcm = res.loop_closure_matrix()
+    assert lcm.shape == (len(seq), len(seq))
+
+
+def test_run_slam_errors(model: FabMapModel, tmp_path: Path) -> None:
+    tr = Traverse(root=tmp_path, images=(tmp_path / "a.jpg",), places=np.arange(1))
+    with pytest.raises(TopolocError, match="traverse has"):
+        run_slam(tr, out_dir=tmp_path / "o", model=model, words=[np.array([1]), np.array([2])])
+    with pytest.raises(TopolocError, match="resources"):
+        run_slam(tr, out_dir=tmp_path / "o", model=model)
+    with pytest.raises(TopolocError, match="threshold"):
+        FabMapSlam(model, threshold=0.0)
+    with pytest.raises(TopolocError, match="variant"):
+        FabMapSlam(model, variant="fabmap3")

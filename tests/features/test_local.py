@@ -1,0 +1,295 @@
+"""Local features: extraction, coordinates, RootSIFT, and the disk cache."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import topoloc.features.local as local
+from topoloc.errors import TopolocError
+from topoloc.features import (
+    FeatureConfig,
+    FeatureExtractor,
+    FeatureSet,
+    check_method_available,
+    extract_features,
+)
+
+
+def textured_image(seed: int, h: int = 240, w: int = 320) -> np.ndarray:
+    """A gray uint8 image of random shapes over a smooth background (many keypoints)."""
+    rng = np.random.default_rng(seed)
+    img = cv2.resize(rng.integers(60, 190, (h // 16, w // 16), dtype=np.uint8), (w, h))
+    for _ in range(40):
+        colour = int(rng.integers(0, 256))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        r = int(rng.integers(4, 30))
+        if rng.random() < 0.5:
+            cv2.circle(img, (x, y), r, colour, -1)
+        else:
+            cv2.rectangle(img, (x, y), (x + r, y + int(rng.integers(4, 30))), colour, -1)
+    return cv2.GaussianBlur(img, (3, 3), 0)
+
+
+def write_images(folder: Path, n: int, seed: int = 0) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i in range(n):
+        p = folder / f"img{i:02d}.png"
+        cv2.imwrite(str(p), textured_image(seed + i))
+        paths.append(p)
+    return paths
+
+
+# -- configuration -------------------------------------------------------------------------
+
+def test_config_key_is_stable_and_depends_on_every_field() -> None:
+    base = FeatureConfig()
+    assert base.key() == FeatureConfig().key()
+    assert base.key() == FeatureConfig(method="SIFT", max_features=1000.0).key()  # type: ignore[arg-type]
+    keys = {
+        base.key(),
+        FeatureConfig(method="rootsift").key(),
+        FeatureConfig(max_features=999).key(),
+        FeatureConfig(max_side=640).key(),
+        FeatureConfig(contrast_threshold=0.02).key(),
+        FeatureConfig(fast_threshold=10).key(),
+    }
+    assert len(keys) == 6
+    assert base.key().startswith("sift-")
+
+
+@pytest.mark.parametrize(
+    ("method", "kind", "binary"),
+    [
+        ("sift", "sift-128-float32", False),
+        ("rootsift", "rootsift-128-float32", False),
+        ("orb", "orb-32-uint8", True),
+        ("akaze", "akaze-61-uint8", True),
+    ],
+)
+def test_descriptor_kind(method: str, kind: str, binary: bool) -> None:
+    cfg = FeatureConfig(method=method)
+    assert cfg.descriptor_kind == kind
+    assert cfg.is_binary is binary
+
+
+def test_bad_config_is_a_one_line_error() -> None:
+    with pytest.raises(TopolocError, match="unknown feature method 'surf'"):
+        FeatureConfig(method="surf")
+    with pytest.raises(TopolocError, match="max_features"):
+        FeatureConfig(max_features=0)
+    with pytest.raises(TopolocError, match="max_side"):
+        FeatureConfig(max_side=-1)
+
+
+# -- extraction ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["sift", "rootsift", "orb"])
+def test_extract_shapes_types_and_order(method: str) -> None:
+    cfg = FeatureConfig(method=method, max_features=300)
+    fs = extract_features(textured_image(1), cfg)
+    n = len(fs)
+    assert 50 < n <= 300
+    assert fs.keypoints.shape == (n, 5) and fs.keypoints.dtype == np.float32
+    assert fs.descriptors.shape == (n, cfg.descriptor_dim)
+    assert fs.descriptors.dtype == cfg.descriptor_dtype
+    assert fs.image_shape == (240, 320)
+    assert fs.extract_ms > 0
+    assert np.all(np.diff(fs.keypoints[:, 4]) <= 0), "strongest first"
+    assert (fs.keypoints[:, 0] >= -1).all() and (fs.keypoints[:, 0] <= 320).all()
+    assert not fs.descriptors.flags.writeable
+
+
+@pytest.mark.parametrize("method", ["sift", "orb"])
+def test_cap_keeps_the_strongest(method: str) -> None:
+    img = textured_image(2)
+    many = extract_features(img, FeatureConfig(method=method, max_features=5000))
+    few = extract_features(img, FeatureConfig(method=method, max_features=40))
+    assert len(few) == 40 < len(many)
+    # The kept keypoints are at least as strong as the median of the uncapped set.
+    assert few.keypoints[:, 4].min() >= np.median(many.keypoints[:, 4])
+
+
+def test_rootsift_rows_have_unit_norm_and_match_sift() -> None:
+    img = textured_image(3)
+    sift = extract_features(img, FeatureConfig(method="sift", max_features=200))
+    root = extract_features(img, FeatureConfig(method="rootsift", max_features=200))
+    np.testing.assert_allclose(np.linalg.norm(root.descriptors, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(sift.keypoints, root.keypoints)
+    expected = np.sqrt(sift.descriptors / sift.descriptors.sum(axis=1, keepdims=True))
+    np.testing.assert_allclose(root.descriptors, expected, atol=1e-6)
+
+
+def test_bgr_input_gives_the_gray_result() -> None:
+    gray = textured_image(4)
+    bgr = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    cfg = FeatureConfig(max_features=100)
+    a, b = extract_features(gray, cfg), extract_features(bgr, cfg)
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+
+
+def test_non_uint8_image_is_refused() -> None:
+    with pytest.raises(ValueError, match="uint8"):
+        extract_features(np.zeros((20, 20), np.float32), FeatureConfig())
+
+
+@pytest.mark.parametrize("method", ["sift", "rootsift", "orb"])
+def test_zero_feature_image(method: str) -> None:
+    cfg = FeatureConfig(method=method)
+    fs = extract_features(np.full((120, 160), 128, np.uint8), cfg)
+    assert len(fs) == 0
+    assert fs.keypoints.shape == (0, 5)
+    assert fs.descriptors.shape == (0, cfg.descriptor_dim)
+    assert fs.descriptors.dtype == cfg.descriptor_dtype
+
+
+def test_max_side_reports_original_coordinates() -> None:
+    small = textured_image(5)  # 240 x 320
+    big = cv2.resize(small, (640, 480), interpolation=cv2.INTER_CUBIC)
+    ref = extract_features(small, FeatureConfig(max_features=100))
+    fs = extract_features(big, FeatureConfig(max_features=100, max_side=320))
+    assert fs.image_shape == (480, 640)
+    assert fs.keypoints[:, 0].max() > 320 and fs.keypoints[:, 1].max() > 240
+    assert fs.keypoints[:, 0].max() < 640 and fs.keypoints[:, 1].max() < 480
+    # Every strong keypoint of the small image reappears at twice its position.
+    expected = (ref.keypoints[:30, :2] + 0.5) * 2 - 0.5
+    dist = np.linalg.norm(expected[:, None, :] - fs.keypoints[None, :, :2], axis=2).min(axis=1)
+    assert np.median(dist) < 1.0
+    # Sizes are scaled back too.
+    assert np.median(fs.keypoints[:, 2]) > 1.5 * np.median(ref.keypoints[:, 2])
+
+
+def test_max_side_does_not_touch_small_images() -> None:
+    img = textured_image(6)
+    a = extract_features(img, FeatureConfig(max_features=100))
+    b = extract_features(img, FeatureConfig(max_features=100, max_side=1000))
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
+
+
+def test_akaze_works_or_says_why_not() -> None:
+    try:
+        check_method_available("akaze")
+    except TopolocError as exc:
+        assert "AKAZE" in str(exc) and "\n" not in str(exc)
+        with pytest.raises(TopolocError, match="AKAZE"):
+            FeatureExtractor(FeatureConfig(method="akaze"))
+        return
+    fs = extract_features(textured_image(7), FeatureConfig(method="akaze", max_features=100))
+    assert fs.descriptors.shape[1] == 61 and fs.descriptors.dtype == np.uint8
+
+
+def test_featureset_validates_shapes() -> None:
+    with pytest.raises(ValueError, match="keypoints"):
+        FeatureSet(np.zeros((3, 4), np.float32), np.zeros((3, 128), np.float32), (10, 10))
+    with pytest.raises(ValueError, match="descriptors"):
+        FeatureSet(np.zeros((3, 5), np.float32), np.zeros((2, 128), np.float32), (10, 10))
+
+
+# -- extractor and cache -------------------------------------------------------------------
+
+def test_default_cache_dir_honours_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("TOPOLOC_CACHE_DIR", str(tmp_path / "c"))
+    assert FeatureExtractor().cache_dir == tmp_path / "c"
+    monkeypatch.delenv("TOPOLOC_CACHE_DIR")
+    assert FeatureExtractor().cache_dir == Path.home() / ".cache" / "topoloc"
+
+
+def test_cache_hit_returns_identical_features(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("TOPOLOC_CACHE_DIR", str(tmp_path / "cache"))
+    (path,) = write_images(tmp_path / "img", 1)
+    ex = FeatureExtractor(FeatureConfig(max_features=200))
+    first = ex.extract_path(path)
+    entry = ex.cache_path(path)
+    assert entry.is_file()
+    assert entry.parent == tmp_path / "cache" / "features" / ex.config.key()
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise AssertionError("extracted again instead of using the cache")
+
+    monkeypatch.setattr(local, "extract_features", boom)
+    second = ex.extract_path(path)
+    np.testing.assert_array_equal(first.keypoints, second.keypoints)
+    np.testing.assert_array_equal(first.descriptors, second.descriptors)
+    assert second.descriptors.dtype == np.float32
+    assert second.image_shape == first.image_shape
+    assert second.extract_ms == first.extract_ms > 0
+
+
+def test_cache_is_keyed_by_content_not_name(tmp_path: Path) -> None:
+    (path,) = write_images(tmp_path / "img", 1)
+    copy = tmp_path / "copy.png"
+    copy.write_bytes(path.read_bytes())
+    ex = FeatureExtractor(cache_dir=tmp_path / "cache")
+    assert ex.cache_path(path) == ex.cache_path(copy)
+    other = FeatureExtractor(FeatureConfig(method="orb"), cache_dir=tmp_path / "cache")
+    assert other.cache_path(path) != ex.cache_path(path)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip"])
+def test_corrupt_cache_entry_is_extracted_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, damage: str
+) -> None:
+    (path,) = write_images(tmp_path / "img", 1)
+    ex = FeatureExtractor(FeatureConfig(max_features=100), cache_dir=tmp_path / "cache")
+    first = ex.extract_path(path)
+    entry = ex.cache_path(path)
+    data = bytearray(entry.read_bytes())
+    if damage == "truncate":
+        entry.write_bytes(bytes(data[: len(data) - 100]))
+    else:
+        data[-10] ^= 0xFF
+        entry.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING, logger="topoloc.features.local"):
+        again = ex.extract_path(path)
+    assert "feature cache" in caplog.text
+    np.testing.assert_array_equal(first.descriptors, again.descriptors)
+    # The entry was rewritten and is valid again.
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="topoloc.features.local"):
+        ex.extract_path(path)
+    assert caplog.text == ""
+
+
+def test_use_cache_false_writes_nothing(tmp_path: Path) -> None:
+    (path,) = write_images(tmp_path / "img", 1)
+    ex = FeatureExtractor(cache_dir=tmp_path / "cache", use_cache=False)
+    assert len(ex.extract_path(path)) > 0
+    assert not (tmp_path / "cache").exists()
+
+
+def test_extract_paths_keeps_order_and_reports_progress(tmp_path: Path) -> None:
+    paths = write_images(tmp_path / "img", 6, seed=10)
+    calls: list[tuple[str, int]] = []
+    done: list[int] = []
+
+    def progress(description: str, total: int) -> Callable[[int], None]:
+        calls.append((description, total))
+        return done.append
+
+    ex = FeatureExtractor(FeatureConfig(max_features=100), cache_dir=tmp_path / "c", n_jobs=2)
+    sets = ex.extract_paths(paths, progress=progress)
+    assert calls == [("features sift", 6)] and sum(done) == 6
+    serial = FeatureExtractor(FeatureConfig(max_features=100), use_cache=False, n_jobs=1)
+    for p, fs in zip(paths, sets, strict=True):
+        np.testing.assert_array_equal(fs.descriptors, serial.extract_path(p).descriptors)
+
+
+def test_unreadable_images_raise_topoloc_error(tmp_path: Path) -> None:
+    ex = FeatureExtractor(cache_dir=tmp_path / "cache")
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(b"this is not a jpeg")
+    with pytest.raises(TopolocError, match=r"bad\.jpg"):
+        ex.extract_path(bad)
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    with pytest.raises(TopolocError, match="empty"):
+        ex.extract_path(empty)
+    with pytest.raises(TopolocError, match=r"missing\.png"):
+        ex.extract_path(tmp_path / "missing.png")

@@ -1,0 +1,81 @@
+"""tf-idf bag of words with an inverted file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import NotFittedError
+from topoloc.methods.base import Resources
+from topoloc.methods.bow import BagOfWords, inverse_document_frequency, term_counts, tfidf
+
+
+class WordResources(Resources):
+    """Resources whose images are already word lists (no features needed)."""
+
+    def __init__(self, words: dict[str, list[np.ndarray]], n_words: int) -> None:
+        super().__init__(vocabulary=SimpleNamespace(n_words_=n_words, quantize=None))  # type: ignore[arg-type]
+        self._w = words
+
+    def words(self, traverse: Traverse) -> list[np.ndarray]:
+        return self._w[traverse.name]
+
+
+def _trav(name: str, places: list[int]) -> Traverse:
+    return Traverse(root=Path(f"/{name}"), images=tuple(Path(f"/{name}/{i}.png") for i in range(len(places))),
+                    places=np.asarray(places, dtype=np.int64), name=name)
+
+
+def test_tfidf_by_hand() -> None:
+    counts = term_counts([np.array([0, 0, 1]), np.array([1, 2])], 3)
+    assert counts.toarray().tolist() == [[2, 1, 0], [0, 1, 1]]
+    idf = inverse_document_frequency(counts)
+    np.testing.assert_allclose(idf, [np.log(2), 0, np.log(2)], rtol=1e-6)
+    w = tfidf(counts, idf).toarray()
+    # doc 0: tf (2/3, 1/3, 0) * idf -> (2/3 log2, 0, 0) -> normalised (1, 0, 0)
+    np.testing.assert_allclose(w[0], [1, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(w[1], [0, 0, 1], atol=1e-6)
+
+
+def test_inverted_file_equals_dense_cosine() -> None:
+    rng = np.random.default_rng(0)
+    n_words = 50
+    map_words = [rng.integers(0, n_words, 30) for _ in range(8)]
+    q_words = [rng.integers(0, n_words, 30) for _ in range(3)]
+    res = WordResources({"m": map_words, "q": q_words}, n_words)
+    bow = BagOfWords().fit([_trav("m", list(range(8)))], resources=res)
+    S = bow.score(bow.encode(_trav("q", [0, 1, 2]), resources=res))
+    counts = term_counts(map_words, n_words)
+    idf = inverse_document_frequency(counts)
+    M = tfidf(counts, idf).toarray()
+    Q = tfidf(term_counts(q_words, n_words), idf).toarray()
+    np.testing.assert_allclose(S, M @ Q.T, atol=1e-6)
+    assert S.shape == (8, 3) and S.dtype == np.float32
+
+
+def test_places_merged_over_traverses() -> None:
+    # Place 1 looks like words {0,1} on tour a and {5,6} on tour b.
+    words = {
+        "a": [np.array([2, 3]), np.array([0, 1]), np.array([7, 8])],
+        "b": [np.array([2, 3]), np.array([5, 6]), np.array([7, 8])],
+        "q": [np.array([5, 6]), np.array([0, 1])],
+    }
+    res = WordResources(words, 10)
+    maps = [_trav("a", [0, 1, 2]), _trav("b", [0, 1, 2])]
+    for merge in ("max", "sum"):
+        bow = BagOfWords(merge=merge).fit(maps, resources=res)
+        S = bow.score(bow.encode(_trav("q", [1, 1]), resources=res))
+        assert S.shape == (3, 2)
+        assert np.argmax(S, axis=0).tolist() == [1, 1]
+    assert bow.place_ids_.tolist() == [0, 1, 2]
+
+
+def test_not_fitted_and_bad_param() -> None:
+    with pytest.raises(NotFittedError):
+        BagOfWords().score([np.array([1])])
+    with pytest.raises(Exception, match="merge"):
+        BagOfWords(merge="mean").fit([_trav("a", [0])], resources=WordResources({"a": [np.array([0])]}, 2))

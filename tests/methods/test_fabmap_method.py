@@ -1,0 +1,196 @@
+"""FAB-MAP as a method (fabmap, fabmap2) and model persistence tied to a vocabulary."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import NotFittedError, TopolocError
+from topoloc.fabmap.bench import zipf_occurrence
+from topoloc.fabmap.model import FabMapModel, vocabulary_fingerprint
+from topoloc.fabmap.slam import DenseMap
+from topoloc.methods.base import parse_param
+from topoloc.methods.fabmap import FabMap, FabMap2
+
+V = 300
+
+
+class FakeVocabulary:
+    def __init__(self, seed: int = 0, n_words: int = V) -> None:
+        self.n_words_ = n_words
+        self.descriptor_kind_ = "sift:f32:128"
+        self.words_ = np.random.default_rng(seed).random((n_words, 8)).astype(np.float32)
+
+
+class FakeResources:
+    """``words(traverse)`` by traverse name, ``training_words()``, ``vocabulary``."""
+
+    has_vocabulary = True
+
+    def __init__(self, words: dict[str, list[np.ndarray]], training: list[np.ndarray],
+                 vocabulary: FakeVocabulary) -> None:
+        self._words = words
+        self._training = training
+        self.vocabulary = vocabulary
+
+    def words(self, traverse: Traverse) -> list[np.ndarray]:
+        return self._words[traverse.name]
+
+    def training_words(self) -> list[np.ndarray]:
+        return self._training
+
+
+def _rows(x: Any) -> list[np.ndarray]:
+    return [x.indices[x.indptr[i]:x.indptr[i + 1]].astype(np.int64) for i in range(x.shape[0])]
+
+
+def _traverse(name: str, places: np.ndarray) -> Traverse:
+    root = Path("/nonexistent") / name
+    return Traverse(root=root, images=tuple(root / f"{i}.jpg" for i in range(len(places))),
+                    places=np.asarray(places, dtype=np.int64), name=name)
+
+
+def _observe(words: np.ndarray, rng: np.random.Generator, fresh: np.ndarray) -> np.ndarray:
+    kept = words[rng.random(words.size) < 0.7]
+    # features repeat words: word ids with duplicates, as a quantiser returns them
+    return np.concatenate([kept, kept[:3], rng.choice(fresh, size=6, replace=False)])
+
+
+@pytest.fixture(scope="module")
+def world() -> dict[str, Any]:
+    rng = np.random.default_rng(0)
+    places = _rows(zipf_occurrence(25, n_words=V, words_per_image=35, seed=1, permutation_seed=0))
+    training = _rows(zipf_occurrence(200, n_words=V, words_per_image=35, seed=2, permutation_seed=0))
+    fresh = zipf_occurrence(200, n_words=V, words_per_image=35, seed=3, permutation_seed=0)
+    fr = _rows(fresh)
+    ids = np.arange(100, 125)  # place ids need not start at 0
+    map_a = [_observe(places[i], rng, fr[i]) for i in range(25)]
+    map_b = [_observe(places[i], rng, fr[25 + i]) for i in range(25)]
+    q_idx = rng.permutation(25)[:15]
+    queries = [_observe(places[i], rng, fr[50 + k]) for k, i in enumerate(q_idx)]
+    voc = FakeVocabulary()
+    res = FakeResources({"a": map_a, "b": map_b[::-1], "q": queries}, training, voc)
+    return {
+        "res": res,
+        "maps": [_traverse("a", ids), _traverse("b", ids[::-1])],
+        "query": _traverse("q", ids[q_idx]),
+        "truth": ids[q_idx],
+        "ids": ids,
+        "voc": voc,
+        "training": training,
+    }
+
+
+def test_not_fitted() -> None:
+    with pytest.raises(NotFittedError):
+        FabMap().score([np.array([1, 2])])
+    with pytest.raises(NotFittedError):
+        FabMap2().score([np.array([1, 2])])
+
+
+@pytest.mark.parametrize("cls", [FabMap, FabMap2])
+@pytest.mark.parametrize("output", ["loglik", "posterior"])
+def test_localisation(world: dict[str, Any], cls: type[FabMap], output: str) -> None:
+    m = cls(output=output).fit(world["maps"], resources=world["res"])
+    assert m.name in ("fabmap", "fabmap2") and m.uses_vocabulary
+    assert np.array_equal(m.place_ids_, world["ids"])
+    # two map traverses of the same places merged into one model per place (Eq. 11)
+    assert m.map_.n_places == 25
+    items = m.encode(world["query"], resources=world["res"])
+    S = m.score(items)
+    assert S.shape == (25, 15) and S.dtype == np.float32
+    assert np.isfinite(S).all()
+    hits = (m.place_ids_[np.argmax(S, axis=0)] == world["truth"]).mean()
+    assert hits >= 0.9
+    if output == "posterior":
+        assert (S >= 0).all() and (S.sum(axis=0) <= 1 + 1e-5).all()
+
+
+def test_loglik_is_eq4_and_options(world: dict[str, Any]) -> None:
+    res = world["res"]
+    base = FabMap().fit(world["maps"], resources=res)
+    items = base.encode(world["query"], resources=res)
+    S = base.score(items)
+    obs = base.obs_model_.observe(items[0])
+    assert isinstance(base.map_, DenseMap)
+    expected = [base.obs_model_.log_likelihood_single(e, obs) for e in base.map_.places.E]
+    assert np.allclose(S[:, 0], expected, rtol=1e-5)
+    # naive Bayes, mean field, bail-out all work and agree on the best place
+    for kw in ({"naive_bayes": True}, {"bailout": True},
+               {"output": "posterior", "normaliser": "mean_field", "smoothing": 0.99}):
+        S2 = FabMap(**kw).fit(world["maps"], resources=res).score(items)
+        assert S2.shape == S.shape
+        assert (np.argmax(S2, axis=0) == np.argmax(S, axis=0)).mean() >= 0.9
+
+
+def test_bad_params(world: dict[str, Any]) -> None:
+    with pytest.raises(TopolocError, match="output"):
+        FabMap(output="tfidf").fit(world["maps"], resources=world["res"])
+    with pytest.raises(TopolocError, match="normaliser"):
+        FabMap(normaliser="exact").fit(world["maps"], resources=world["res"])
+    assert parse_param(FabMap, "output", "posterior") == "posterior"
+    assert parse_param(FabMap2, "naive_bayes", "true") is True
+    assert parse_param(FabMap, "p_new", "0.5") == 0.5
+
+
+def test_missing_training_images(world: dict[str, Any]) -> None:
+    class NoTraining:
+        vocabulary = world["voc"]
+        has_vocabulary = True
+
+        def words(self, traverse: Traverse) -> list[np.ndarray]:
+            return world["res"].words(traverse)
+
+    with pytest.raises(TopolocError, match="training images"):
+        FabMap().fit(world["maps"], resources=NoTraining())  # type: ignore[arg-type]
+
+
+def test_model_save_load_and_vocabulary_binding(world: dict[str, Any], tmp_path: Path) -> None:
+    voc = world["voc"]
+    model = FabMapModel.train(world["training"], vocabulary=voc)
+    assert model.vocabulary == vocabulary_fingerprint(voc)
+    path = tmp_path / "fabmap.tfm"
+    model.save(path)
+    loaded = FabMapModel.load(path, vocabulary=voc)
+    for name in ("parents", "p_z", "p_z_given_parent", "p_e", "edge_mi", "joint_p",
+                 "train_indptr", "train_indices"):
+        assert np.array_equal(getattr(model, name), getattr(loaded, name)), name
+    assert (loaded.root, loaded.p_fp, loaded.p_fn, loaded.n_words) == (
+        model.root, model.p_fp, model.p_fn, model.n_words)
+    # a method using the saved model gives the same scores as training it
+    res = world["res"]
+    a = FabMap().fit(world["maps"], resources=res)
+    b = FabMap(model_path=str(path)).fit(world["maps"], resources=res)
+    items = a.encode(world["query"], resources=res)
+    assert np.allclose(a.score(items), b.score(items))
+
+    # another vocabulary (same size, other centres): refused, naming the file
+    with pytest.raises(TopolocError, match="another vocabulary") as err:
+        FabMapModel.load(path, vocabulary=FakeVocabulary(seed=1))
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(TopolocError, match="visual words"):
+        FabMapModel.load(path, vocabulary=FakeVocabulary(n_words=V + 1))
+
+    # truncated and corrupted files
+    data = path.read_bytes()
+    (tmp_path / "trunc.tfm").write_bytes(data[: len(data) // 2])
+    with pytest.raises(TopolocError, match="truncated"):
+        FabMapModel.load(tmp_path / "trunc.tfm")
+    bad = bytearray(data)
+    bad[-3] ^= 0xFF
+    (tmp_path / "bad.tfm").write_bytes(bytes(bad))
+    with pytest.raises(TopolocError, match=r"corrupt|checksum"):
+        FabMapModel.load(tmp_path / "bad.tfm")
+    with pytest.raises(TopolocError, match="not found"):
+        FabMapModel.load(tmp_path / "missing.tfm")
+
+
+def test_detector_validation(world: dict[str, Any]) -> None:
+    with pytest.raises(TopolocError, match="detector"):
+        FabMapModel.train(world["training"], n_words=V, p_fp=0.5, p_fn=0.6)
+    with pytest.raises(TopolocError, match="at least 2"):
+        FabMapModel.train(world["training"][:1], n_words=V)
