@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
-from typing import Any
 
-from topoloc.evaluation.pipeline import EvaluateOptions, build_report, evaluate
+from topoloc.evaluation.pipeline import build_report
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TOPOLOC_DATA", REPO.parent / "shared" / "data")).resolve()
 RESULTS = REPO / "docs" / "results"
+TOPOLOC = Path(sys.executable).parent / "topoloc"
 GP = DATA / "gardens_point"
 WEBCAM = DATA / "webcam_daynight"
 WEBCAM_TOURS = sorted((WEBCAM / "map").glob("tour_*"))
@@ -31,10 +33,22 @@ def require_data() -> None:
 
 
 def run(method: str, maps: list[Path], query: Path, out: Path, *, vocab_train: list[Path],
-        tolerance: str, params: dict[str, str] | None = None, **kw: Any) -> Path:
-    """One `topoloc evaluate` run (same code path as the CLI); returns its folder."""
-    evaluate(EvaluateOptions(method=method, maps=maps, query=query, out=out, vocab_train=vocab_train,
-                             tolerance=tolerance, params=params or {}, **kw))
+        tolerance: str, params: dict[str, str] | None = None, sequence: int = 0,
+        ground_truth: Path | None = None) -> Path:
+    """One `topoloc evaluate` run in its own process (so peak memory is per run); returns its folder."""
+    cmd = [str(TOPOLOC), "evaluate", "--method", method, "--query", str(query), "--out", str(out),
+           "--tolerance", tolerance, "--quiet"]
+    for m in maps:
+        cmd += ["--map", str(m)]
+    for v in vocab_train:
+        cmd += ["--vocab-train", str(v)]
+    for k, v in (params or {}).items():
+        cmd += ["--param", f"{k}={v}"]
+    if sequence:
+        cmd += ["--sequence", str(sequence)]
+    if ground_truth is not None:
+        cmd += ["--ground-truth", str(ground_truth)]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     m = json.loads((out / "metrics.json").read_text())
     print(f"{out.name}: AUC {m['auc']:.3f} R@1 {m['recall_at_1']:.3f} ms/q {m['ms_per_query']:.2f}", flush=True)
     return out

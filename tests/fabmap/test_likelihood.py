@@ -256,3 +256,16 @@ def test_merge_threshold_and_word_counts() -> None:
         wc.update(i, np.array([1, 4]))
     # 10 observations: word 1 in 10, words 2, 3 in 1 (10 % is not above 10.1 %), word 4 in 9
     assert wc.word_set(i).tolist() == [1, 4]
+
+
+def test_numpy_fallback_scatter_matches(random_setup, monkeypatch) -> None:
+    import topoloc.fabmap.likelihood as lik
+
+    om, places, queries = random_setup
+    sets = [np.flatnonzero(r) for r in places]
+    fast = InvertedIndex(om, sets, lut_threshold=10.0)
+    monkeypatch.setattr(lik, "_csc_matvec", None)
+    slow = InvertedIndex(om, sets, lut_threshold=10.0)
+    for q in queries[:4]:
+        obs = om.observe(q)
+        assert np.allclose(fast.log_likelihood(obs), slow.log_likelihood(obs), atol=1e-9)

@@ -24,6 +24,8 @@ app = typer.Typer(
 )
 vocab_app = typer.Typer(help="Visual vocabularies.", no_args_is_help=True)
 app.add_typer(vocab_app, name="vocab")
+bench_app = typer.Typer(help="Speed benchmarks on synthetic data of realistic size.", no_args_is_help=True)
+app.add_typer(bench_app, name="bench")
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -213,6 +215,69 @@ def demo(
         report_path = run_demo(out, n_places=places, progress=progress)
     typer.echo(report_path.read_text(), nl=False)
     typer.echo(f"\nPR curves: {report_path.parent / 'pr_curves.png'}")
+
+
+@app.command()
+@handle_errors
+def slam(
+    traverse: Annotated[Path, typer.Argument(help="Traverse folder, processed in order.")],
+    out: Annotated[Path, typer.Option(help="Output folder.")],
+    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
+    vocab_train: Annotated[
+        list[Path] | None, typer.Option("--vocab-train", help="Folders to train vocabulary and model on.")
+    ] = None,
+    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
+    model: Annotated[Path | None, typer.Option(help="Saved FAB-MAP model (else trained).")] = None,
+    variant: Annotated[str, typer.Option(help="fabmap or fabmap2.")] = "fabmap",
+    threshold: Annotated[float, typer.Option(help="Posterior needed to accept a loop closure.")] = 0.98,
+    p_new: Annotated[float, typer.Option(help="Prior probability of a new place.")] = 0.9,
+    min_gap: Annotated[int, typer.Option(help="Images between a place's last visit and a loop closure.")] = 10,
+    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
+    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+) -> None:
+    """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.evaluation.pipeline import make_resources
+    from topoloc.fabmap.slam import run_slam
+
+    trav = load_traverse(traverse)
+    with rich_progress(not quiet) as progress:
+        resources, _ = make_resources(
+            vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words, features=features,
+            max_features=max_features, cache_dir=cache_dir, needs_vocabulary="slam", progress=progress,
+        )
+        result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
+                          threshold=threshold, p_new=p_new, min_gap=min_gap)
+    typer.echo(f"{result.n_images} images, {result.n_places} places, {len(result.loop_closures())} loop closures; "
+               f"wrote {out}/posterior.npy, loop_closures.csv, loop_closures.png")
+
+
+@bench_app.command("fabmap2")
+@handle_errors
+def bench_fabmap2_cmd(
+    places: Annotated[int, typer.Option(help="Places in the map.")] = 100000,
+    words: Annotated[int, typer.Option(help="Vocabulary size.")] = 10000,
+    words_per_image: Annotated[int, typer.Option(help="Words per image.")] = 300,
+    queries: Annotated[int, typer.Option(help="Timed queries.")] = 200,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
+) -> None:
+    """FAB-MAP 2.0 (inverted index) ms per query on synthetic Zipf-distributed bag-of-words streams."""
+    from topoloc.fabmap.bench import bench_fabmap2
+
+    res = bench_fabmap2(n_places=places, n_words=words, words_per_image=words_per_image, n_queries=queries,
+                        seed=seed)
+    _print_bench(res, as_json)
+
+
+def _print_bench(res: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        typer.echo(json.dumps(res, default=float))
+    else:
+        for k, v in res.items():
+            typer.echo(f"{k}: {v}")
 
 
 def main() -> None:

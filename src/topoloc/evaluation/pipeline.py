@@ -90,44 +90,53 @@ def build_method(name: str, params: dict[str, str]) -> PlaceRecognizer:
 
 
 def make_resources(
-    opts: EvaluateOptions, method: PlaceRecognizer, progress: ProgressFactory | None
+    *,
+    vocab: Path | None = None,
+    vocab_train: list[Path] | None = None,
+    vocab_words: int = 10000,
+    features: str = "sift",
+    max_features: int = 1000,
+    cache_dir: Path | None = None,
+    seed: int = 0,
+    needs_vocabulary: str = "",
+    progress: ProgressFactory | None = None,
 ) -> tuple[Resources, dict[str, Any]]:
-    """Feature extractor and vocabulary for a run, with the vocabulary's provenance."""
+    """Feature extractor and vocabulary for a run, with the vocabulary's provenance.
+
+    ``needs_vocabulary`` names the user of the vocabulary (a method, a command);
+    when set, a missing ``vocab``/``vocab_train`` is an error.
+    """
     from topoloc.features import FeatureConfig, FeatureExtractor
 
-    extractor = FeatureExtractor(
-        FeatureConfig(method=opts.features, max_features=opts.max_features),
-        cache_dir=opts.cache_dir,
-    )
+    extractor = FeatureExtractor(FeatureConfig(method=features, max_features=max_features), cache_dir=cache_dir)
     vocab_info: dict[str, Any] = {"used": False}
     vocabulary: Any = None
     training_images: list[Path] = []
-    if opts.vocab is not None:
+    if vocab is not None:
         from topoloc.vocabulary import Vocabulary
 
-        vocabulary = Vocabulary.load(opts.vocab)
-        vocabulary.check_compatible(extractor.config.descriptor_kind, source=opts.vocab)
-        vocab_info = {"used": True, "file": str(opts.vocab), **vocabulary.provenance_}
-    elif opts.vocab_train:
+        vocabulary = Vocabulary.load(vocab)
+        vocabulary.check_compatible(extractor.config.descriptor_kind, source=vocab)
+        vocab_info = {"used": True, "file": str(vocab), **vocabulary.provenance_}
+    elif vocab_train:
         from topoloc.vocabulary import cached_vocabulary
 
-        training_images = find_images(opts.vocab_train)
-        folders = list(opts.vocab_train)
+        training_images = find_images(vocab_train)
+        folders = list(vocab_train)
 
         def provide() -> Any:
             voc, path = cached_vocabulary(
-                folders, extractor=extractor, n_words=opts.vocab_words, seed=opts.seed,
-                cache_dir=opts.cache_dir, progress=progress,
+                folders, extractor=extractor, n_words=vocab_words, seed=seed, cache_dir=cache_dir,
+                progress=progress,
             )
             vocab_info.update({"used": True, "file": str(path), **voc.provenance_})
             return voc
 
         vocabulary = provide
         vocab_info = {"used": False, "train_folders": [str(f) for f in folders]}
-    elif method.uses_vocabulary:
-        raise TopolocError(f"method {method.name!r} needs a vocabulary: pass --vocab FILE or --vocab-train DIR")
-    res = Resources(extractor=extractor, vocabulary=vocabulary, progress=progress,
-                    training_images=training_images)
+    elif needs_vocabulary:
+        raise TopolocError(f"{needs_vocabulary} needs a vocabulary: pass --vocab FILE or --vocab-train DIR")
+    res = Resources(extractor=extractor, vocabulary=vocabulary, progress=progress, training_images=training_images)
     return res, vocab_info
 
 
@@ -205,7 +214,11 @@ def evaluate(opts: EvaluateOptions, *, progress: ProgressFactory | None = None) 
     maps = [load_traverse(m) for m in opts.maps]
     query = load_traverse(opts.query)
     method = build_method(opts.method, opts.params)
-    resources, vocab_info = make_resources(opts, method, progress)
+    resources, vocab_info = make_resources(
+        vocab=opts.vocab, vocab_train=opts.vocab_train, vocab_words=opts.vocab_words, features=opts.features,
+        max_features=opts.max_features, cache_dir=opts.cache_dir, seed=opts.seed,
+        needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
+    )
 
     t0 = time.perf_counter()
     method.fit(maps, resources=resources)

@@ -201,6 +201,14 @@ class ObservationModel:
             cond[zp] = 1.0 - c1[zp]
             cond[2 + zp] = c1[zp]
         self.p_state_given_parent = cond
+        # bail-out tables: -information of each state, and the log-likelihood
+        # difference of a word between a place that saw it once and one that did not
+        self.neg_info = np.log(cond)
+        mix_hi = table[0] * (1.0 - self.e_hi) + table[1] * self.e_hi
+        mix_lo = table[0] * (1.0 - self.e_lo) + table[1] * self.e_lo
+        self.d_hilo = np.log(mix_hi) - np.log(mix_lo)  # (4, V)
+        self.var_weight = 2.0 * model.p_z * (1.0 - model.p_z)
+        self.state0_order = np.argsort(self.neg_info[0], kind="stable")
 
     # -- observations --------------------------------------------------------------
     def observe(self, words: np.ndarray | Sequence[int]) -> Observation:
@@ -263,6 +271,10 @@ class ObservationModel:
 class PlaceModels:
     """A growable set of place models ``p(e_q = 1 | L_i)`` with cached default terms.
 
+    Beliefs are stored word-major, ``(V, n_places)``, so that the few hundred
+    words a query makes informative are contiguous rows (sparse evaluation and
+    the first bail-out blocks read them without cache misses).
+
     Parameters
     ----------
     obs_model : ObservationModel
@@ -272,7 +284,7 @@ class PlaceModels:
     Attributes
     ----------
     E : ndarray, shape (n_places, V)
-        Beliefs of every place (a view; do not write to it).
+        Beliefs of every place (a read-only transposed view of the storage).
     base : ndarray of float64, shape (n_places,)
         ``sum_q log p(z_q = 0 | z_p = 0, L_i)``: the state-0 terms of all words.
     """
@@ -280,7 +292,7 @@ class PlaceModels:
     def __init__(self, obs_model: ObservationModel, *, dtype: type = np.float32) -> None:
         self.obs_model = obs_model
         v = obs_model.n_words
-        self._e: np.ndarray = np.zeros((16, v), dtype=dtype)
+        self._et: np.ndarray = np.zeros((v, 16), dtype=dtype)  # (V, capacity)
         self._base = np.zeros(16)
         self._n = 0
         self._a0 = obs_model.table[0, 0]
@@ -295,36 +307,46 @@ class PlaceModels:
 
     @property
     def E(self) -> np.ndarray:  # the paper's symbol
-        return self._e[: self._n]
+        view = self._et[:, : self._n].T
+        view.flags.writeable = False
+        return view
+
+    @property
+    def ET(self) -> np.ndarray:
+        """Word-major beliefs, shape (V, n_places) (read-only view)."""
+        view = self._et[:, : self._n]
+        view.flags.writeable = False
+        return view
 
     @property
     def base(self) -> np.ndarray:
         return self._base[: self._n]
 
-    def _default_sum(self, e: np.ndarray) -> np.ndarray:
-        e64 = np.asarray(e, dtype=np.float64)
-        return np.asarray(np.log(self._a0 + self._d0 * e64).sum(axis=-1))
+    def _default_sum(self, et: np.ndarray) -> np.ndarray:
+        """State-0 log terms summed over words, for word-major beliefs (V, k)."""
+        e64 = np.asarray(et, dtype=np.float64)
+        return np.asarray(np.log(self._a0[:, None] + self._d0[:, None] * e64).sum(axis=0))
 
     def add(self, e: np.ndarray) -> int:
         """Append a place with beliefs ``e`` (V,) or several (k, V); returns the first index."""
         e = np.atleast_2d(np.asarray(e))
         k = e.shape[0]
         need = self._n + k
-        if need > self._e.shape[0]:
-            cap = max(need, 2 * self._e.shape[0])
-            grown = np.zeros((cap, self._e.shape[1]), dtype=self._e.dtype)
-            grown[: self._n] = self._e[: self._n]
-            self._e = grown
+        if need > self._et.shape[1]:
+            cap = max(need, 2 * self._et.shape[1])
+            grown = np.zeros((self._et.shape[0], cap), dtype=self._et.dtype)
+            grown[:, : self._n] = self._et[:, : self._n]
+            self._et = grown
             base = np.zeros(cap)
             base[: self._n] = self._base[: self._n]
             self._base = base
         first = self._n
-        self._e[first:need] = e
+        self._et[:, first:need] = e.T
         # base from the stored (possibly float32) values, so that the sparse and
         # the exhaustive evaluation agree to rounding
-        for lo in range(first, need, 1024):
-            hi = min(need, lo + 1024)
-            self._base[lo:hi] = self._default_sum(self._e[lo:hi])
+        for lo in range(first, need, 256):
+            hi = min(need, lo + 256)
+            self._base[lo:hi] = self._default_sum(self._et[:, lo:hi])
         self._n = need
         return first
 
@@ -336,8 +358,8 @@ class PlaceModels:
         """Merge an observation into place ``i`` (Eq. 11)."""
         if not 0 <= i < self._n:
             raise IndexError(i)
-        self._e[i] = self.obs_model.update(self._e[i], obs)
-        self._base[i] = self._default_sum(self._e[i])
+        self._et[:, i] = self.obs_model.update(self._et[:, i], obs)
+        self._base[i] = self._default_sum(self._et[:, i : i + 1])[0]
 
     def log_likelihood(self, obs: Observation) -> np.ndarray:
         """Exact ``log p(Z | L_i)`` (Eq. 4-5) by the sparse decomposition, shape (n,).
@@ -350,24 +372,24 @@ class PlaceModels:
         base = self.base
         if act.size == 0:
             return base.copy()
-        e = self.E[:, act].astype(np.float64)
-        a = om.table[0, c, act]
-        d = om.table[1, c, act] - a
-        a0 = self._a0[act]
-        d0 = self._d0[act]
-        corr = np.log((a + d * e) / (a0 + d0 * e)).sum(axis=1)
+        e = self._et[act, : self._n].astype(np.float64)  # (|A|, n)
+        a = om.table[0, c, act][:, None]
+        d = om.table[1, c, act][:, None] - a
+        a0 = self._a0[act][:, None]
+        d0 = self._d0[act][:, None]
+        corr = np.log((a + d * e) / (a0 + d0 * e)).sum(axis=0)
         return np.asarray(base + corr)
 
     def log_likelihood_exhaustive(self, obs: Observation) -> np.ndarray:
         """``log p(Z | L_i)`` summing all ``V`` words for every place (FAB-MAP 1.0 cost)."""
         om = self.obs_model
         q = np.arange(om.n_words)
-        a = om.table[0, obs.codes, q]
-        d = om.table[1, obs.codes, q] - a
+        a = om.table[0, obs.codes, q][:, None]
+        d = om.table[1, obs.codes, q][:, None] - a
         out = np.empty(self._n)
-        for lo in range(0, self._n, 256):
-            hi = min(self._n, lo + 256)
-            out[lo:hi] = np.log(a + d * self._e[lo:hi].astype(np.float64)).sum(axis=1)
+        for lo in range(0, self._n, 128):
+            hi = min(self._n, lo + 128)
+            out[lo:hi] = np.log(a + d * self._et[:, lo:hi].astype(np.float64)).sum(axis=0)
         return out
 
 
@@ -621,16 +643,21 @@ def log_likelihood_bailout(
     v_words = om.n_words
     if n == 0:
         return BailoutResult(np.zeros(0), np.zeros(0, dtype=bool), 1.0)
-    q_all = np.arange(v_words)
     codes = obs.codes
-    info = -np.log(om.p_state_given_parent[codes, q_all])
-    order = np.argsort(-info, kind="stable")
-    a = om.table[0, codes, q_all][order]
-    d = om.table[1, codes, q_all][order] - a
+    # most informative first.  Words in state 0 have a query-independent
+    # information, pre-sorted once; only the few hundred others are sorted per
+    # query, and a stable sort of the two sorted runs is a linear merge.
+    act = obs.active
+    act = act[np.argsort(om.neg_info[codes[act], act], kind="stable")]
+    rest = om.state0_order[codes[om.state0_order] == 0]
+    cand = np.concatenate([act, rest])
+    order = cand[np.argsort(om.neg_info[codes[cand], cand], kind="stable")]
+    qc = (codes[order], order)
+    a = om.table[0][qc]
+    d = om.table[1][qc] - a
     # variance model: a place saw the word once (e_hi) or not (e_lo)
-    d_hl = np.log(a + d * om.e_hi[order]) - np.log(a + d * om.e_lo[order])
-    pq = om.model.p_z[order]
-    var = 2.0 * pq * (1.0 - pq) * d_hl**2
+    d_hl = om.d_hilo[qc]
+    var = om.var_weight[order] * d_hl**2
     # suffix sums / maxima: what remains after position t
     rem_v = np.append(np.cumsum(var[::-1])[::-1], 0.0)
     rem_m = np.append(np.maximum.accumulate(np.abs(d_hl)[::-1])[::-1], 0.0)
@@ -639,7 +666,7 @@ def log_likelihood_bailout(
         bennett_threshold(rem_v[bounds], rem_m[bounds], p_bailout), np.log(1.0 / p_bailout)
     )
 
-    e_all = places.E
+    e_all = places.ET  # (V, n): the rows of a block of words are contiguous
     score = np.zeros(n)
     alive = np.arange(n)
     bailed_gap = np.full(n, np.nan)
@@ -648,8 +675,8 @@ def log_likelihood_bailout(
     leader_at = np.zeros(n)
     for bi, hi in enumerate(bounds):
         cols = order[lo:hi]
-        e = e_all[np.ix_(alive, cols)].astype(np.float64)
-        score[alive] += np.log(a[lo:hi] + d[lo:hi] * e).sum(axis=1)
+        e = (e_all[cols] if alive.size == n else e_all[np.ix_(cols, alive)]).astype(np.float64)
+        score[alive] += np.log(a[lo:hi, None] + d[lo:hi, None] * e).sum(axis=0)
         terms += alive.size * (hi - lo)
         lo = hi
         if hi == v_words or alive.size <= 1:
@@ -664,8 +691,8 @@ def log_likelihood_bailout(
             alive = alive[~drop]
     if lo < v_words:  # a single survivor: finish it
         cols = order[lo:]
-        e = e_all[np.ix_(alive, cols)].astype(np.float64)
-        score[alive] += np.log(a[lo:] + d[lo:] * e).sum(axis=1)
+        e = e_all[np.ix_(cols, alive)].astype(np.float64)
+        score[alive] += np.log(a[lo:, None] + d[lo:, None] * e).sum(axis=0)
         terms += alive.size * (v_words - lo)
     evaluated = np.zeros(n, dtype=bool)
     evaluated[alive] = True
@@ -814,11 +841,8 @@ class InvertedIndex:
         self.lut_threshold = float(lut_threshold)
         self.rebuild_fraction = float(rebuild_fraction)
         v = obs_model.n_words
-        t = obs_model.table
         q = np.arange(v)
-        mix_hi = t[0] * (1.0 - obs_model.e_hi) + t[1] * obs_model.e_hi  # (4, V)
-        mix_lo = t[0] * (1.0 - obs_model.e_lo) + t[1] * obs_model.e_lo
-        self.D = np.log(mix_hi) - np.log(mix_lo)  # (4, V): log-likelihood ratio of holding q
+        self.D = obs_model.d_hilo  # (4, V): log-likelihood ratio of holding q, per state
         self.default_code = np.argmax(obs_model.state_p, axis=0).astype(np.int8)
         self.D_default = self.D[self.default_code, q]
         self.p_nondefault = 1.0 - obs_model.state_p[self.default_code, q]

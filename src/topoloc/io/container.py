@@ -84,7 +84,7 @@ def write_container(
     offset = 0
     crc = 0
     for name, arr in arrays.items():
-        a = np.ascontiguousarray(arr)
+        a = np.require(arr, requirements="C")  # keeps 0-d arrays 0-d, unlike ascontiguousarray
         if a.dtype.hasobject:
             raise TypeError(f"array {name!r} has dtype object; not storable")
         pad = (-offset) % _ALIGN

@@ -13,6 +13,8 @@ from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
 
 _REGISTRY: dict[str, str] = {
     "bow": "topoloc.methods.bow:BagOfWords",
+    "fabmap": "topoloc.methods.fabmap:FabMap",
+    "fabmap2": "topoloc.methods.fabmap:FabMap2",
     "seqslam": "topoloc.methods.seqslam:SeqSLAM",
     "seqslam-single": "topoloc.methods.seqslam:SingleImageSeqSLAM",
 }
