@@ -283,10 +283,18 @@ def _short(path: str) -> str:
     return f"{p.parent.name}/{p.name}" if p.parent.name else p.name
 
 
+def _maps_label(maps: list[str], sep: str) -> str:
+    names = [_short(x) for x in maps]
+    if len(names) > 3:
+        return f"{len(names)} traverses {names[0]}{sep}...{sep}{names[-1]}"
+    return sep.join(names)
+
+
 def _run_title(m: dict[str, Any]) -> str:
     run = m.get("run", {})
-    maps = "+".join(_short(x) for x in run.get("map", []))
-    return f"{m['method']}: map {maps} -> query {_short(run.get('query', '?'))}"
+    seq = m.get("params", {}).get("sequence", 0)
+    method = m["method"] + (f" (seq {seq})" if seq and seq > 1 else "")
+    return f"{method}: {_maps_label(run.get('map', []), '+')} -> {_short(run.get('query', '?'))}"
 
 
 TABLE_HEADER = (
@@ -298,7 +306,7 @@ TABLE_HEADER = (
 def table_row(m: dict[str, Any]) -> str:
     """One markdown table row for a run's metrics."""
     run = m.get("run", {})
-    maps = " + ".join(_short(x) for x in run.get("map", []))
+    maps = _maps_label(run.get("map", []), " + ")
     seq = m.get("params", {}).get("sequence", 0)
     method = m["method"] + (f" (seq {seq})" if seq and seq > 1 else "")
     return (

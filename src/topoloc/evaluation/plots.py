@@ -17,7 +17,8 @@ def plot_pr_curves(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    # Long run labels go in a legend below the axes, so the figure grows with them.
+    fig, ax = plt.subplots(figsize=(7.0, 4.5 + 0.22 * len(curves)), dpi=110)
     for label, p, r in curves:
         ax.plot(r, p, label=label, linewidth=1.6)
     ax.set_xlabel("recall")
@@ -28,7 +29,7 @@ def plot_pr_curves(
     if title:
         ax.set_title(title, fontsize=9)
     if curves:
-        ax.legend(fontsize=7, loc="lower left")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), frameon=False)
     fig.tight_layout()
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp.png")

@@ -105,13 +105,15 @@ class Resources:
         return self._vocabulary is not None
 
     def per_image(
-        self, traverse: Traverse, key: str, fn: Callable[[Path], T], description: str = ""
+        self, traverse: Traverse, key: str, fn: Callable[[Path], T], description: str = "", *, timed: bool = True
     ) -> list[T]:
         """Apply ``fn`` to every image of ``traverse`` in parallel, memoised by ``key``.
 
-        The milliseconds each image took are recorded in :attr:`image_ms`
-        (an item's own ``extract_ms`` attribute is used when present, so that
-        results loaded from the disk cache report their real extraction time).
+        With ``timed``, the milliseconds each image took are recorded in
+        :attr:`image_ms` (an item's own ``extract_ms`` attribute is used when
+        present, so that results loaded from the disk cache report their real
+        extraction time); training images are not timed, so ``ms_features``
+        describes map and query images only.
         """
         memo_key = (str(traverse.root.resolve()) + "|" + ",".join(p.name for p in traverse.images), key)
         if memo_key in self._memo:
@@ -121,10 +123,9 @@ class Resources:
         def run(path: Path) -> T:
             t0 = time.perf_counter()
             out = fn(path)
-            ms = getattr(out, "extract_ms", None)
-            self.image_ms[(str(path), key)] = (
-                float(ms) if ms is not None else 1e3 * (time.perf_counter() - t0)
-            )
+            if timed:
+                ms = getattr(out, "extract_ms", None)
+                self.image_ms[(str(path), key)] = float(ms) if ms is not None else 1e3 * (time.perf_counter() - t0)
             advance(1)
             return out
 
@@ -137,16 +138,16 @@ class Resources:
         self._memo[memo_key] = result
         return result
 
-    def features(self, traverse: Traverse) -> list[FeatureSet]:
+    def features(self, traverse: Traverse, *, timed: bool = True) -> list[FeatureSet]:
         """Local features of every image of ``traverse`` (cached)."""
         ex = self.extractor
         return self.per_image(traverse, "features:" + ex.config.key(), ex.extract_path,
-                              f"features {traverse.name}")
+                              f"features {traverse.name}", timed=timed)
 
-    def words(self, traverse: Traverse) -> list[np.ndarray]:
+    def words(self, traverse: Traverse, *, timed: bool = True) -> list[np.ndarray]:
         """Visual-word ids of every image's features, each of shape (n_features,)."""
         voc = self.vocabulary
-        return [voc.quantize(f.descriptors) for f in self.features(traverse)]
+        return [voc.quantize(f.descriptors) for f in self.features(traverse, timed=timed)]
 
     def training_words(self) -> list[np.ndarray]:
         """Visual-word ids of every training image (the vocabulary's training set).
@@ -169,7 +170,7 @@ class Resources:
         common = Path(os.path.commonpath([str(p.parent) for p in images]))
         pseudo = Traverse(root=common, images=tuple(images),
                           places=np.arange(len(images), dtype=np.int64), name="training")
-        return self.words(pseudo)
+        return self.words(pseudo, timed=False)
 
     def ms_features_median(self) -> float:
         """Median per-image milliseconds of all per-image work so far."""

@@ -1,0 +1,29 @@
+"""Feature Co-occurrence Maps (Johns & Yang, ICRA 2013).
+
+* :mod:`~topoloc.coocmap.spatial` -- spatial words of feature pairs (Sec. II-A);
+* :mod:`~topoloc.coocmap.model` -- location models M_i, tours and
+  interpolation (Sec. II-B, II-E), persistence;
+* :mod:`~topoloc.coocmap.matching` -- candidate correspondences, J_i,
+  elimination, simultaneous matching (Sec. II-C, II-D);
+* :mod:`~topoloc.coocmap.bench` -- synthetic map of the paper's size, timings;
+* :mod:`~topoloc.coocmap.visualise` -- match drawings (Fig. 1, 5).
+
+Sequence matching (Sec. II-F) is :func:`topoloc.sequence.sequence_similarity`.
+"""
+
+from topoloc.coocmap.matching import (
+    ConsistencyGraphs,
+    MatchResult,
+    consistency_graphs,
+    eliminate,
+    match_sequential,
+    match_simultaneous,
+)
+from topoloc.coocmap.model import CoocModel, vocabulary_fingerprint
+from topoloc.coocmap.spatial import n_spatial_words, normalise_xy, spatial_words
+
+__all__ = [
+    "ConsistencyGraphs", "CoocModel", "MatchResult", "consistency_graphs", "eliminate",
+    "match_sequential", "match_simultaneous", "n_spatial_words", "normalise_xy",
+    "spatial_words", "vocabulary_fingerprint",
+]

@@ -1,0 +1,395 @@
+"""Location models: word-co-occurrence matrices M_i (Cooc-Map, Sec. II-B and II-E).
+
+Johns & Yang (ICRA 2013), Sec. II-B: location ``y_i`` is a word-co-occurrence
+matrix ``M_i`` whose element ``(V, W)`` is the *set* of spatial words observed
+between a feature of visual word ``V`` and one of ``W`` in a training image of
+the location; further tours add their pairs; only words seen at the location
+are stored.  Sec. II-E: with tours ordered by time, the features of adjacent
+tours are merged into "virtual" images whose pair statistics are added to M.
+
+What M is, exactly
+------------------
+With ``pairs(G) = {(word(a), word(b), s(a -> b)) : a, b in G, a != b}`` for a
+set of features ``G`` (``s`` from :mod:`topoloc.coocmap.spatial`):
+
+* without interpolation, ``M_i = U_t pairs(X_i^t)`` over the tours ``t``;
+* with interpolation (Sec. II-E) and tours ``t_0 < ... < t_{T-1}`` in time,
+  ``M_i = U_k pairs(X_i^{t_k} U X_i^{t_{k+1}})``, which contains every single
+  tour's pairs plus the cross-tour pairs of *adjacent* tours only ("the tour
+  at 4pm is merged with the tour at 2pm ... and also with the tour at 6pm").
+  A feature that "occurs in both" tours (same word at the same position) is
+  one feature of the virtual image.  With one tour, ``M_i = pairs(X_i^t0)``.
+
+Representation (why it is compact)
+----------------------------------
+Storing M explicitly costs one key per observed pair: ~n^2/2 keys for an
+image of n features (~125,000 for n = 500, ~1 MB per tour per location as
+int64).  We store instead the *generators* of M, which determine it exactly:
+per location the set of distinct features ``(word, x, y)`` over all tours,
+each with a bit mask of the tours it was seen in.  A feature seen in several
+tours is stored once; no image, descriptor or per-tour feature list is kept.
+Then ``(V, W, S) in M_i`` iff two distinct stored features ``a, b`` with words
+``V, W`` and ``s(a -> b) = S`` share a *group*: a tour (no interpolation) or
+a pair of adjacent tours (interpolation, group mask ``m | m >> 1``).  The
+cost is ~12 bytes per distinct feature (see :attr:`CoocModel.nbytes`); the
+explicit key set is available through :meth:`CoocModel.pair_keys` for
+inspection and tests.  Positions are 16-bit normalised image coordinates.
+
+Arrays (N distinct features over all locations, sorted by location, word, y, x)
+-----------------------------------------------------------------------------
+``loc_ptr`` (L+1,) int64: features of location ``i`` are ``loc_ptr[i]:loc_ptr[i+1]``;
+``word`` (N,) uint16/int32; ``xy`` (N, 2) uint16; ``tours`` (N,) uint8..uint64
+tour bit mask; ``loc`` (N,) uint16/int32 the location of each feature;
+inverted files: ``word_ptr`` (n_words+1,) int64 with ``by_word`` (N,) int32
+(features of each word, by location) and ``wloc_ptr``/``wloc`` (word ->
+locations containing it, Sec. II-C).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc.coocmap.spatial import n_spatial_words, spatial_words
+from topoloc.errors import TopolocError, input_error
+from topoloc.io.container import read_container, write_container
+
+KIND = "coocmap"
+KIND_VERSION = 1
+MAX_TOURS = 64
+
+#: One image's observation: (location row, word ids (n,), normalised xy (n, 2) uint16).
+Observation = tuple[int, np.ndarray, np.ndarray]
+
+
+def vocabulary_fingerprint(vocabulary: Any) -> dict[str, Any]:
+    """What ties a map to its vocabulary: ``n_words``, ``descriptor_kind`` and a
+    SHA-1 of the word centres (first 16 hex digits)."""
+    words = np.ascontiguousarray(np.asarray(vocabulary.words_, dtype=np.float32))
+    return {
+        "n_words": int(vocabulary.n_words_),
+        "descriptor_kind": str(vocabulary.descriptor_kind_),
+        "words_sha1": hashlib.sha1(words.tobytes()).hexdigest()[:16],
+    }
+
+
+def _mask_dtype(n_tours: int) -> np.dtype:
+    for dt in (np.uint8, np.uint16, np.uint32, np.uint64):
+        if n_tours <= 8 * np.dtype(dt).itemsize:
+            return np.dtype(dt)
+    raise TopolocError(f"coocmap: at most {MAX_TOURS} tours are supported, got {n_tours}")
+
+
+def _small_uint(n: int) -> np.dtype:
+    return np.dtype(np.uint16) if n <= 65536 else np.dtype(np.int32)
+
+
+def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Concatenation of ``arange(s, s + n)`` for each start ``s`` and length ``n``."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    total = int(lengths.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    offsets = np.cumsum(lengths) - lengths
+    return np.repeat(np.asarray(starts, np.int64) - offsets, lengths) + np.arange(total, dtype=np.int64)
+
+
+class CoocModel:
+    """All locations' word-co-occurrence models plus the inverted files.
+
+    Build with :meth:`build`, extend with :meth:`add_tour`, persist with
+    :meth:`save` / :meth:`load`.  See the module docstring for the exact
+    definition of ``M_i`` and the representation.
+
+    Parameters
+    ----------
+    n_locations, n_words : int
+        Locations (rows of ``S``) and visual words.
+    grid_x, grid_y : int
+        Spatial grid (Sec. III-B: 12 x 8, i.e. 384 spatial words).
+    interpolate : bool
+        Whether ``M`` includes the virtual images of adjacent tours (Sec. II-E).
+    """
+
+    def __init__(self, *, n_locations: int, n_words: int, grid_x: int = 12, grid_y: int = 8,
+                 interpolate: bool = True) -> None:
+        if grid_x < 1 or grid_y < 1:
+            raise TopolocError(f"coocmap: grid must be at least 1 x 1, got {grid_x} x {grid_y}")
+        if n_words < 1 or n_locations < 0:
+            raise TopolocError("coocmap: n_words must be >= 1 and n_locations >= 0")
+        self.n_locations = int(n_locations)
+        self.n_words = int(n_words)
+        self.grid_x = int(grid_x)
+        self.grid_y = int(grid_y)
+        self.interpolate = bool(interpolate)
+        self.tour_names: list[str] = []
+        self.tour_hours: list[float | None] = []
+        self.vocabulary: dict[str, Any] = {}
+        self._set_features(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                           np.zeros((0, 2), np.uint16), np.zeros(0, np.uint64))
+
+    # -- construction ------------------------------------------------------------------
+    @classmethod
+    def build(
+        cls,
+        tours: Sequence[Sequence[Observation]],
+        *,
+        n_locations: int,
+        n_words: int,
+        grid_x: int = 12,
+        grid_y: int = 8,
+        interpolate: bool = True,
+        tour_names: Sequence[str] | None = None,
+        tour_hours: Sequence[float | None] | None = None,
+    ) -> CoocModel:
+        """Build all location models from tours given in time order (Sec. II-B).
+
+        Parameters
+        ----------
+        tours : sequence of sequences of (location, words, xy)
+            ``tours[t]`` lists the images of tour ``t``: location row in
+            ``[0, n_locations)``, word ids of shape (n,), normalised positions
+            of shape (n, 2) uint16.  Several images of one location in a tour
+            are pooled into that tour's feature set.
+        """
+        model = cls(n_locations=n_locations, n_words=n_words, grid_x=grid_x, grid_y=grid_y,
+                    interpolate=interpolate)
+        names = list(tour_names) if tour_names is not None else [f"tour{t}" for t in range(len(tours))]
+        hours = list(tour_hours) if tour_hours is not None else [None] * len(tours)
+        for obs, name, hour in zip(tours, names, hours, strict=True):
+            model.add_tour(obs, name=name, hour=hour)
+        return model
+
+    def add_tour(self, observations: Sequence[Observation], *, name: str = "",
+                 hour: float | None = None, position: int | None = None) -> CoocModel:
+        """Update every location model with a further tour (Sec. II-B).
+
+        Parameters
+        ----------
+        observations : sequence of (location, words, xy)
+            As in :meth:`build`.
+        name, hour : str, float or None
+            Label and time of day of the tour.
+        position : int, optional
+            Index of the tour in time order (default: after all existing tours).
+            Later tours' bits move up by one, so adjacency (Sec. II-E) follows.
+        """
+        n_old = len(self.tour_names)
+        if n_old + 1 > MAX_TOURS:
+            raise TopolocError(f"coocmap: at most {MAX_TOURS} tours are supported")
+        k = n_old if position is None else int(position)
+        if not 0 <= k <= n_old:
+            raise TopolocError(f"coocmap: tour position {k} out of range 0..{n_old}")
+        locs, words, xys = [], [], []
+        for loc, w, xy in observations:
+            w = np.asarray(w).ravel()
+            xy = np.asarray(xy, dtype=np.uint16).reshape(-1, 2)
+            if len(w) != len(xy):
+                raise TopolocError("coocmap: words and positions differ in length")
+            if not 0 <= int(loc) < self.n_locations:
+                raise TopolocError(f"coocmap: location {loc} out of range 0..{self.n_locations - 1}")
+            if len(w) and (w.min() < 0 or w.max() >= self.n_words):
+                raise TopolocError(f"coocmap: word ids must lie in [0, {self.n_words})")
+            locs.append(np.full(len(w), int(loc), np.int64))
+            words.append(w.astype(np.int64))
+            xys.append(xy)
+        new_loc = np.concatenate(locs) if locs else np.zeros(0, np.int64)
+        new_word = np.concatenate(words) if words else np.zeros(0, np.int64)
+        new_xy = np.concatenate(xys) if xys else np.zeros((0, 2), np.uint16)
+        # Insert bit k: bits below k stay, bits from k up move one place up.
+        old = self.tours.astype(np.uint64)
+        low = np.uint64((1 << k) - 1)
+        old = (old & low) | ((old & ~low) << np.uint64(1))
+        new_mask = np.full(len(new_loc), np.uint64(1) << np.uint64(k), np.uint64)
+        self.tour_names.insert(k, name or f"tour{n_old}")
+        self.tour_hours.insert(k, hour)
+        self._set_features(
+            np.concatenate([self.loc.astype(np.int64), new_loc]),
+            np.concatenate([self.word.astype(np.int64), new_word]),
+            np.concatenate([self.xy, new_xy]),
+            np.concatenate([old, new_mask]),
+        )
+        return self
+
+    def _set_features(self, loc: np.ndarray, word: np.ndarray, xy: np.ndarray,
+                      mask: np.ndarray) -> None:
+        """Deduplicate features (OR-ing tour masks) and rebuild the inverted files."""
+        if len(loc):
+            order = np.lexsort((xy[:, 0], xy[:, 1], word, loc))
+            loc, word, xy, mask = loc[order], word[order], xy[order], mask[order]
+            new = np.ones(len(loc), bool)
+            new[1:] = ((loc[1:] != loc[:-1]) | (word[1:] != word[:-1])
+                       | (xy[1:, 0] != xy[:-1, 0]) | (xy[1:, 1] != xy[:-1, 1]))
+            starts = np.flatnonzero(new)
+            mask = np.bitwise_or.reduceat(mask, starts)
+            loc, word, xy = loc[starts], word[starts], xy[starts]
+        n_tours = max(len(self.tour_names), 1)
+        self.loc = loc.astype(_small_uint(self.n_locations))
+        self.word = word.astype(_small_uint(self.n_words))
+        self.xy = np.ascontiguousarray(xy, dtype=np.uint16)
+        self.tours = mask.astype(_mask_dtype(n_tours))
+        self._index()
+
+    def _index(self) -> None:
+        loc = self.loc.astype(np.int64)
+        word = self.word.astype(np.int64)
+        self.loc_ptr = np.searchsorted(loc, np.arange(self.n_locations + 1)).astype(np.int64)
+        # Inverted file word -> features, by location within a word (stable sort).
+        self.by_word = np.argsort(word, kind="stable").astype(np.int32)
+        self.word_ptr = np.searchsorted(word[self.by_word], np.arange(self.n_words + 1)).astype(np.int64)
+        # Inverted file word -> locations (Sec. II-C), unique per word.
+        wl = word[self.by_word] * (self.n_locations + 1) + loc[self.by_word]
+        keep = np.ones(len(wl), bool)
+        keep[1:] = wl[1:] != wl[:-1]
+        self.wloc = loc[self.by_word][keep].astype(np.int32)
+        self.wloc_ptr = np.searchsorted(word[self.by_word][keep], np.arange(self.n_words + 1)).astype(np.int64)
+        self._groups: dict[bool, np.ndarray] = {}
+
+    # -- queries of the model -------------------------------------------------------------
+    @property
+    def n_tours(self) -> int:
+        return len(self.tour_names)
+
+    @property
+    def n_spatial(self) -> int:
+        """Size of the spatial dictionary (384 for 12 x 8)."""
+        return n_spatial_words(self.grid_x, self.grid_y)
+
+    @property
+    def n_features(self) -> int:
+        """Distinct stored features over all locations."""
+        return len(self.word)
+
+    def group_masks(self, interpolate: bool | None = None) -> np.ndarray:
+        """Per feature, the bit mask of groups (virtual images) it belongs to.
+
+        Without interpolation a group is a tour; with it (Sec. II-E) group ``k``
+        is tours ``k`` and ``k + 1``, so a feature of tour ``t`` is in groups
+        ``t - 1`` and ``t``: ``(m | m >> 1)`` restricted to ``T - 1`` bits.
+
+        Returns
+        -------
+        ndarray of uint64, shape (N,)
+        """
+        interp = self.interpolate if interpolate is None else bool(interpolate)
+        if interp not in self._groups:
+            m = self.tours.astype(np.uint64)
+            if interp and self.n_tours >= 2:
+                keep = np.uint64((1 << (self.n_tours - 1)) - 1)
+                m = (m | (m >> np.uint64(1))) & keep
+            self._groups[interp] = m
+        return self._groups[interp]
+
+    def location_words(self, location: int) -> np.ndarray:
+        """Sorted unique visual words stored for a location (the rows of M_i)."""
+        s, e = self.loc_ptr[location], self.loc_ptr[location + 1]
+        return np.unique(self.word[s:e]).astype(np.int64)
+
+    def pair_keys(self, location: int, interpolate: bool | None = None) -> np.ndarray:
+        """The explicit set M_i as sorted unique packed keys (Sec. II-B).
+
+        ``key = (V * n_words + W) * n_spatial + S`` for each ordered pair of
+        distinct stored features (words ``V, W``, spatial word ``S``) that
+        share a group.  Memory O(n^2): for inspection and tests.
+
+        Returns
+        -------
+        ndarray of int64, shape (n_keys,)
+        """
+        s, e = int(self.loc_ptr[location]), int(self.loc_ptr[location + 1])
+        g = self.group_masks(interpolate)[s:e]
+        n = e - s
+        i, j = np.nonzero(~np.eye(n, dtype=bool))
+        ok = (g[i] & g[j]) != 0
+        i, j = i[ok] + s, j[ok] + s
+        sw = spatial_words(self.xy[i], self.xy[j], grid_x=self.grid_x, grid_y=self.grid_y)
+        keys = ((self.word[i].astype(np.int64) * self.n_words + self.word[j].astype(np.int64))
+                * self.n_spatial + sw.astype(np.int64))
+        return np.unique(keys)
+
+    def pack_keys(self, wa: np.ndarray, wb: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Pack ``(V, W, S)`` triples like :meth:`pair_keys`."""
+        return ((np.asarray(wa, np.int64) * self.n_words + np.asarray(wb, np.int64)) * self.n_spatial
+                + np.asarray(s, np.int64))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of all arrays held (features, masks and both inverted files)."""
+        return int(sum(a.nbytes for a in self._arrays().values()))
+
+    @property
+    def bytes_per_location(self) -> float:
+        return self.nbytes / max(self.n_locations, 1)
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {"loc": self.loc, "word": self.word, "xy": self.xy, "tours": self.tours,
+                "loc_ptr": self.loc_ptr, "by_word": self.by_word, "word_ptr": self.word_ptr,
+                "wloc": self.wloc, "wloc_ptr": self.wloc_ptr}
+
+    # -- persistence -----------------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        """Write the model atomically (container kind ``"coocmap"``, schema 1).
+
+        Only the features and tour masks are stored; the inverted files are
+        rebuilt on load.
+        """
+        meta = {
+            "n_locations": self.n_locations, "n_words": self.n_words,
+            "grid_x": self.grid_x, "grid_y": self.grid_y, "interpolate": self.interpolate,
+            "tour_names": self.tour_names, "tour_hours": self.tour_hours,
+            "vocabulary": self.vocabulary,
+        }
+        write_container(path, KIND, KIND_VERSION,
+                        {"loc": self.loc, "word": self.word, "xy": self.xy, "tours": self.tours},
+                        meta=meta)
+
+    @classmethod
+    def load(cls, path: str | Path, *, vocabulary: dict[str, Any] | None = None) -> CoocModel:
+        """Read a model written by :meth:`save`.
+
+        Parameters
+        ----------
+        vocabulary : dict, optional
+            :func:`vocabulary_fingerprint` of the vocabulary in use; the map
+            must have been built with the same one.
+
+        Raises
+        ------
+        TopolocError
+            One line naming the file if it is missing, truncated, corrupted, of
+            another schema, inconsistent, or built with another vocabulary.
+        """
+        meta, arrays = read_container(path, KIND, KIND_VERSION)
+        try:
+            model = cls(n_locations=int(meta["n_locations"]), n_words=int(meta["n_words"]),
+                        grid_x=int(meta["grid_x"]), grid_y=int(meta["grid_y"]),
+                        interpolate=bool(meta["interpolate"]))
+            model.tour_names = [str(t) for t in meta["tour_names"]]
+            model.tour_hours = [None if h is None else float(h) for h in meta["tour_hours"]]
+            model.vocabulary = dict(meta.get("vocabulary") or {})
+            loc, word, xy, tours = arrays["loc"], arrays["word"], arrays["xy"], arrays["tours"]
+        except (KeyError, TypeError, ValueError, TopolocError) as exc:
+            raise input_error(f"coocmap file has invalid metadata ({exc})", path) from None
+        n = len(loc)
+        if not (len(word) == n == len(tours) and xy.shape == (n, 2)):
+            raise input_error("coocmap file is inconsistent (array lengths differ)", path)
+        if n and (int(loc.max()) >= model.n_locations or int(word.max()) >= model.n_words):
+            raise input_error("coocmap file is inconsistent (ids out of range)", path)
+        if vocabulary is not None and model.vocabulary and model.vocabulary != vocabulary:
+            raise input_error(
+                f"coocmap file was built with another vocabulary ({model.vocabulary.get('n_words')} "
+                f"words {model.vocabulary.get('descriptor_kind')} {model.vocabulary.get('words_sha1')}, "
+                f"in use: {vocabulary.get('n_words')} words {vocabulary.get('descriptor_kind')} "
+                f"{vocabulary.get('words_sha1')})",
+                path,
+            )
+        model.loc = np.array(loc)
+        model.word = np.array(word)
+        model.xy = np.array(xy)
+        model.tours = np.array(tours)
+        model._index()
+        return model

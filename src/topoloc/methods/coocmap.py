@@ -1,0 +1,169 @@
+"""Feature Co-occurrence Maps (Johns & Yang, ICRA 2013) as a place-recognition method.
+
+Several ``--map`` traverses are tours of the same places at different times;
+they are ordered by :meth:`~topoloc.datasets.traverse.Traverse.median_time_of_day`
+when every tour has capture times, else taken in the order given, and each
+place's word-co-occurrence model is built from all of them (Sec. II-B), with
+the virtual images of adjacent tours when ``interpolate`` (Sec. II-E).  A
+query is matched to every place at once (Sec. II-C, II-D); ``S[i, q]`` is the
+size of the spatially consistent group of place ``i``.
+
+Places dropped early by the bound of Sec. II-D report their bound at the
+time they were dropped, which is strictly below the ``top_k``-th best exact
+score; hence the best match (PR curve, R@1) and ranks ``1..top_k`` (R@5 and
+R@10 with the default ``top_k = 10``) are exact, and only the order below
+rank ``top_k`` uses bounds.  ``simultaneous=False`` matches every place to
+completion (all of ``S`` exact, slower).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, ClassVar, Self
+
+import numpy as np
+
+from topoloc.coocmap.matching import (
+    ConsistencyGraphs,
+    MatchResult,
+    consistency_graphs,
+    match_simultaneous,
+)
+from topoloc.coocmap.model import CoocModel, Observation, vocabulary_fingerprint
+from topoloc.coocmap.spatial import normalise_xy
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+
+#: A query item: (word ids (n,), normalised positions (n, 2) uint16).
+Item = tuple[np.ndarray, np.ndarray]
+
+
+def order_tours(maps: Sequence[Traverse]) -> list[Traverse]:
+    """Tours in time-of-day order when all have times, else in the given order."""
+    hours = [m.median_time_of_day() for m in maps]
+    if all(h is not None for h in hours):
+        idx = sorted(range(len(maps)), key=lambda i: (hours[i], i))
+        return [maps[i] for i in idx]
+    return list(maps)
+
+
+class CoocMap(PlaceRecognizer):
+    """Feature Co-occurrence Maps (Johns & Yang 2013).
+
+    Parameters
+    ----------
+    grid_x, grid_y : int
+        Spatial grid (Sec. III-B: 12 x 8 squares, 384 spatial words).
+    interpolate : bool
+        Merge adjacent tours into virtual images (Sec. II-E).
+    simultaneous : bool
+        Match all places at once with bounds (Sec. II-D); otherwise every
+        place is matched to completion.
+    top_k : int
+        With ``simultaneous``, ranks ``1..top_k`` of each column are exact
+        (the paper's bound is ``top_k = 1``).
+    max_features : int
+        Use at most this many features per image, the strongest (0 = all).
+    seed : int
+        Seed of the random tie-breaking of equal scores (Sec. II-C).
+    model_path : str
+        If set: load the map from this file when it exists (it must have been
+        built with the same vocabulary and places), else build and save it.
+
+    Attributes
+    ----------
+    place_ids_ : ndarray of int64, shape (n_places,)
+    model_ : CoocModel
+    tour_order_ : list of str
+        Names of the map traverses in the order used (time of day).
+    """
+
+    name: ClassVar[str] = "coocmap"
+    uses_vocabulary: ClassVar[bool] = True
+
+    def __init__(self, *, grid_x: int = 12, grid_y: int = 8, interpolate: bool = True,
+                 simultaneous: bool = True, top_k: int = 10, max_features: int = 0,
+                 seed: int = 0, model_path: str = "") -> None:
+        self.grid_x = grid_x
+        self.grid_y = grid_y
+        self.interpolate = interpolate
+        self.simultaneous = simultaneous
+        self.top_k = top_k
+        self.max_features = max_features
+        self.seed = seed
+        self.model_path = model_path
+
+    def _check_params(self) -> None:
+        if self.grid_x < 1 or self.grid_y < 1:
+            raise TopolocError(f"coocmap: grid must be at least 1 x 1, got {self.grid_x} x {self.grid_y}")
+        if self.top_k < 1:
+            raise TopolocError(f"coocmap: top_k must be >= 1, got {self.top_k}")
+        if self.max_features < 0:
+            raise TopolocError(f"coocmap: max_features must be >= 0 (0 = all), got {self.max_features}")
+
+    def _observations(self, traverse: Traverse, resources: Resources) -> list[Item]:
+        feats = resources.features(traverse)
+        words = resources.words(traverse)
+        k = self.max_features or None
+        return [(np.asarray(w[:k], np.int64), normalise_xy(f.keypoints[:k, :2], f.image_shape))
+                for f, w in zip(feats, words, strict=True)]
+
+    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
+        self._check_params()
+        place_ids = map_place_ids(maps)
+        vocab = resources.vocabulary
+        try:
+            fingerprint = vocabulary_fingerprint(vocab)
+        except AttributeError:  # a stand-in vocabulary without word centres (tests)
+            fingerprint = {}
+        tours = order_tours(maps)
+        model: CoocModel | None = None
+        path = Path(self.model_path) if self.model_path else None
+        if path is not None and path.is_file():
+            model = CoocModel.load(path, vocabulary=fingerprint or None)
+            if (model.n_locations != len(place_ids) or model.grid_x != self.grid_x
+                    or model.grid_y != self.grid_y):
+                raise TopolocError(f"coocmap file does not fit these maps or grid: {path}")
+            model.interpolate = bool(self.interpolate)
+        if model is None:
+            built = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_),
+                              grid_x=self.grid_x, grid_y=self.grid_y, interpolate=self.interpolate)
+            for tour in tours:
+                rows = np.searchsorted(place_ids, tour.places)
+                obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
+                                          in zip(rows, self._observations(tour, resources), strict=True)]
+                built.add_tour(obs, name=tour.name, hour=tour.median_time_of_day())
+            built.vocabulary = fingerprint
+            model = built
+            if path is not None:
+                model.save(path)
+        self.model_ = model
+        self.tour_order_ = [t.name for t in tours]
+        self.place_ids_ = place_ids
+        return self
+
+    def encode(self, query: Traverse, *, resources: Resources) -> list[Any]:
+        return list(self._observations(query, resources))
+
+    def match(self, item: Item) -> tuple[ConsistencyGraphs, MatchResult]:
+        """Candidate correspondences, ``J_i`` and the matching result of one query."""
+        self.check_fitted()
+        words, xy = item
+        graphs = consistency_graphs(self.model_, words, xy, interpolate=self.interpolate,
+                                    seed=self.seed)
+        if self.simultaneous:
+            return graphs, match_simultaneous(graphs, top_k=self.top_k)
+        return graphs, match_simultaneous(graphs, prune=False)
+
+    def score(self, items: Sequence[Any]) -> np.ndarray:
+        """Consistent-group sizes, shape (n_places, len(items)) (see module docstring)."""
+        self.check_fitted()
+        S = np.zeros((len(self.place_ids_), len(items)), np.float32)
+        for q, item in enumerate(items):
+            S[:, q] = self.match(item)[1].scores
+        return self._check_block(S, len(items))
+
+
+__all__ = ["CoocMap", "order_tours"]
