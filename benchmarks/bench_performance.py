@@ -5,8 +5,8 @@
 Measures, on this machine: local-feature extraction in images/s at 640x480 (gardens_point
 images resized), 10,000-word vocabulary training time on SIFT descriptors of
 webcam_daynight/map, quantisation time per 1,000 descriptors with the default HNSW index
-and its agreement with exact nearest-word search, and `bow` ms/query from the runs of
-benchmarks/bench_bow.py.
+and its agreement with exact nearest-word search, and every method's ms/query from the runs under
+docs/results/runs/ (run the other benchmarks first).
 """
 
 from __future__ import annotations
@@ -80,13 +80,13 @@ def main() -> None:
     out["quantisation"] = q
     print(q, flush=True)
 
-    bow = []
-    for mpath in sorted((RESULTS / "runs").glob("bow_*/metrics.json")):
+    matching = []
+    for mpath in sorted((RESULTS / "runs").glob("*/metrics.json")):
         m = json.loads(mpath.read_text())
-        bow.append({"run": mpath.parent.name, "ms_per_query": m["ms_per_query"],
-                    "ms_per_query_p95": m["run"]["ms_per_query_p95"], "n_places": m["n_places"],
-                    "n_map_images": None, "ms_features": m["ms_features"]})
-    out["bow"] = bow
+        matching.append({"run": mpath.parent.name, "method": m["method"], "ms_per_query": m["ms_per_query"],
+                         "ms_per_query_p95": m["run"]["ms_per_query_p95"], "n_places": m["n_places"],
+                         "ms_features": m["ms_features"], "peak_rss_mb": m["peak_rss_mb"]})
+    out["matching"] = matching
     out["peak_rss_mb"] = peak_rss_mb()
     (RESULTS / "performance.json").write_text(json.dumps(out, indent=2) + "\n")
     (RESULTS / "performance.md").write_text(render(out))
@@ -120,12 +120,15 @@ def render(o: dict[str, Any]) -> str:
         f"| {q['index']} (efSearch {q['ef_search']}) | **{q['median_ms_per_1000']:.2f}** | "
         f"{q['p95_ms_per_1000']:.2f} | {q['agreement_with_exact']:.3f} |\n",
         f"| flat (exact) | {q['exact_flat_median_ms_per_1000']:.2f} | | 1.000 |\n",
-        "\n## `bow` matching time (from the runs of `benchmarks/bench_bow.py`)\n\n",
-        "| run | places | ms/query median | ms/query p95 | ms features/image |\n| --- | --- | --- | --- | --- |\n",
+        "\n## Matching time per query, every method (from the runs under `docs/results/runs/`)\n\n",
+        "Feature extraction excluded; frames/s = 1000 / ms per query. Each run is its own process.\n\n",
+        "| run | method | places | ms/query median | p95 | frames/s | ms features/image | peak MiB |\n",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |\n",
     ]
-    for b in o["bow"]:
-        lines.append(f"| {b['run']} | {b['n_places']} | {b['ms_per_query']:.2f} | {b['ms_per_query_p95']:.2f} | "
-                     f"{b['ms_features']:.1f} |\n")
+    for b in o["matching"]:
+        lines.append(f"| {b['run']} | {b['method']} | {b['n_places']} | {b['ms_per_query']:.2f} | "
+                     f"{b['ms_per_query_p95']:.2f} | {1000 / max(b['ms_per_query'], 1e-9):.1f} | "
+                     f"{b['ms_features']:.1f} | {b['peak_rss_mb']:.0f} |\n")
     return "".join(lines)
 
 

@@ -165,6 +165,12 @@ class LandmarkModel:
         shape (n_nodes,) counts localisations per node.
     """
 
+    nbr_freq_: np.ndarray
+    nbr_dmin_: np.ndarray
+    nbr_dmax_: np.ndarray
+    nbr_tmin_: np.ndarray
+    nbr_twidth_: np.ndarray
+
     def __init__(
         self,
         *,
@@ -241,6 +247,10 @@ class LandmarkModel:
         self.obs_count_ = np.ones(len(gidx), np.float64)
         self.node_count_ = np.ones(n_nodes, np.float64)
         self.n_landmarks_ = int(keep_track.sum())
+        if self.n_landmarks_ == 0:
+            raise TopolocError(
+                f"landmarks: no feature track of length >= {self.min_track_length} in the map tour"
+            )
 
         # Background sample of every map feature, remembering which observation it is.
         rng = np.random.default_rng(self.seed)
@@ -278,7 +288,8 @@ class LandmarkModel:
             setattr(self, name, getattr(self, name)[order])
         inv = np.empty_like(order)
         inv[order] = np.arange(len(order))
-        self.bg_obs_ = np.where(self.bg_obs_ >= 0, inv[np.maximum(self.bg_obs_, 0)], -1)
+        if len(order):
+            self.bg_obs_ = np.where(self.bg_obs_ >= 0, inv[np.maximum(self.bg_obs_, 0)], -1)
         self.lm_ptr_ = np.searchsorted(self.obs_lm_, np.arange(self.n_landmarks_ + 1))
         # (landmark, node) keys in sorted order, for "is l in node x" look-ups.
         self.obs_key_ = self.obs_lm_ * self.n_nodes_ + self.obs_node_
@@ -319,11 +330,11 @@ class LandmarkModel:
             return out
         radius = self.effective_radius(ids).astype(np.float64)
         r_max = float(radius.max())
-        lims, D, I = self._bg_index.range_search(np.ascontiguousarray(self.mean_[ids]),
-                                                 np.float32(r_max * r_max * (1 + 1e-6)))
+        lims, dist2, hits = self._bg_index.range_search(
+            np.ascontiguousarray(self.mean_[ids], dtype=np.float32), float(r_max * r_max * (1 + 1e-6)))
         rows = np.repeat(np.arange(len(ids)), np.diff(lims.astype(np.int64)))
         bg_lm = np.where(self.bg_obs_ >= 0, self.obs_lm_[np.maximum(self.bg_obs_, 0)], -1)
-        inside = (D <= radius[rows] ** 2 * (1 + 1e-6)) & (bg_lm[I] != ids[rows])
+        inside = (dist2 <= radius[rows] ** 2 * (1 + 1e-6)) & (bg_lm[hits] != ids[rows])
         count = np.bincount(rows[inside], minlength=len(ids)).astype(np.float64)
         own = np.bincount(bg_lm[bg_lm >= 0], minlength=self.n_landmarks_)[ids] if len(ids) else 0
         n_other = n_bg - own
@@ -449,6 +460,12 @@ class LandmarkModel:
 
     # -- matching (Sec. IV) -------------------------------------------------------------
     def match(self, fs: FeatureSet, normalised: np.ndarray | None = None) -> np.ndarray:
+        """``P(L=1 | E_L=1)`` of every landmark in one query image, shape (n_landmarks,); see :meth:`match_pairs`."""
+        return self.match_pairs(fs, normalised)[0]
+
+    def match_pairs(
+        self, fs: FeatureSet, normalised: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``P(L=1 | E_L=1)`` of every landmark in one query image (Eq. 1).
 
         A query feature ``f`` gives evidence for landmark ``l`` when
@@ -460,23 +477,26 @@ class LandmarkModel:
 
         Returns
         -------
-        ndarray of float64, shape (n_landmarks,)
+        prob : ndarray of float64, shape (n_landmarks,)
+        feature, landmark : ndarray of int64, shape (m,)
+            Every verified (query feature, landmark) evidence pair.
         """
         out = np.zeros(self.n_landmarks_, np.float64)
+        none = (out, np.zeros(0, np.int64), np.zeros(0, np.int64))
         desc = normalised if normalised is not None else normalise_descriptors(fs.descriptors)
         if len(desc) == 0 or self.n_landmarks_ == 0:
-            return out
+            return none
         kk = min(self.n_candidates, self.n_landmarks_)
-        D, I = self.index_.search(np.ascontiguousarray(desc, np.float32), kk)
+        dist2, nn = self.index_.search(np.ascontiguousarray(desc, np.float32), kk)
         f_idx = np.repeat(np.arange(len(desc)), kk)
-        l_idx = I.ravel()
+        l_idx = nn.ravel()
         ok = l_idx >= 0
-        f_idx, l_idx, d2 = f_idx[ok], l_idx[ok], D.ravel()[ok]
+        f_idx, l_idx, d2 = f_idx[ok], l_idx[ok], dist2.ravel()[ok]
         r = self.effective_radius(l_idx).astype(np.float64)
         inside = d2 <= r * r * (1 + 1e-6)  # D_L = 1
         f_idx, l_idx = f_idx[inside], l_idx[inside]
         if len(f_idx) == 0:
-            return out
+            return none
         # Matches sorted by landmark: the query features matching a neighbour are a slice.
         order = np.argsort(l_idx, kind="stable")
         f_s, l_s = f_idx[order], l_idx[order]
@@ -489,7 +509,7 @@ class LandmarkModel:
         cnt = np.where(nb >= 0, hi - lo, 0)
         pair = np.repeat(np.arange(len(nb)), cnt)
         if len(pair) == 0:
-            return out
+            return none
         within = np.arange(len(pair)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
         fn = f_s[lo[pair] + within]
         m = m_rep[pair]
@@ -504,7 +524,15 @@ class LandmarkModel:
         ok_t = np.mod(ang - self.nbr_tmin_[lm, sl], TWO_PI) <= self.nbr_twidth_[lm, sl]
         verified = ok_d & ok_t & (fn != f)  # S = 1
         np.maximum.at(out, lm[verified], self.nbr_post_[lm[verified], sl[verified]])
-        return out
+        fl = np.unique(f[verified] * self.n_landmarks_ + lm[verified])
+        return out, fl // self.n_landmarks_, fl % self.n_landmarks_
+
+    def observation(self, landmarks: np.ndarray, node: int) -> np.ndarray:
+        """Observation index of each landmark in ``node`` (-1 where absent), shape (m,)."""
+        key = np.asarray(landmarks, np.int64) * self.n_nodes_ + node
+        pos = np.minimum(np.searchsorted(self.obs_key_, key), max(len(self.obs_key_) - 1, 0))
+        hit = self.obs_key_[pos] == key if len(self.obs_key_) else np.zeros(len(key), bool)
+        return np.where(hit, pos, -1)
 
     def similarity(self, match_prob: np.ndarray) -> np.ndarray:
         """Eq. 5 normalised over nodes, shape (n_nodes,) or (n_nodes, n_queries)."""

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 
 
-def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray) -> np.ndarray:
+def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise: bool = True) -> np.ndarray:
     """Eq. 5 for every node and query, normalised over nodes.
 
     Parameters
@@ -26,6 +26,8 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray) -> np.ndarra
         elsewhere).
     match_prob : ndarray, shape (n_landmarks,) or (n_landmarks, n_queries)
         ``P(L=1 | E_L=1)`` of every landmark in each query.
+    normalise : bool
+        Apply ``eta`` (False returns the raw ``S(q, x)`` of Eq. 5).
 
     Returns
     -------
@@ -39,6 +41,8 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray) -> np.ndarra
     num = np.asarray(weights @ P)
     den = np.asarray(weights.sum(axis=1)).reshape(-1, 1)
     S = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+    if not normalise:
+        return S[:, 0] if vector else S
     total = S.sum(axis=0, keepdims=True)
     n_nodes = S.shape[0]
     S = np.where(total > 0, S / np.where(total > 0, total, 1.0), 1.0 / max(n_nodes, 1))

@@ -15,8 +15,10 @@ _REGISTRY: dict[str, str] = {
     "bow": "topoloc.methods.bow:BagOfWords",
     "fabmap": "topoloc.methods.fabmap:FabMap",
     "fabmap2": "topoloc.methods.fabmap:FabMap2",
+    "landmarks": "topoloc.methods.landmarks:LandmarkMap",
     "seqslam": "topoloc.methods.seqslam:SeqSLAM",
     "seqslam-single": "topoloc.methods.seqslam:SingleImageSeqSLAM",
+    "voting": "topoloc.methods.voting:ImageVoting",
 }
 
 

@@ -109,9 +109,9 @@ class ImageVoting(PlaceRecognizer):
         if len(fs) == 0 or self.index_.ntotal == 0:
             return votes
         k = min(self.n_neighbours, self.index_.ntotal)
-        D, I = self.index_.search(normalise_descriptors(fs.descriptors), k)
-        d = np.sqrt(np.maximum(D, 0.0))
-        img = self.desc_image_[I]  # (n_q, k)
+        dist2, nn = self.index_.search(normalise_descriptors(fs.descriptors), k)
+        d = np.sqrt(np.maximum(dist2, 0.0))
+        img = self.desc_image_[nn]  # (n_q, k)
         n_q = len(fs)
         # First and second occurrence of each image in every query's sorted neighbour list.
         key = np.arange(n_q)[:, None] * self.n_images_ + img
@@ -130,7 +130,7 @@ class ImageVoting(PlaceRecognizer):
         denom = np.where(np.isnan(d2), d_k, d2)
         ok = d1 < self.ratio * denom
         q_idx = pos1[ok] // k
-        m_idx = I.ravel()[pos1[ok]]
+        m_idx = nn.ravel()[pos1[ok]]
         m_img = img.ravel()[pos1[ok]]
         counts = np.bincount(m_img, minlength=self.n_images_).astype(np.float64)
         votes[:] = np.minimum(counts, self.min_matches - 1) / self.min_matches

@@ -1,0 +1,205 @@
+"""Landmark model: Eq. 1-4 by hand, matching, Eq. 5, online learning, splitting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from topoloc.errors import TopolocError
+from topoloc.features import FeatureSet
+from topoloc.landmarks.model import LandmarkModel
+from topoloc.landmarks.similarity import node_similarity
+from topoloc.landmarks.tracking import Tracks
+
+W_IMG, H_IMG = 640, 480
+PHI = 0.1  # half-angle between a landmark's two descriptors
+
+
+def _unit(i: int, j: int | None = None, sign: float = 1.0) -> np.ndarray:
+    """cos(PHI) e_i + sign sin(PHI) e_j (or e_i alone)."""
+    v = np.zeros(128, np.float32)
+    if j is None:
+        v[i] = 1.0
+    else:
+        v[i], v[j] = np.cos(PHI), sign * np.sin(PHI)
+    return v
+
+
+def _fs(xy: list[tuple[float, float]], desc: list[np.ndarray]) -> FeatureSet:
+    kp = np.zeros((len(xy), 5), np.float32)
+    kp[:, :2] = xy
+    return FeatureSet(keypoints=kp, descriptors=np.array(desc, np.float32), image_shape=(H_IMG, W_IMG))
+
+
+def _two_node_map() -> tuple[list[FeatureSet], Tracks]:
+    """Two nodes, 4 features each: landmarks A, B, C (tracks of length 2) and a singleton D.
+
+    A: (100,100) -> (110,100).  B: at distance 100, angle 0 from A in node 0 and at
+    distance 120, angle 0.1 in node 1.  C: at distance 50, angle pi/2, then 50, pi/2.
+    """
+    b1 = (110 + 120 * np.cos(0.1), 100 + 120 * np.sin(0.1))
+    f0 = _fs([(100, 100), (200, 100), (100, 150), (400, 400)],
+             [_unit(0, 10, 1), _unit(1, 11, 1), _unit(2, 12, 1), _unit(3)])
+    f1 = _fs([(110, 100), b1, (110, 150), (500, 300)],
+             [_unit(0, 10, -1), _unit(1, 11, -1), _unit(2, 12, -1), _unit(4)])
+    # Observations sorted by track, then frame: tracks 0-2 = A, B, C; 3, 4 = singletons.
+    tracks = Tracks(frame=np.array([0, 1, 0, 1, 0, 1, 0, 1]), feature=np.array([0, 0, 1, 1, 2, 2, 3, 3]),
+                    track=np.array([0, 0, 1, 1, 2, 2, 3, 4]), n_tracks=5, n_features=8)
+    return [f0, f1], tracks
+
+
+def _model(**kw: float) -> LandmarkModel:
+    feats, tracks = _two_node_map()
+    params = {"top_k": 2, "n_background": 100, "alpha": 0.5, **kw}
+    return LandmarkModel(**params).build(feats, tracks)  # type: ignore[arg-type]
+
+
+def test_landmark_properties() -> None:
+    m = _model()
+    assert m.n_landmarks_ == 3 and m.n_nodes_ == 2 and m.n_map_features_ == 8
+    # mean of (cos, +sin) and (cos, -sin) is (cos, 0); d_max = sin(PHI)
+    np.testing.assert_allclose(m.mean_[0, [0, 10]], np.array([np.cos(PHI), 0.0]), atol=1e-6)
+    np.testing.assert_allclose(m.radius_, np.sin(PHI), atol=1e-6)
+    assert m.length_.tolist() == [2, 2, 2]
+    assert (m.incidence_.toarray() == 1).all()  # every node holds A, B, C
+    # A's neighbours: B and C both co-occur in every node of A (frequency 1).
+    assert sorted(m.nbr_[0].tolist()) == [1, 2]
+    np.testing.assert_allclose(m.nbr_freq_[0], [1.0, 1.0])
+    j = int(np.flatnonzero(m.nbr_[0] == 1)[0])
+    np.testing.assert_allclose([m.nbr_dmin_[0, j], m.nbr_dmax_[0, j]], np.array([100.0, 120.0]), atol=1e-3)
+    np.testing.assert_allclose([m.nbr_tmin_[0, j], m.nbr_twidth_[0, j]], np.array([0.0, 0.1]), atol=1e-5)
+
+
+def test_probabilities_by_hand() -> None:
+    """Eq. 1-4 for landmark A with neighbours B and C."""
+    m = _model()
+    prior = 2 / 8  # p(L) = a / b
+    # p(D_L=1|L=0): no other-track feature lies within sin(PHI) of A's mean (the other
+    # descriptors are orthogonal); 8 background features, 2 of them A's own.
+    p_desc = (0 + 0.5) / (6 + 2 * 0.5)
+    np.testing.assert_allclose(m.p_desc_, p_desc)
+    np.testing.assert_allclose(m.prior_, prior)
+    # Eq. 4: B is in both nodes, each with 4 features: 1/2 (1/4 + 1/4)
+    p_n = 0.5 * (0.25 + 0.25)
+    np.testing.assert_allclose(m.p_nbr_present_, p_n)
+    jb = int(np.flatnonzero(m.nbr_[0] == 1)[0])
+    jc = 1 - jb
+    # Eq. 3: B spans 0.1 rad and 20 px; C a single arrangement (zero area).
+    p_s_b = 0.1 * 20 / (2 * np.pi * W_IMG * H_IMG)
+    np.testing.assert_allclose(m.nbr_p_spatial_[0, [jb, jc]], [p_s_b, 0.0], rtol=1e-4, atol=1e-15)
+    # Eq. 2
+    pf_b = p_desc * (p_n + p_desc * p_s_b * (1 - p_n))
+    pf_c = p_desc * (p_n + 0.0)
+    np.testing.assert_allclose(m.nbr_p_false_[0, [jb, jc]], [pf_b, pf_c], rtol=1e-4)
+    # Eq. 1
+    post_b = prior / (prior + pf_b * (1 - prior))
+    post_c = prior / (prior + pf_c * (1 - prior))
+    np.testing.assert_allclose(m.nbr_post_[0, [jb, jc]], [post_b, post_c], rtol=1e-4)
+    assert post_b < post_c  # the looser spatial range of B makes a false match likelier
+    np.testing.assert_allclose(m.landmark_posterior()[0], post_b, rtol=1e-4)
+    np.testing.assert_allclose(m.landmark_false_positive()[0], pf_b, rtol=1e-4)
+
+
+def test_match_needs_descriptor_and_neighbour_geometry() -> None:
+    m = _model()
+    ja = int(np.flatnonzero(m.nbr_[0] == 1)[0])
+    # Query: A at (300, 200), B at distance 110 and angle 0.05 from it, C far off its range.
+    b = (300 + 110 * np.cos(0.05), 200 + 110 * np.sin(0.05))
+    q = _fs([(300, 200), b, (10, 10)], [m.mean_[0], m.mean_[1], m.mean_[2]])
+    prob, f, lm = m.match_pairs(q)
+    # A is verified through B only; B through A? A is at angle pi from B, outside B's range
+    # (B's neighbours are A and C with the arrangement of the map), so B is not verified.
+    np.testing.assert_allclose(prob[0], m.nbr_post_[0, ja])
+    assert prob[2] == 0.0
+    assert (f[lm == 0] == 0).all()
+    # The same features with B at angle 0.5 (outside [0, 0.1]) give no evidence for A.
+    b_bad = (300 + 110 * np.cos(0.5), 200 + 110 * np.sin(0.5))
+    q_bad = _fs([(300, 200), b_bad], [m.mean_[0], m.mean_[1]])
+    assert m.match(q_bad)[0] == 0.0
+    # A descriptor outside A's range (orthogonal) gives no evidence either.
+    q_far = _fs([(300, 200), b], [_unit(5), m.mean_[1]])
+    assert m.match(q_far)[0] == 0.0
+
+
+def test_node_similarity_eq5_by_hand() -> None:
+    w = sp.csr_matrix(np.array([[1.0, 1.0, 0.0], [0.0, 0.5, 1.0]]))
+    p = np.array([0.8, 0.0, 0.6])
+    raw = np.array([0.8 / 2.0, 0.6 / 1.5])
+    np.testing.assert_allclose(node_similarity(w, p, normalise=False), raw)
+    np.testing.assert_allclose(node_similarity(w, p), raw / raw.sum())
+    np.testing.assert_allclose(node_similarity(w, np.zeros(3)), [0.5, 0.5])
+    assert node_similarity(w, np.c_[p, p]).shape == (2, 2)
+
+
+def test_online_learning() -> None:
+    m = _model()
+    np.testing.assert_allclose(m.weights().toarray(), 1.0)
+    m.learn(1, np.array([0.9, 0.0, 0.0]))  # at node 1 only A was matched
+    w = m.weights().toarray()
+    np.testing.assert_allclose(w[0], [1.0, 1.0, 1.0])
+    np.testing.assert_allclose(w[1], [1.0, 0.5, 0.5])
+    m.learn(1, np.array([0.9, 0.7, 0.0]))
+    np.testing.assert_allclose(m.weights().toarray()[1], [1.0, 2 / 3, 1 / 3])
+
+
+def _long_track_map(n_nodes: int = 4) -> tuple[list[FeatureSet], Tracks]:
+    """Landmark 0 drifts in descriptor space over ``n_nodes`` nodes; landmarks 1 and 2 are stable."""
+    feats = []
+    for i in range(n_nodes):
+        ang = 0.1 * i
+        d0 = np.zeros(128, np.float32)
+        d0[0], d0[10] = np.cos(ang), np.sin(ang)
+        feats.append(_fs([(100 + 5 * i, 100), (200 + 5 * i, 100), (100 + 5 * i, 200)],
+                         [d0, _unit(1), _unit(2)]))
+    frame = np.tile(np.arange(n_nodes), 3)
+    feature = np.repeat(np.arange(3), n_nodes)
+    return feats, Tracks(frame=frame, feature=feature, track=feature.copy(), n_tracks=3,
+                         n_features=3 * n_nodes)
+
+
+def test_split_by_hand() -> None:
+    feats, tracks = _long_track_map()
+    m = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
+    r0 = m.radius_[0]
+    new = m.split(0)
+    assert new == 3 and m.n_landmarks_ == 4
+    assert m.length_.tolist() == [2, 4, 4, 2]
+    # Halves: nodes 0-1 keep id 0, nodes 2-3 go to the new landmark.
+    assert m.obs_node_[m.obs_lm_ == 0].tolist() == [0, 1]
+    assert m.obs_node_[m.obs_lm_ == 3].tolist() == [2, 3]
+    # Mean of angles 0 and 0.1 -> radius = |e(0) - mean| = sin(0.05), smaller than before.
+    np.testing.assert_allclose(m.radius_[[0, 3]], np.sin(0.05), rtol=1e-5)
+    assert m.radius_[0] < r0
+    np.testing.assert_allclose(m.mean_[3, [0, 10]], [(np.cos(0.2) + np.cos(0.3)) / 2,
+                                                     (np.sin(0.2) + np.sin(0.3)) / 2], atol=1e-6)
+    # Landmark 1 now co-occurs with the halves in 2 of its 4 nodes: frequency 0.5 each,
+    # so its top-2 neighbours are landmark 2 (frequency 1) and one half.
+    assert m.nbr_[1, 0] == 2 and m.nbr_[1, 1] in (0, 3)
+    np.testing.assert_allclose(m.nbr_freq_[1], np.array([1.0, 0.5]))
+    # The halves see landmarks 1 and 2 in all their nodes.
+    assert sorted(m.nbr_[3].tolist()) == [1, 2]
+    assert (m.incidence_.toarray()[:, 3] == [0, 0, 1, 1]).all()
+    single = Tracks(frame=np.zeros(3, np.int64), feature=np.arange(3), track=np.arange(3),
+                    n_tracks=3, n_features=3)
+    with pytest.raises(TopolocError, match="no feature track"):
+        LandmarkModel(top_k=1).build([feats[0]], single)
+    with pytest.raises(TopolocError, match="cannot split"):
+        LandmarkModel(top_k=1, min_track_length=1, n_background=100).build(
+            [feats[0]], Tracks(frame=np.zeros(3, np.int64), feature=np.arange(3), track=np.arange(3),
+                               n_tracks=3, n_features=3), ).split(0)
+
+
+def test_optimise_splits_until_ratio() -> None:
+    feats, tracks = _long_track_map(8)
+    m = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
+    r_before = m.ratios().min()
+    done = m.optimise(np.inf, max_splits=50)  # unattainable: split until nothing can be split
+    assert len(done) > 0
+    # The loop stops when the worst node has no landmark left to split.
+    worst = int(np.argmin(m.ratios()))
+    assert (m.length_[m.obs_lm_[m.obs_node_ == worst]] < 2).all()
+    assert m.index_.ntotal == m.n_landmarks_
+    m2 = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
+    assert m2.optimise(0.0) == []  # already above r_min: nothing to do
+    assert np.isfinite(r_before)
