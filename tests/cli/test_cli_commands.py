@@ -84,3 +84,26 @@ def test_synth_command(tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     assert (tmp_path / "s" / "tour_0900" / "places.csv").is_file()
     assert (tmp_path / "s" / "tour_2100" / "places.csv").is_file()
+
+
+def test_bench_coocmap_json() -> None:
+    r = runner.invoke(app, ["bench", "coocmap", "--locations", "40", "--tours", "2", "--features", "80",
+                            "--words", "500", "--queries", "3", "--json"])
+    assert r.exit_code == 0, r.output + str(r.exception)
+    res = json.loads(r.output.strip().splitlines()[-1])
+    assert res["locations"] == 40 and res["ms_per_query_median"] > 0 and res["map_bytes"] > 0
+
+
+def test_show_match_draws_png(tmp_path: Path) -> None:
+    from topoloc.datasets.synthetic import RouteConfig, generate_route
+
+    tours = generate_route(tmp_path / "route", config=RouteConfig(n_places=8, seed=2),
+                           tours=(("tour_1000", 10.0), ("tour_1500", 15.0)))
+    generate_route(tmp_path / "train", config=RouteConfig(n_places=10, seed=9), tours=(("tour_1200", 12.0),))
+    query = sorted(tours[1].glob("*.jpg"))[3]
+    r = runner.invoke(app, ["show-match", str(query), "--map", str(tours[0]), "--vocab-train", str(tmp_path / "train"),
+                            "--vocab-words", "300", "--cache-dir", str(tmp_path / "cache"),
+                            "--out", str(tmp_path / "m.png")])
+    assert r.exit_code == 0, r.output + str(r.exception)
+    info = json.loads(r.output.strip().splitlines()[-1])
+    assert (tmp_path / "m.png").stat().st_size > 1000 and "best_place" in info

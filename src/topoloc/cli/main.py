@@ -217,6 +217,35 @@ def demo(
     typer.echo(f"\nPR curves: {report_path.parent / 'pr_curves.png'}")
 
 
+@app.command("show-match")
+@handle_errors
+def show_match_cmd(
+    query_image: Annotated[Path, typer.Argument(help="Query image.")],
+    map: Annotated[list[Path], typer.Option("--map", help="Map traverse folder (repeatable): the tours.")],
+    out: Annotated[Path, typer.Option(help="PNG to write.")],
+    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
+    vocab_train: Annotated[
+        list[Path] | None, typer.Option("--vocab-train", help="Folders to train a vocabulary on.")
+    ] = None,
+    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
+    param: Annotated[list[str] | None, typer.Option(help="Cooc-Map parameter KEY=VALUE (repeatable).")] = None,
+    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
+) -> None:
+    """Localise one image with Cooc-Map and draw it beside its best location with the consistent correspondences."""
+    from topoloc.coocmap.visualise import show_match
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.evaluation.pipeline import build_method, make_resources
+
+    method = build_method("coocmap", _parse_params(param or []))
+    maps = [load_traverse(m) for m in map]
+    with rich_progress() as progress:
+        resources, _ = make_resources(vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words,
+                                      cache_dir=cache_dir, needs_vocabulary="show-match", progress=progress)
+        method.fit(maps, resources=resources)
+        info = show_match(query_image, list(map), out, resources=resources, method=method)  # type: ignore[arg-type]
+    typer.echo(json.dumps(info, default=str))
+
+
 @app.command()
 @handle_errors
 def slam(
@@ -268,6 +297,25 @@ def bench_fabmap2_cmd(
     from topoloc.fabmap.bench import bench_fabmap2
 
     res = bench_fabmap2(n_places=places, n_words=words, words_per_image=words_per_image, n_queries=queries,
+                        seed=seed)
+    _print_bench(res, as_json)
+
+
+@bench_app.command("coocmap")
+@handle_errors
+def bench_coocmap_cmd(
+    locations: Annotated[int, typer.Option(help="Locations in the map.")] = 2200,
+    tours: Annotated[int, typer.Option(help="Training tours per location.")] = 5,
+    features: Annotated[int, typer.Option(help="Features per image.")] = 500,
+    words: Annotated[int, typer.Option(help="Vocabulary size.")] = 10000,
+    queries: Annotated[int, typer.Option(help="Timed queries.")] = 20,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
+) -> None:
+    """Cooc-Map ms per localisation and map memory on a synthetic map of the paper's size."""
+    from topoloc.coocmap.bench import bench_coocmap
+
+    res = bench_coocmap(locations=locations, tours=tours, features=features, n_words=words, n_queries=queries,
                         seed=seed)
     _print_bench(res, as_json)
 

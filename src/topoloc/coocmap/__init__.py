@@ -16,6 +16,7 @@ from topoloc.coocmap.matching import (
     MatchResult,
     consistency_graphs,
     eliminate,
+    match_best_first,
     match_sequential,
     match_simultaneous,
 )
@@ -24,6 +25,6 @@ from topoloc.coocmap.spatial import n_spatial_words, normalise_xy, spatial_words
 
 __all__ = [
     "ConsistencyGraphs", "CoocModel", "MatchResult", "consistency_graphs", "eliminate",
-    "match_sequential", "match_simultaneous", "n_spatial_words", "normalise_xy",
+    "match_best_first", "match_sequential", "match_simultaneous", "n_spatial_words", "normalise_xy",
     "spatial_words", "vocabulary_fingerprint",
 ]

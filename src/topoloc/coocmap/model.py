@@ -113,10 +113,18 @@ class CoocModel:
         Spatial grid (Sec. III-B: 12 x 8, i.e. 384 spatial words).
     interpolate : bool
         Whether ``M`` includes the virtual images of adjacent tours (Sec. II-E).
+    position_bits : int
+        Positions are kept to this many bits per axis (16: as given; 6: a
+        64 x 64 lattice, ~10 px on a 640 px image).  Coarser positions make a
+        feature re-observed by another tour with a few pixels of jitter "the
+        same feature" (stored once, Sec. II-E's "occurs in both") at the cost
+        of that much spatial precision; queries are quantised alike.
     """
 
     def __init__(self, *, n_locations: int, n_words: int, grid_x: int = 12, grid_y: int = 8,
-                 interpolate: bool = True) -> None:
+                 interpolate: bool = True, position_bits: int = 16) -> None:
+        if not 1 <= position_bits <= 16:
+            raise TopolocError(f"coocmap: position_bits must be in 1..16, got {position_bits}")
         if grid_x < 1 or grid_y < 1:
             raise TopolocError(f"coocmap: grid must be at least 1 x 1, got {grid_x} x {grid_y}")
         if n_words < 1 or n_locations < 0:
@@ -126,6 +134,7 @@ class CoocModel:
         self.grid_x = int(grid_x)
         self.grid_y = int(grid_y)
         self.interpolate = bool(interpolate)
+        self.position_bits = int(position_bits)
         self.tour_names: list[str] = []
         self.tour_hours: list[float | None] = []
         self.vocabulary: dict[str, Any] = {}
@@ -143,6 +152,7 @@ class CoocModel:
         grid_x: int = 12,
         grid_y: int = 8,
         interpolate: bool = True,
+        position_bits: int = 16,
         tour_names: Sequence[str] | None = None,
         tour_hours: Sequence[float | None] | None = None,
     ) -> CoocModel:
@@ -157,7 +167,7 @@ class CoocModel:
             are pooled into that tour's feature set.
         """
         model = cls(n_locations=n_locations, n_words=n_words, grid_x=grid_x, grid_y=grid_y,
-                    interpolate=interpolate)
+                    interpolate=interpolate, position_bits=position_bits)
         names = list(tour_names) if tour_names is not None else [f"tour{t}" for t in range(len(tours))]
         hours = list(tour_hours) if tour_hours is not None else [None] * len(tours)
         for obs, name, hour in zip(tours, names, hours, strict=True):
@@ -187,7 +197,7 @@ class CoocModel:
         locs, words, xys = [], [], []
         for loc, w, xy in observations:
             w = np.asarray(w).ravel()
-            xy = np.asarray(xy, dtype=np.uint16).reshape(-1, 2)
+            xy = self.quantise_xy(xy)
             if len(w) != len(xy):
                 raise TopolocError("coocmap: words and positions differ in length")
             if not 0 <= int(loc) < self.n_locations:
@@ -248,6 +258,23 @@ class CoocModel:
         self.wloc = loc[self.by_word][keep].astype(np.int32)
         self.wloc_ptr = np.searchsorted(word[self.by_word][keep], np.arange(self.n_words + 1)).astype(np.int64)
         self._groups: dict[bool, np.ndarray] = {}
+
+    def quantise_xy(self, xy: np.ndarray) -> np.ndarray:
+        """Normalised positions kept to ``position_bits`` per axis (bin centres).
+
+        Parameters
+        ----------
+        xy : ndarray of uint16, shape (n, 2)
+
+        Returns
+        -------
+        ndarray of uint16, shape (n, 2)
+        """
+        xy = np.asarray(xy, dtype=np.uint16).reshape(-1, 2)
+        shift = 16 - self.position_bits
+        if shift == 0:
+            return xy
+        return ((xy >> np.uint16(shift)) << np.uint16(shift)) | np.uint16(1 << (shift - 1))
 
     # -- queries of the model -------------------------------------------------------------
     @property
@@ -340,6 +367,7 @@ class CoocModel:
         meta = {
             "n_locations": self.n_locations, "n_words": self.n_words,
             "grid_x": self.grid_x, "grid_y": self.grid_y, "interpolate": self.interpolate,
+            "position_bits": self.position_bits,
             "tour_names": self.tour_names, "tour_hours": self.tour_hours,
             "vocabulary": self.vocabulary,
         }
@@ -367,7 +395,8 @@ class CoocModel:
         try:
             model = cls(n_locations=int(meta["n_locations"]), n_words=int(meta["n_words"]),
                         grid_x=int(meta["grid_x"]), grid_y=int(meta["grid_y"]),
-                        interpolate=bool(meta["interpolate"]))
+                        interpolate=bool(meta["interpolate"]),
+                        position_bits=int(meta.get("position_bits", 16)))
             model.tour_names = [str(t) for t in meta["tour_names"]]
             model.tour_hours = [None if h is None else float(h) for h in meta["tour_hours"]]
             model.vocabulary = dict(meta.get("vocabulary") or {})

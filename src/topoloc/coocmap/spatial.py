@@ -127,6 +127,40 @@ def pair_word_matrix(xy: np.ndarray, *, grid_x: int = 12, grid_y: int = 8) -> np
                                grid_x, grid_y)
 
 
+def signed_cells(dx: np.ndarray, dy: np.ndarray, grid_x: int, grid_y: int) -> tuple[np.ndarray, np.ndarray]:
+    """The spatial word as signed grid coordinates ``(sx, sy)``.
+
+    ``sx = cx`` to the right and ``-cx - 1`` to the left (likewise ``sy`` with
+    below/above), a bijection with the spatial words of
+    :func:`spatial_words` in which neighbouring squares, also across the
+    left/right or above/below boundary, differ by 1.  Used for the optional
+    tolerance ``|sx - sx'| <= t and |sy - sy'| <= t`` (``t = 0`` is equality
+    of spatial words, the paper).
+
+    Parameters
+    ----------
+    dx, dy : ndarray of int32
+        Offsets ``b - a`` in normalised units.
+
+    Returns
+    -------
+    sx, sy : ndarray of int8, same shape
+    """
+    cx = np.minimum((np.abs(dx) * grid_x) >> NORM_BITS, grid_x - 1)
+    cy = np.minimum((np.abs(dy) * grid_y) >> NORM_BITS, grid_y - 1)
+    right = (dx > 0) | ((dx == 0) & (dy > 0))
+    below = (dy > 0) | ((dy == 0) & (dx > 0))
+    return (np.where(right, cx, -cx - 1).astype(np.int8),
+            np.where(below, cy, -cy - 1).astype(np.int8))
+
+
+def pair_cell_matrices(xy: np.ndarray, *, grid_x: int = 12,
+                       grid_y: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`signed_cells` of all ordered pairs of one image, each (n, n) int8."""
+    p = np.asarray(xy, dtype=np.int32).reshape(-1, 2)
+    return signed_cells(p[None, :, 0] - p[:, None, 0], p[None, :, 1] - p[:, None, 1], grid_x, grid_y)
+
+
 def flip_word(word: np.ndarray, *, grid_x: int = 12, grid_y: int = 8) -> np.ndarray:
     """The spatial word of the reversed pair (opposite quadrant, same square).
 

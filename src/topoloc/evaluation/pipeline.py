@@ -16,6 +16,7 @@ This is the single door of ``PROTOCOL.md``.  Outputs under ``out``:
 
 from __future__ import annotations
 
+import inspect
 import io
 import json
 import logging
@@ -290,11 +291,26 @@ def _maps_label(maps: list[str], sep: str) -> str:
     return sep.join(names)
 
 
+def _method_label(m: dict[str, Any]) -> str:
+    """Method name with the parameters that differ from its defaults, e.g. ``seqslam (search=acceleration)``."""
+    params = dict(m.get("params", {}))
+    seq = params.pop("sequence", 0)
+    tags = []
+    try:
+        cls = get_method(m["method"])
+        defaults = {k: v.default for k, v in inspect.signature(cls.__init__).parameters.items()
+                    if v.kind is v.KEYWORD_ONLY}
+        tags = [f"{k}={v}" for k, v in params.items() if k in defaults and defaults[k] != v]
+    except TopolocError:
+        pass  # a method this installation does not know: show the bare name
+    if seq and seq > 1:
+        tags.append(f"seq {seq}")
+    return m["method"] + (f" ({', '.join(tags)})" if tags else "")
+
+
 def _run_title(m: dict[str, Any]) -> str:
     run = m.get("run", {})
-    seq = m.get("params", {}).get("sequence", 0)
-    method = m["method"] + (f" (seq {seq})" if seq and seq > 1 else "")
-    return f"{method}: {_maps_label(run.get('map', []), '+')} -> {_short(run.get('query', '?'))}"
+    return f"{_method_label(m)}: {_maps_label(run.get('map', []), '+')} -> {_short(run.get('query', '?'))}"
 
 
 TABLE_HEADER = (
@@ -307,8 +323,7 @@ def table_row(m: dict[str, Any]) -> str:
     """One markdown table row for a run's metrics."""
     run = m.get("run", {})
     maps = _maps_label(run.get("map", []), " + ")
-    seq = m.get("params", {}).get("sequence", 0)
-    method = m["method"] + (f" (seq {seq})" if seq and seq > 1 else "")
+    method = _method_label(m)
     return (
         f"| {method} | {maps} | {_short(run.get('query', '?'))} | {m['auc']:.3f} | "
         f"{m['recall_at_100_precision']:.3f} | {m['recall_at_1']:.3f} | {m['recall_at_5']:.3f} | "

@@ -13,6 +13,7 @@ from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
 
 _REGISTRY: dict[str, str] = {
     "bow": "topoloc.methods.bow:BagOfWords",
+    "coocmap": "topoloc.methods.coocmap:CoocMap",
     "fabmap": "topoloc.methods.fabmap:FabMap",
     "fabmap2": "topoloc.methods.fabmap:FabMap2",
     "landmarks": "topoloc.methods.landmarks:LandmarkMap",

@@ -8,9 +8,9 @@ the virtual images of adjacent tours when ``interpolate`` (Sec. II-E).  A
 query is matched to every place at once (Sec. II-C, II-D); ``S[i, q]`` is the
 size of the spatially consistent group of place ``i``.
 
-Places dropped early by the bound of Sec. II-D report their bound at the
-time they were dropped, which is strictly below the ``top_k``-th best exact
-score; hence the best match (PR curve, R@1) and ranks ``1..top_k`` (R@5 and
+Places dropped early by the bounds of Sec. II-D report their bound at the
+time they were dropped (an upper bound on their score), strictly below the
+``top_k``-th best exact score; hence the best match (PR curve, R@1) and ranks ``1..top_k`` (R@5 and
 R@10 with the default ``top_k = 10``) are exact, and only the order below
 rank ``top_k`` uses bounds.  ``simultaneous=False`` matches every place to
 completion (all of ``S`` exact, slower).
@@ -28,6 +28,8 @@ from topoloc.coocmap.matching import (
     ConsistencyGraphs,
     MatchResult,
     consistency_graphs,
+    match_best_first,
+    match_lazy,
     match_simultaneous,
 )
 from topoloc.coocmap.model import CoocModel, Observation, vocabulary_fingerprint
@@ -61,6 +63,16 @@ class CoocMap(PlaceRecognizer):
     simultaneous : bool
         Match all places at once with bounds (Sec. II-D); otherwise every
         place is matched to completion.
+    schedule : {"lazy", "best_first", "rounds"}
+        With ``simultaneous``, how the bounds of Sec. II-D are used; all give
+        the same best place and exact ranks ``1..top_k``.  ``"rounds"``: the
+        paper's one elimination per place per round
+        (:func:`~topoloc.coocmap.matching.match_simultaneous`);
+        ``"best_first"``: places finished in decreasing order of bound
+        (:func:`~topoloc.coocmap.matching.match_best_first`); ``"lazy"``:
+        best-first by candidate count, building ``J_i`` only for places
+        that can still win (:func:`~topoloc.coocmap.matching.match_lazy`),
+        the fastest.
     top_k : int
         With ``simultaneous``, ranks ``1..top_k`` of each column are exact
         (the paper's bound is ``top_k = 1``).
@@ -68,6 +80,20 @@ class CoocMap(PlaceRecognizer):
         Use at most this many features per image, the strongest (0 = all).
     seed : int
         Seed of the random tie-breaking of equal scores (Sec. II-C).
+    spatial_tolerance : int
+        0 = the paper (equal spatial words); ``t`` accepts squares up to ``t``
+        apart on each axis (our extension for viewpoint change; default 1:
+        Gardens Point day_left+night_right -> day_right AUC 0.16 -> 0.58,
+        webcam_daynight unchanged), see
+        :func:`~topoloc.coocmap.matching.consistency_graphs`.
+    position_bits : int
+        Position lattice of the map (16 = as extracted; default 6: 64 x 64,
+        ~10 px on a 640 px image, against ~53 px squares), see
+        :class:`~topoloc.coocmap.model.CoocModel`.  Re-observations of a
+        feature by other tours then coincide and are stored once, which
+        makes ``J`` of the right place 5-10x cheaper to build; accuracy on
+        Gardens Point / webcam_daynight is unchanged (AUC 0.579 -> 0.590,
+        0.817 -> 0.815).
     model_path : str
         If set: load the map from this file when it exists (it must have been
         built with the same vocabulary and places), else build and save it.
@@ -84,15 +110,19 @@ class CoocMap(PlaceRecognizer):
     uses_vocabulary: ClassVar[bool] = True
 
     def __init__(self, *, grid_x: int = 12, grid_y: int = 8, interpolate: bool = True,
-                 simultaneous: bool = True, top_k: int = 10, max_features: int = 0,
-                 seed: int = 0, model_path: str = "") -> None:
+                 simultaneous: bool = True, schedule: str = "lazy", top_k: int = 10, max_features: int = 0,
+                 seed: int = 0, spatial_tolerance: int = 1, position_bits: int = 6,
+                 model_path: str = "") -> None:
         self.grid_x = grid_x
         self.grid_y = grid_y
         self.interpolate = interpolate
         self.simultaneous = simultaneous
+        self.schedule = schedule
         self.top_k = top_k
         self.max_features = max_features
         self.seed = seed
+        self.spatial_tolerance = spatial_tolerance
+        self.position_bits = position_bits
         self.model_path = model_path
 
     def _check_params(self) -> None:
@@ -100,6 +130,10 @@ class CoocMap(PlaceRecognizer):
             raise TopolocError(f"coocmap: grid must be at least 1 x 1, got {self.grid_x} x {self.grid_y}")
         if self.top_k < 1:
             raise TopolocError(f"coocmap: top_k must be >= 1, got {self.top_k}")
+        if self.spatial_tolerance < 0:
+            raise TopolocError(f"coocmap: spatial_tolerance must be >= 0, got {self.spatial_tolerance}")
+        if self.schedule not in ("lazy", "best_first", "rounds"):
+            raise TopolocError(f"coocmap: schedule must be lazy, best_first or rounds, not {self.schedule!r}")
         if self.max_features < 0:
             raise TopolocError(f"coocmap: max_features must be >= 0 (0 = all), got {self.max_features}")
 
@@ -124,12 +158,13 @@ class CoocMap(PlaceRecognizer):
         if path is not None and path.is_file():
             model = CoocModel.load(path, vocabulary=fingerprint or None)
             if (model.n_locations != len(place_ids) or model.grid_x != self.grid_x
-                    or model.grid_y != self.grid_y):
+                    or model.grid_y != self.grid_y or model.position_bits != self.position_bits):
                 raise TopolocError(f"coocmap file does not fit these maps or grid: {path}")
             model.interpolate = bool(self.interpolate)
         if model is None:
             built = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_),
-                              grid_x=self.grid_x, grid_y=self.grid_y, interpolate=self.interpolate)
+                              grid_x=self.grid_x, grid_y=self.grid_y, interpolate=self.interpolate,
+                              position_bits=self.position_bits)
             for tour in tours:
                 rows = np.searchsorted(place_ids, tour.places)
                 obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
@@ -148,21 +183,41 @@ class CoocMap(PlaceRecognizer):
         return list(self._observations(query, resources))
 
     def match(self, item: Item) -> tuple[ConsistencyGraphs, MatchResult]:
-        """Candidate correspondences, ``J_i`` and the matching result of one query."""
+        """Candidate correspondences, ``J_i`` and the matching result of one query.
+
+        With ``schedule="lazy"`` the graphs returned cover the best place only
+        (enough for :meth:`MatchResult.group` of the best place).
+        """
         self.check_fitted()
         words, xy = item
-        graphs = consistency_graphs(self.model_, words, xy, interpolate=self.interpolate,
-                                    seed=self.seed)
-        if self.simultaneous:
-            return graphs, match_simultaneous(graphs, top_k=self.top_k)
-        return graphs, match_simultaneous(graphs, prune=False)
+        kw: dict[str, Any] = {"interpolate": self.interpolate, "seed": self.seed,
+              "spatial_tolerance": self.spatial_tolerance}
+        if self.simultaneous and self.schedule == "lazy":
+            res = match_lazy(self.model_, words, xy, top_k=self.top_k, **kw)
+            graphs = consistency_graphs(self.model_, words, xy, locations=np.array([res.best]), **kw)
+            # Same deterministic tie-breaking: this reproduces the best place's group.
+            res.kept = match_best_first(graphs, top_k=1).kept
+            return graphs, res
+        graphs = consistency_graphs(self.model_, words, xy, **kw)
+        if not self.simultaneous:
+            return graphs, match_simultaneous(graphs, prune=False)
+        if self.schedule == "best_first":
+            return graphs, match_best_first(graphs, top_k=self.top_k)
+        return graphs, match_simultaneous(graphs, top_k=self.top_k)
+
+    def _scores(self, item: Item) -> np.ndarray:
+        if self.simultaneous and self.schedule == "lazy":
+            words, xy = item
+            return match_lazy(self.model_, words, xy, top_k=self.top_k, interpolate=self.interpolate,
+                              seed=self.seed, spatial_tolerance=self.spatial_tolerance).scores
+        return self.match(item)[1].scores
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
         """Consistent-group sizes, shape (n_places, len(items)) (see module docstring)."""
         self.check_fitted()
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         for q, item in enumerate(items):
-            S[:, q] = self.match(item)[1].scores
+            S[:, q] = self._scores(item)
         return self._check_block(S, len(items))
 
 

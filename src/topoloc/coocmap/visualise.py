@@ -1,0 +1,130 @@
+"""Match drawings as in the Cooc-Map paper's Fig. 1 and 5 (``topoloc show-match``).
+
+The query image is drawn beside a training image of the best location with a
+line for every correspondence of the final consistent group ``K``.  The model
+stores no images or per-tour feature lists, so the training image is taken
+from the map traverses: among the images of the best place, the one whose
+features contain the most words of ``K``; each query feature of ``K`` is
+joined to the feature of the same word in that image whose offset is closest
+to the median offset of all same-word pairs (a drawing aid only; matching
+never uses it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from topoloc.coocmap.spatial import normalise_xy
+from topoloc.datasets.traverse import load_traverse, read_image
+from topoloc.errors import input_error
+from topoloc.methods.base import Resources
+from topoloc.methods.coocmap import CoocMap
+
+
+def draw_correspondences(query_bgr: np.ndarray, map_bgr: np.ndarray, pts_query: np.ndarray,
+                         pts_map: np.ndarray, *, seed: int = 0) -> np.ndarray:
+    """Side-by-side image with one coloured line per correspondence.
+
+    Parameters
+    ----------
+    query_bgr, map_bgr : ndarray of uint8, shape (H, W, 3)
+    pts_query, pts_map : ndarray of float, shape (k, 2)
+        Pixel positions in each image.
+
+    Returns
+    -------
+    ndarray of uint8, shape (H', Wq' + Wm', 3)
+        Both images scaled to the height of the taller one.
+    """
+    h = max(query_bgr.shape[0], map_bgr.shape[0])
+    sq, sm = h / query_bgr.shape[0], h / map_bgr.shape[0]
+    q = cv2.resize(query_bgr, (round(query_bgr.shape[1] * sq), h))
+    m = cv2.resize(map_bgr, (round(map_bgr.shape[1] * sm), h))
+    canvas = np.hstack([q, m])
+    colours = np.random.default_rng(seed).integers(64, 256, (len(pts_query), 3))
+    for (xq, yq), (xm, ym), c in zip(pts_query * sq, pts_map * sm, colours, strict=True):
+        a = (round(float(xq)), round(float(yq)))
+        b = (round(float(xm)) + q.shape[1], round(float(ym)))
+        col = tuple(int(v) for v in c)
+        cv2.line(canvas, a, b, col, 1, cv2.LINE_AA)
+        cv2.circle(canvas, a, 4, col, 2, cv2.LINE_AA)
+        cv2.circle(canvas, b, 4, col, 2, cv2.LINE_AA)
+    return canvas
+
+
+def _pair_up(qw: np.ndarray, qxy: np.ndarray, mw: np.ndarray, mxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each query feature, the same-word map feature nearest the median offset."""
+    same = qw[:, None] == mw[None, :]
+    if not same.any():
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    off = mxy[None, :, :] - qxy[:, None, :]
+    med = np.median(off[same], axis=0)
+    dist = np.where(same, np.linalg.norm(off - med, axis=2), np.inf)
+    j = np.argmin(dist, axis=1)
+    ok = np.isfinite(dist[np.arange(len(qw)), j])
+    return qxy[ok], mxy[j[ok]]
+
+
+def show_match(query_image: str | Path, map_dirs: Sequence[str | Path], out_png: str | Path, *,
+               resources: Resources, method: CoocMap | None = None,
+               **params: Any) -> dict[str, Any]:
+    """Localise one image and draw its best match (Fig. 1 / 5 of the paper).
+
+    Parameters
+    ----------
+    query_image : path
+        The query image.
+    map_dirs : sequence of paths
+        The map traverses (tours).
+    out_png : path
+        Where to write the drawing.
+    resources : Resources
+        Feature extractor and vocabulary.
+    method : CoocMap, optional
+        A method already fitted on ``map_dirs``; else one is built with ``params``.
+
+    Returns
+    -------
+    dict
+        ``best_place``, ``score`` (size of ``K``), ``map_image`` (the training
+        image drawn), ``n_lines``, ``out``.
+    """
+    maps = [load_traverse(d) for d in map_dirs]
+    if method is None:
+        method = CoocMap(**params).fit(maps, resources=resources)
+    fs = resources.extractor.extract_path(query_image)
+    k = method.max_features or None
+    words = np.asarray(resources.vocabulary.quantize(fs.descriptors), np.int64)[:k]
+    kp = fs.keypoints[:k, :2]
+    graphs, result = method.match((words, normalise_xy(kp, fs.image_shape)))
+    best = result.best
+    group = result.group(graphs, best)
+    place = int(method.place_ids_[best])
+    # The training image of the best place holding the most words of K.
+    best_img, best_hits, best_feats = None, -1, None
+    for t in maps:
+        feats = resources.features(t)
+        tw = resources.words(t)
+        for i in np.flatnonzero(t.places == place):
+            hits = int(np.isin(words[group], tw[i][:k]).sum())
+            if hits > best_hits:
+                best_img, best_hits, best_feats = t.images[i], hits, (tw[i][:k], feats[i].keypoints[:k, :2])
+    if best_img is None or best_feats is None:
+        raise input_error("the best place has no image in the map traverses", str(place))
+    pq, pm = _pair_up(words[group], kp[group].astype(np.float64), np.asarray(best_feats[0]),
+                      best_feats[1].astype(np.float64))
+    canvas = draw_correspondences(read_image(query_image, gray=False), read_image(best_img, gray=False),
+                                  pq, pm, seed=method.seed)
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ok, buf = cv2.imencode(".png", canvas)
+    if not ok:
+        raise input_error("could not encode the drawing", out)
+    out.write_bytes(buf.tobytes())
+    return {"best_place": place, "score": float(result.scores[best]), "map_image": str(best_img),
+            "n_lines": len(pq), "out": str(out)}

@@ -1,0 +1,151 @@
+"""Location models M_i, tours, interpolation and persistence (Cooc-Map Sec. II-B, II-E)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from topoloc.coocmap.model import CoocModel
+from topoloc.coocmap.spatial import spatial_words
+from topoloc.errors import TopolocError
+
+G: dict[str, Any] = {"grid_x": 3, "grid_y": 2}  # 24 spatial words keep hand examples small
+
+
+def _pairs(words: np.ndarray, xy: np.ndarray, n_words: int, n_spatial: int) -> set[int]:
+    """Brute-force pairs(G) of the module docstring, as packed keys."""
+    out = set()
+    for i in range(len(words)):
+        for j in range(len(words)):
+            if i != j:
+                s = int(spatial_words(xy[i], xy[j], **G))
+                out.add((int(words[i]) * n_words + int(words[j])) * n_spatial + s)
+    return out
+
+
+def _union(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    w = np.r_[a[0], b[0]]
+    xy = np.r_[a[1], b[1]]
+    _, idx = np.unique(np.c_[w, xy], axis=0, return_index=True)  # a shared feature is one feature
+    return w[idx], xy[idx]
+
+
+def test_fig4_hand_example() -> None:
+    # Fig. 4: words A..D (0..3); A appears left of B and also bottom-right of B.
+    q = 65536 // 6
+    A1, A2, B, C = (q, 3 * q), (5 * q, 5 * q), (3 * q, 3 * q), (3 * q, q)
+    words = np.array([0, 0, 1, 2])
+    xy = np.array([A1, A2, B, C], np.uint16)
+    m = CoocModel.build([[(0, words, xy)]], n_locations=1, n_words=4, **G)
+    assert m.location_words(0).tolist() == [0, 1, 2]  # D is not seen: no row for it
+    keys = set(m.pair_keys(0).tolist())
+    assert keys == _pairs(words, xy, 4, m.n_spatial)
+    # Element (B, A) holds two spatial words: A to the left, and A to the bottom-right.
+    ba = sorted(k % m.n_spatial for k in keys if k // m.n_spatial == 1 * 4 + 0)
+    left = int(spatial_words(np.array(B, np.uint16), np.array(A1, np.uint16), **G))
+    below_right = int(spatial_words(np.array(B, np.uint16), np.array(A2, np.uint16), **G))
+    assert ba == sorted({left, below_right}) and left != below_right
+    assert left // 6 in (0, 2) and below_right // 6 == 3  # quadrant: left; right-below
+
+
+def _random_tours(rng: np.random.Generator, n_tours: int, n_loc: int, n_words: int, n: int) -> list:
+    tours = []
+    shared = [(rng.integers(0, n_words, 4), rng.integers(0, 65536, (4, 2)).astype(np.uint16))
+              for _ in range(n_loc)]
+    for _ in range(n_tours):
+        obs = []
+        for loc in range(n_loc):
+            w = np.r_[shared[loc][0], rng.integers(0, n_words, n)]
+            xy = np.r_[shared[loc][1], rng.integers(0, 65536, (n, 2)).astype(np.uint16)]
+            obs.append((loc, w, xy))
+        tours.append(obs)
+    return tours
+
+
+def test_tours_and_interpolation_change_m_exactly() -> None:
+    rng = np.random.default_rng(3)
+    nw = 6
+    tours = _random_tours(rng, 3, 2, nw, 5)
+    plain = CoocModel.build(tours, n_locations=2, n_words=nw, interpolate=False, **G)
+    interp = CoocModel.build(tours, n_locations=2, n_words=nw, interpolate=True, **G)
+    ns = plain.n_spatial
+    for loc in range(2):
+        img = [(t[loc][1], t[loc][2]) for t in tours]
+        single = set().union(*(_pairs(w, xy, nw, ns) for w, xy in img))
+        assert set(plain.pair_keys(loc).tolist()) == single
+        virtual = set().union(*(_pairs(*_union(img[k], img[k + 1]), nw, ns) for k in range(2)))
+        assert set(interp.pair_keys(loc).tolist()) == virtual
+        assert single < virtual  # adds the cross-tour pairs of adjacent tours...
+        far = _pairs(*_union(img[0], img[2]), nw, ns) - virtual
+        assert far  # ...but not those of tours 0 and 2, which are not adjacent
+        # The flag can also be chosen at match time from the same stored model.
+        assert set(plain.pair_keys(loc, interpolate=True).tolist()) == virtual
+    # Shared features are stored once, with both tours in their mask.
+    assert plain.n_features < sum(len(o[1]) for t in tours for o in t)
+    assert plain.tours.dtype == np.uint8 and plain.tours.max() == 0b111
+
+
+def test_add_tour_in_time_order_equals_build() -> None:
+    rng = np.random.default_rng(4)
+    tours = _random_tours(rng, 3, 3, 8, 6)
+    ref = CoocModel.build(tours, n_locations=3, n_words=8, **G)
+    m = CoocModel.build([tours[0], tours[2]], n_locations=3, n_words=8, tour_names=["a", "c"], **G)
+    m.add_tour(tours[1], name="b", position=1)  # a later survey of the middle time of day
+    assert m.tour_names == ["a", "b", "c"]
+    for loc in range(3):
+        np.testing.assert_array_equal(m.pair_keys(loc), ref.pair_keys(loc))
+    np.testing.assert_array_equal(m.tours, ref.tours)
+    # Inverted file word -> locations.
+    for w in range(8):
+        locs = m.wloc[m.wloc_ptr[w]:m.wloc_ptr[w + 1]].tolist()
+        assert locs == [loc for loc in range(3) if w in m.location_words(loc)]
+    assert m.nbytes > 0 and m.bytes_per_location == m.nbytes / 3
+
+
+def test_bad_input() -> None:
+    with pytest.raises(TopolocError, match="word ids"):
+        CoocModel.build([[(0, np.array([9]), np.zeros((1, 2), np.uint16))]], n_locations=1, n_words=4)
+    with pytest.raises(TopolocError, match="location"):
+        CoocModel.build([[(2, np.array([1]), np.zeros((1, 2), np.uint16))]], n_locations=1, n_words=4)
+
+
+def test_save_load_round_trip_and_errors(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    m = CoocModel.build(_random_tours(rng, 2, 3, 8, 6), n_locations=3, n_words=8,
+                        tour_names=["t1", "t2"], tour_hours=[8.0, 20.0], **G)
+    voc = {"n_words": 8, "descriptor_kind": "sift-128-float32", "words_sha1": "abc"}
+    m.vocabulary = voc
+    path = tmp_path / "map.topoloc"
+    m.save(path)
+    back = CoocModel.load(path, vocabulary=voc)
+    assert back.tour_names == ["t1", "t2"] and back.tour_hours == [8.0, 20.0]
+    for loc in range(3):
+        np.testing.assert_array_equal(back.pair_keys(loc), m.pair_keys(loc))
+    np.testing.assert_array_equal(back.wloc, m.wloc)
+    other = dict(voc, words_sha1="def")
+    with pytest.raises(TopolocError, match="another vocabulary") as exc:
+        CoocModel.load(path, vocabulary=other)
+    assert "\n" not in str(exc.value)
+    path.write_bytes(path.read_bytes()[:-10])
+    with pytest.raises(TopolocError, match="truncated") as exc:
+        CoocModel.load(path)
+    assert "\n" not in str(exc.value) and str(path) in str(exc.value)
+
+
+def test_position_lattice_merges_reobserved_features() -> None:
+    # The same word seen 300 normalised units (~3 px at 640 px) apart by two tours.
+    base = np.array([[10340, 20580], [40060, 29800]], np.uint16)
+    t1 = [(0, np.array([1, 2]), base)]
+    t2 = [(0, np.array([1, 2]), base + np.uint16(300))]
+    exact = CoocModel.build([t1, t2], n_locations=1, n_words=4, **G)
+    coarse = CoocModel.build([t1, t2], n_locations=1, n_words=4, position_bits=6, **G)
+    assert exact.n_features == 4 and coarse.n_features == 2
+    assert coarse.tours.tolist() == [0b11, 0b11]
+    # Lattice of 1024 units, positions at bin centres; queries are quantised alike.
+    assert coarse.xy.tolist() == [[10240 + 512, 20480 + 512], [39936 + 512, 29696 + 512]]
+    np.testing.assert_array_equal(coarse.quantise_xy(base + np.uint16(300)), coarse.xy)
+    with pytest.raises(TopolocError, match="position_bits"):
+        CoocModel(n_locations=1, n_words=4, position_bits=0)
