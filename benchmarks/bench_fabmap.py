@@ -26,7 +26,7 @@ from benchmarks.common import (
     WEBCAM,
     WEBCAM_TOURS,
     anchors_table,
-    report,
+    report_table,
     require_data,
     run,
 )
@@ -69,8 +69,6 @@ def main() -> None:
     gp, wc = accuracy()
     s = speed()
     (RESULTS / "fabmap_speed.json").write_text(json.dumps(s, indent=2, default=float) + "\n")
-    gp_rep = report(gp, RESULTS / "fabmap_gardens_point", "FAB-MAP on gardens_point (vocabulary: webcam_daynight/map)")
-    wc_rep = report(wc, RESULTS / "fabmap_webcam", "FAB-MAP on webcam_daynight (vocabulary: gardens_point)")
     f2a, f2b, bo, cl = s["fabmap2_10000"], s["fabmap2_100000"], s["bailout"], s["chowliu"]
     assert isinstance(f2a, dict) and isinstance(f2b, dict) and isinstance(bo, dict) and isinstance(cl, dict)
     text = [
@@ -80,11 +78,12 @@ def main() -> None:
         "(Chow-Liu, detector model p(z=1|e=0)=0.005, p(z=0|e=1)=0.61); several map tours merged per place by ",
         "Eq. 11. Raw speed numbers: `fabmap_speed.json`.\n\n",
         "## gardens_point (tolerance 0:8)\n\n",
-        gp_rep.read_text().split("\n", 2)[2].split("\nRuns:")[0],
+        report_table(gp, RESULTS / "fabmap_gardens_point",
+                     "FAB-MAP on gardens_point (vocabulary: webcam_daynight/map)"),
         "\n![PR curves](fabmap_gardens_point/pr_curves.png)\n\n### Anchors on the same data\n\n",
         anchors_table(),
         "\n## webcam_daynight (48 places, 976 queries, tolerance 0:0)\n\n",
-        wc_rep.read_text().split("\n", 2)[2].split("\nRuns:")[0],
+        report_table(wc, RESULTS / "fabmap_webcam", "FAB-MAP on webcam_daynight (vocabulary: gardens_point)"),
         "\n![PR curves](fabmap_webcam/pr_curves.png)\n\n",
         "## Speed (synthetic Zipf bag-of-words, 10,000 words, ~300 words per image)\n\n",
         "| measurement | result |\n| --- | --- |\n",

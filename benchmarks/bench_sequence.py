@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, VOCAB_FOR_GP, report, require_data, run
+from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, VOCAB_FOR_GP, report_table, require_data, run
 
 VARIANTS: list[tuple[str, str, dict[str, str]]] = [
     ("seqslam", "seqslam", {}),
@@ -58,8 +58,7 @@ def main() -> None:
         "enhancement). ms/query = difference matrix + enhancement + search, total / n queries.\n\n",
     ]
     for i, (title, ds) in enumerate(sections):
-        rep = report(ds, RESULTS / f"seqslam_{i}", title)
-        body = rep.read_text().split("\n", 2)[2].split("\nRuns:")[0]
+        body = report_table(ds, RESULTS / f"seqslam_{i}", title)
         text += [f"## {title}\n\n", body, f"\n![PR curves](seqslam_{i}/pr_curves.png)\n\n"]
     speed = RESULTS / "seqslam_speed.json"
     if speed.is_file():

@@ -66,3 +66,8 @@ def anchors_table() -> str:
 
 def report(run_dirs: list[Path], out: Path, title: str) -> Path:
     return build_report(run_dirs, out, title=title)
+
+
+def report_table(run_dirs: list[Path], out: Path, title: str) -> str:
+    """Write the side-by-side report of ``run_dirs`` under ``out``; return just its markdown table."""
+    return report(run_dirs, out, title).read_text().split("\n", 2)[2].split("\nRuns:")[0]
