@@ -116,7 +116,7 @@ def test_save_load_round_trip_and_errors(tmp_path: Path) -> None:
     rng = np.random.default_rng(5)
     m = CoocModel.build(_random_tours(rng, 2, 3, 8, 6), n_locations=3, n_words=8,
                         tour_names=["t1", "t2"], tour_hours=[8.0, 20.0], **G)
-    voc = {"n_words": 8, "descriptor_kind": "sift-128-float32", "words_sha1": "abc"}
+    voc = {"n_words": 8, "descriptor_kind": "sift-128-float32", "sha1": "abc"}
     m.vocabulary = voc
     path = tmp_path / "map.topoloc"
     m.save(path)
@@ -125,7 +125,7 @@ def test_save_load_round_trip_and_errors(tmp_path: Path) -> None:
     for loc in range(3):
         np.testing.assert_array_equal(back.pair_keys(loc), m.pair_keys(loc))
     np.testing.assert_array_equal(back.wloc, m.wloc)
-    other = dict(voc, words_sha1="def")
+    other = dict(voc, sha1="def")
     with pytest.raises(TopolocError, match="another vocabulary") as exc:
         CoocModel.load(path, vocabulary=other)
     assert "\n" not in str(exc.value)

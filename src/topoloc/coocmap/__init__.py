@@ -20,8 +20,9 @@ from topoloc.coocmap.matching import (
     match_sequential,
     match_simultaneous,
 )
-from topoloc.coocmap.model import CoocModel, vocabulary_fingerprint
+from topoloc.coocmap.model import CoocModel
 from topoloc.coocmap.spatial import n_spatial_words, normalise_xy, spatial_words
+from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 __all__ = [
     "ConsistencyGraphs", "CoocModel", "MatchResult", "consistency_graphs", "eliminate",

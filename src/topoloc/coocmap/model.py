@@ -47,7 +47,6 @@ locations containing it, Sec. II-C).
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -64,17 +63,6 @@ MAX_TOURS = 64
 
 #: One image's observation: (location row, word ids (n,), normalised xy (n, 2) uint16).
 Observation = tuple[int, np.ndarray, np.ndarray]
-
-
-def vocabulary_fingerprint(vocabulary: Any) -> dict[str, Any]:
-    """What ties a map to its vocabulary: ``n_words``, ``descriptor_kind`` and a
-    SHA-1 of the word centres (first 16 hex digits)."""
-    words = np.ascontiguousarray(np.asarray(vocabulary.words_, dtype=np.float32))
-    return {
-        "n_words": int(vocabulary.n_words_),
-        "descriptor_kind": str(vocabulary.descriptor_kind_),
-        "words_sha1": hashlib.sha1(words.tobytes()).hexdigest()[:16],
-    }
 
 
 def _mask_dtype(n_tours: int) -> np.dtype:
@@ -411,9 +399,9 @@ class CoocModel:
         if vocabulary is not None and model.vocabulary and model.vocabulary != vocabulary:
             raise input_error(
                 f"coocmap file was built with another vocabulary ({model.vocabulary.get('n_words')} "
-                f"words {model.vocabulary.get('descriptor_kind')} {model.vocabulary.get('words_sha1')}, "
+                f"words {model.vocabulary.get('descriptor_kind')} {str(model.vocabulary.get('sha1'))[:12]}, "
                 f"in use: {vocabulary.get('n_words')} words {vocabulary.get('descriptor_kind')} "
-                f"{vocabulary.get('words_sha1')})",
+                f"{str(vocabulary.get('sha1'))[:12]})",
                 path,
             )
         model.loc = np.array(loc)

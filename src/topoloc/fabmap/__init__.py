@@ -35,8 +35,9 @@ from topoloc.fabmap.likelihood import (
     log_likelihood_bailout,
     mean_field_log_likelihood,
 )
-from topoloc.fabmap.model import FabMapModel, vocabulary_fingerprint
+from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.slam import FabMapSlam, SlamResult, run_slam, write_slam_outputs
+from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 __all__ = [
     "ChowLiuTree",

@@ -73,19 +73,22 @@ def occurrence_matrix(word_lists: Sequence[np.ndarray], *, n_words: int) -> sp.c
     TopolocError
         If a word id is outside ``[0, n_words)``.
     """
-    rows = [np.unique(np.asarray(w, dtype=np.int64).ravel()) for w in word_lists]
-    lengths = np.fromiter((r.size for r in rows), dtype=np.int64, count=len(rows))
-    indptr = np.zeros(len(rows) + 1, dtype=np.int64)
+    lists = [np.asarray(w, dtype=np.int64).ravel() for w in word_lists]
+    lengths = np.fromiter((w.size for w in lists), dtype=np.int64, count=len(lists))
+    indptr = np.zeros(len(lists) + 1, dtype=np.int64)
     np.cumsum(lengths, out=indptr[1:])
-    indices = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+    indices = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int64)
     if indices.size and (indices.min() < 0 or indices.max() >= n_words):
         raise TopolocError(
             f"visual word id out of range [0, {n_words}): found {indices.min()}..{indices.max()}"
         )
-    data = np.ones(indices.size, dtype=np.uint8)
-    return sp.csr_matrix(
-        (data, indices.astype(np.int32), indptr), shape=(len(rows), n_words)
+    # One vectorised pass sorts and merges repeated words of a row (no per-image np.unique).
+    m = sp.csr_matrix(
+        (np.ones(indices.size, dtype=np.int32), indices.astype(np.int32), indptr), shape=(len(lists), n_words)
     )
+    m.sum_duplicates()
+    m.data = np.ones(m.indices.size, dtype=np.uint8)
+    return m
 
 
 def as_occurrence(x: sp.spmatrix | np.ndarray | Sequence[np.ndarray], *, n_words: int) -> sp.csr_matrix:

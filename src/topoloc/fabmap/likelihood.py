@@ -102,6 +102,7 @@ import scipy.sparse as sp
 from scipy.special import logsumexp
 
 from topoloc.errors import TopolocError
+from topoloc.fabmap.chowliu import as_occurrence, occurrence_matrix
 from topoloc.fabmap.model import FabMapModel
 
 # ---------------------------------------------------------------------------------------
@@ -859,11 +860,11 @@ class InvertedIndex:
         self._slot = np.full(v, -1, dtype=np.int64)
         self._bits = np.zeros((0, 0), dtype=np.uint8)
         if sp.issparse(word_sets):
-            self._build(_binary_csr(word_sets, v))
+            self._build(as_occurrence(word_sets, n_words=v))
         else:
             sets = [np.asarray(w) for w in word_sets]
             if sets:
-                self._build(_binary_csr(_sets_to_csr(sets, v), v))
+                self._build(occurrence_matrix(sets, n_words=v))
 
     # -- construction ---------------------------------------------------------------
     @property
@@ -914,12 +915,12 @@ class InvertedIndex:
         x = self._csr
         if self._override:
             rows = [self.word_set(i) for i in range(self._n_static)]
-            x = _sets_to_csr(rows, v)
+            x = occurrence_matrix(rows, n_words=v)
         if self._extra:
-            x = sp.vstack([x, _sets_to_csr(self._extra, v)], format="csr")
+            x = sp.vstack([x, occurrence_matrix(self._extra, n_words=v)], format="csr")
         self._extra = []
         self._override = {}
-        self._build(_binary_csr(x, v))
+        self._build(as_occurrence(x, n_words=v))
 
     def _build(self, x: sp.csr_matrix) -> None:
         """Postings, complements and bit slices for the places of ``x`` (places x words)."""
@@ -1044,28 +1045,6 @@ class InvertedIndex:
     @property
     def n_postings(self) -> int:
         return int(self._indices.size)
-
-
-def _sets_to_csr(sets: Sequence[np.ndarray], n_words: int) -> sp.csr_matrix:
-    lens = np.fromiter((np.asarray(w).size for w in sets), dtype=np.int64, count=len(sets))
-    indptr = np.zeros(len(sets) + 1, dtype=np.int64)
-    np.cumsum(lens, out=indptr[1:])
-    idx = np.concatenate([np.asarray(w, dtype=np.int32) for w in sets]) if sets else np.zeros(0)
-    data = np.ones(idx.size, dtype=np.uint8)
-    return sp.csr_matrix((data, idx.astype(np.int32), indptr), shape=(len(sets), n_words))
-
-
-def _binary_csr(x: sp.spmatrix, n_words: int) -> sp.csr_matrix:
-    x = sp.csr_matrix(x)
-    if x.shape[1] != n_words:
-        raise TopolocError(f"word sets have {x.shape[1]} columns, expected {n_words}")
-    x.sum_duplicates()
-    x.eliminate_zeros()
-    x.sort_indices()
-    if x.indices.size and int(x.indices.max()) >= n_words:
-        raise TopolocError(f"visual word id out of range [0, {n_words})")
-    x.data = np.ones(x.indices.size, dtype=np.uint8)
-    return x
 
 
 def training_index(

@@ -33,7 +33,6 @@ container of :mod:`topoloc.io.container` (kind ``"fabmap_model"``).
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +44,7 @@ import scipy.sparse as sp
 from topoloc.errors import TopolocError, input_error
 from topoloc.fabmap.chowliu import ChowLiuTree, as_occurrence, chow_liu_tree
 from topoloc.io.container import read_container, write_container
+from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 MODEL_KIND = "fabmap_model"
 MODEL_VERSION = 1
@@ -55,31 +55,6 @@ DEFAULT_P_FN = 0.61
 """Detector false-negative probability ``p(z=0 | e=1)`` (Eq. 2; IJRR 2008: ``p(z|e) = 0.39``)."""
 
 _P_MIN = 1e-6  # probabilities are kept in [_P_MIN, 1 - _P_MIN] so that logs stay finite
-
-
-def vocabulary_fingerprint(vocabulary: Any) -> dict[str, Any]:
-    """Identity of a vocabulary: descriptor kind, number of words, SHA-1 of its word centres.
-
-    Parameters
-    ----------
-    vocabulary : Vocabulary
-        Object with ``n_words_``, ``descriptor_kind_`` and the word centres in
-        ``words_`` (topoloc's :class:`~topoloc.vocabulary.Vocabulary`).
-
-    Returns
-    -------
-    dict
-        ``{"descriptor_kind": str, "n_words": int, "sha1": str}``.
-    """
-    n_words = int(vocabulary.n_words_)
-    kind = str(getattr(vocabulary, "descriptor_kind_", ""))
-    words = getattr(vocabulary, "words_", None)
-    if words is None:
-        raise TopolocError("vocabulary has no word centres (words_): is it fitted?")
-    arr = np.ascontiguousarray(words)
-    digest = hashlib.sha1(arr.tobytes())
-    digest.update(str(arr.dtype).encode() + str(arr.shape).encode())
-    return {"descriptor_kind": kind, "n_words": n_words, "sha1": digest.hexdigest()}
 
 
 def _clip(p: np.ndarray) -> np.ndarray:

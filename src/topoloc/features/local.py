@@ -27,7 +27,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -39,6 +38,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from topoloc._parallel import n_workers
 from topoloc.datasets.traverse import read_image
 from topoloc.errors import TopolocError, input_error
 from topoloc.features.cache import default_cache_dir, file_sha1
@@ -348,9 +348,6 @@ def _rootsift(desc: np.ndarray) -> np.ndarray:
 
 # -- extractor with disk cache -------------------------------------------------------------
 
-def _n_workers(n_jobs: int) -> int:
-    cpus = os.cpu_count() or 1
-    return max(1, cpus if n_jobs < 0 else n_jobs)
 
 
 class FeatureExtractor:
@@ -456,7 +453,7 @@ class FeatureExtractor:
                 advance(1)
             return fs
 
-        workers = min(_n_workers(self.n_jobs), len(files))
+        workers = min(n_workers(self.n_jobs), len(files))
         if workers <= 1:
             return [one(p) for p in files]
         with ThreadPoolExecutor(max_workers=workers) as pool:

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
 
 import numpy as np
 
+from topoloc._parallel import n_workers
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 
@@ -129,7 +130,7 @@ class Resources:
             advance(1)
             return out
 
-        workers = _n_workers(self.n_jobs)
+        workers = n_workers(self.n_jobs)
         if workers == 1:
             result = [run(p) for p in traverse.images]
         else:
@@ -178,9 +179,6 @@ class Resources:
         return float(np.median(vals)) if vals else 0.0
 
 
-def _n_workers(n_jobs: int) -> int:
-    cpus = os.cpu_count() or 1
-    return max(1, cpus if n_jobs < 0 else n_jobs)
 
 
 class PlaceRecognizer(ABC):

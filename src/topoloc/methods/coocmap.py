@@ -32,11 +32,12 @@ from topoloc.coocmap.matching import (
     match_lazy,
     match_simultaneous,
 )
-from topoloc.coocmap.model import CoocModel, Observation, vocabulary_fingerprint
+from topoloc.coocmap.model import CoocModel, Observation
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 #: A query item: (word ids (n,), normalised positions (n, 2) uint16).
 Item = tuple[np.ndarray, np.ndarray]

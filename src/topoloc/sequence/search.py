@@ -67,13 +67,14 @@ beyond the output stays bounded for long routes, and tiles are spread over
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Literal
 
 import cv2
 import numpy as np
+
+from topoloc._parallel import n_workers
 
 Mode = Literal["constant", "acceleration"]
 Normalize = Literal["zscore", "rank", "none"]
@@ -107,9 +108,6 @@ def _check_ds(ds: int) -> int:
     return int(ds)
 
 
-def _n_workers(n_jobs: int) -> int:
-    cpus = os.cpu_count() or 1
-    return max(1, cpus if n_jobs < 0 else n_jobs)
 
 
 def _tiles(
@@ -136,7 +134,7 @@ def _run_tiles(
         r0, r1, c0, c1 = t
         out[r0:r1, c0:c1] = work(r0, r1, c0, c1)
 
-    workers = min(_n_workers(n_jobs), len(tiles))
+    workers = min(n_workers(n_jobs), len(tiles))
     if workers <= 1:
         for t in tiles:
             run(t)

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any, Self
 import faiss
 import numpy as np
 
+from topoloc._parallel import n_workers
 from topoloc.datasets.traverse import find_images
 from topoloc.errors import NotFittedError, TopolocError, input_error
 from topoloc.io import read_container, write_container
@@ -94,8 +95,6 @@ def parse_descriptor_kind(kind: str) -> tuple[str, int, np.dtype]:
     )
 
 
-def _n_threads() -> int:
-    return max(1, os.cpu_count() or 1)
 
 
 class Vocabulary:
@@ -283,7 +282,7 @@ class Vocabulary:
             )
             k = len(train)
         t0 = time.perf_counter()
-        faiss.omp_set_num_threads(_n_threads())
+        faiss.omp_set_num_threads(n_workers(-1))
         km = faiss.Kmeans(
             train.shape[1],
             k,
@@ -527,6 +526,31 @@ def _sample_descriptors(
             sel = np.sort(np.argpartition(keys, max_descriptors - 1)[:max_descriptors])
             keys, kept = keys[sel], kept[sel]
     return kept, n_total
+
+
+def vocabulary_fingerprint(vocabulary: Any) -> dict[str, Any]:
+    """Identity of a vocabulary: descriptor kind, number of words, SHA-1 of its word centres.
+
+    Parameters
+    ----------
+    vocabulary : Vocabulary
+        Object with ``n_words_``, ``descriptor_kind_`` and the word centres in
+        ``words_`` (topoloc's :class:`~topoloc.vocabulary.Vocabulary`).
+
+    Returns
+    -------
+    dict
+        ``{"descriptor_kind": str, "n_words": int, "sha1": str}``.
+    """
+    n_words = int(vocabulary.n_words_)
+    kind = str(getattr(vocabulary, "descriptor_kind_", ""))
+    words = getattr(vocabulary, "words_", None)
+    if words is None:
+        raise TopolocError("vocabulary has no word centres (words_): is it fitted?")
+    arr = np.ascontiguousarray(words)
+    digest = hashlib.sha1(arr.tobytes())
+    digest.update(str(arr.dtype).encode() + str(arr.shape).encode())
+    return {"descriptor_kind": kind, "n_words": n_words, "sha1": digest.hexdigest()}
 
 
 def train_vocabulary(
