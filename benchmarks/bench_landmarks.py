@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, anchors_table, report_table, require_data, run
+from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, gardens_section, report_table, require_data, run
 from topoloc.datasets.synthetic import RouteConfig, generate_route
 from topoloc.landmarks.bench import density_experiment
 
@@ -51,9 +51,7 @@ def main() -> None:
         "per image. Default parameters of both methods (see `topoloc methods`); `A + B` maps are a first ",
         "traverse building the map and a later tour feeding the online learning.\n\n",
         "## gardens_point (tolerance 0:8)\n\n",
-        report_table(gp, RESULTS / "landmarks_gardens_point", "landmarks and voting on gardens_point"),
-        "\n![PR curves](landmarks_gardens_point/pr_curves.png)\n\n### Anchors on the same data\n\n",
-        anchors_table(),
+        gardens_section(gp, "landmarks_gardens_point", "landmarks and voting on gardens_point"),
         "\n## corridor (VPR-Bench ground truth)\n\n",
         report_table(cd, RESULTS / "landmarks_corridor", "landmarks and voting on corridor"),
         "\n## Map density against frame rate (generated route, 40 places, map 10 h, query 14 h)\n\n",

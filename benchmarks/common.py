@@ -71,3 +71,9 @@ def report(run_dirs: list[Path], out: Path, title: str) -> Path:
 def report_table(run_dirs: list[Path], out: Path, title: str) -> str:
     """Write the side-by-side report of ``run_dirs`` under ``out``; return just its markdown table."""
     return report(run_dirs, out, title).read_text().split("\n", 2)[2].split("\nRuns:")[0]
+
+
+def gardens_section(run_dirs: list[Path], name: str, title: str) -> str:
+    """Table of gardens_point runs, their PR-curve PNG (under ``docs/results/<name>``) and the anchors."""
+    return (report_table(run_dirs, RESULTS / name, title) + f"\n![PR curves]({name}/pr_curves.png)\n\n"
+            + "### Anchors on the same data\n\n" + anchors_table())

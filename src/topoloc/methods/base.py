@@ -116,7 +116,7 @@ class Resources:
         extraction time); training images are not timed, so ``ms_features``
         describes map and query images only.
         """
-        memo_key = (str(traverse.root.resolve()) + "|" + ",".join(p.name for p in traverse.images), key)
+        memo_key = (_traverse_key(traverse), key)
         if memo_key in self._memo:
             return self._memo[memo_key]
         advance = self.progress(description or f"{key} {traverse.name}", len(traverse))
@@ -147,8 +147,13 @@ class Resources:
 
     def words(self, traverse: Traverse, *, timed: bool = True) -> list[np.ndarray]:
         """Visual-word ids of every image's features, each of shape (n_features,)."""
-        voc = self.vocabulary
-        return [voc.quantize(f.descriptors) for f in self.features(traverse, timed=timed)]
+        feats = self.features(traverse, timed=timed)
+        # Quantised once per traverse and run: fit, encode and show-match may all ask.
+        memo_key = (_traverse_key(traverse), "words:" + self.extractor.config.key())
+        if memo_key not in self._memo:
+            voc = self.vocabulary
+            self._memo[memo_key] = [voc.quantize(f.descriptors) for f in feats]
+        return self._memo[memo_key]
 
     def training_words(self) -> list[np.ndarray]:
         """Visual-word ids of every training image (the vocabulary's training set).
@@ -179,6 +184,10 @@ class Resources:
         return float(np.median(vals)) if vals else 0.0
 
 
+
+
+def _traverse_key(traverse: Traverse) -> str:
+    return str(traverse.root.resolve()) + "|" + ",".join(p.name for p in traverse.images)
 
 
 class PlaceRecognizer(ABC):
