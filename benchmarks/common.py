@@ -34,8 +34,11 @@ def require_data() -> None:
 
 def run(method: str, maps: list[Path], query: Path, out: Path, *, vocab_train: list[Path],
         tolerance: str, params: dict[str, str] | None = None, sequence: int = 0,
-        ground_truth: Path | None = None) -> Path:
-    """One `topoloc evaluate` run in its own process (so peak memory is per run); returns its folder."""
+        ground_truth: Path | None = None, options: list[str] | None = None) -> Path:
+    """One `topoloc evaluate` run in its own process (so peak memory is per run); returns its folder.
+
+    ``options`` are further `topoloc evaluate` arguments (e.g. ``["--preprocess", "clahe"]``).
+    """
     cmd = [str(TOPOLOC), "evaluate", "--method", method, "--query", str(query), "--out", str(out),
            "--tolerance", tolerance, "--quiet"]
     for m in maps:
@@ -48,6 +51,7 @@ def run(method: str, maps: list[Path], query: Path, out: Path, *, vocab_train: l
         cmd += ["--sequence", str(sequence)]
     if ground_truth is not None:
         cmd += ["--ground-truth", str(ground_truth)]
+    cmd += options or []
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     m = json.loads((out / "metrics.json").read_text())
     print(f"{out.name}: AUC {m['auc']:.3f} R@1 {m['recall_at_1']:.3f} ms/q {m['ms_per_query']:.2f}", flush=True)

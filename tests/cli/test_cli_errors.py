@@ -73,3 +73,15 @@ def test_bad_tolerance(tmp_path: Path, tol: str) -> None:
 def test_report_of_non_run_folder(tmp_path: Path) -> None:
     r = runner.invoke(app, ["report", str(tmp_path), "--out", str(tmp_path / "rep")])
     _one_line_error(r, "metrics.json")
+
+
+@pytest.mark.parametrize(("option", "value", "needle"), [
+    ("--max-side", "big", "--max-side must be 'auto' or a number"),
+    ("--max-side", "-5", "--max-side must be >= 0"),
+    ("--preprocess", "gamma", "unknown preprocess 'gamma'"),
+])
+def test_bad_feature_options(tmp_path: Path, option: str, value: str, needle: str) -> None:
+    m = _folder(tmp_path / "m")
+    r = runner.invoke(app, ["evaluate", "--method", "bow", "--map", str(m), "--query", str(m),
+                            "--out", str(tmp_path / "o"), "--vocab-train", str(m), option, value])
+    _one_line_error(r, needle)

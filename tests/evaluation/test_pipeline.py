@@ -101,3 +101,38 @@ def test_corrupt_query_image(route: Path, tmp_path: Path) -> None:
                             "--out", str(tmp_path / "o"), "--quiet"])
     assert r.exit_code == 2 and bad.name in r.stderr and "corrupt" in r.stderr
     assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path, tmp_path: Path) -> None:
+    import cv2
+
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.evaluation.pipeline import resolve_max_side
+
+    # The query camera gives smaller images than the map's (like gardens_point at night).
+    q = tmp_path / "small"
+    q.mkdir()
+    for src in sorted((route / "route" / "tour_1600").glob("*.jpg")):
+        img = cv2.imread(str(src))
+        cv2.imwrite(str(q / src.name), cv2.resize(img, (img.shape[1] * 3 // 4, img.shape[0] * 3 // 4)))
+    full = max(cv2.imread(str(next(q.glob("*.jpg")))).shape[:2]) * 4 // 3
+    maps = [load_traverse(route / "route" / "tour_1000")]
+    query = load_traverse(q)
+    assert resolve_max_side("auto", maps) == 0  # one size: nothing to reconcile
+    assert resolve_max_side("auto", [*maps, query]) == full * 3 // 4
+    assert resolve_max_side("0", [*maps, query]) == 0 and resolve_max_side(500, maps) == 500
+
+    def run(out: Path, *extra: str) -> dict:  # type: ignore[type-arg]
+        r = runner.invoke(app, [
+            "evaluate", "--method", "bow", "--map", str(route / "route" / "tour_1000"), "--query", str(q),
+            "--vocab-train", str(route / "train"), "--vocab-words", "1000", "--tolerance", "0:1",
+            "--cache-dir", str(route / "cache"), "--out", str(out), "--quiet", *extra])
+        assert r.exit_code == 0, r.output + str(r.exception)
+        return json.loads((out / "metrics.json").read_text())
+
+    auto = run(tmp_path / "auto")
+    assert auto["run"]["features"]["max_side"] == full * 3 // 4
+    assert f"downscaled to a longer side of {full * 3 // 4} px" in (tmp_path / "auto" / "report.md").read_text()
+    off = run(tmp_path / "off", "--max-side", "0", "--preprocess", "clahe")
+    assert off["run"]["features"]["max_side"] == 0 and off["run"]["features"]["preprocess"] == "clahe"
+    assert "| bow (preprocess=clahe) |" in (tmp_path / "off" / "report.md").read_text()

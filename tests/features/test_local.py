@@ -59,9 +59,24 @@ def test_config_key_is_stable_and_depends_on_every_field() -> None:
         FeatureConfig(max_side=640).key(),
         FeatureConfig(contrast_threshold=0.02).key(),
         FeatureConfig(fast_threshold=10).key(),
+        FeatureConfig(preprocess="clahe").key(),
+        FeatureConfig(preprocess="equalize").key(),
     }
-    assert len(keys) == 6
+    assert len(keys) == 8
     assert base.key().startswith("sift-")
+
+
+def test_key_without_preprocessing_is_the_key_from_before_it_existed() -> None:
+    # Cache entries written before ``preprocess`` was added stay valid: its default
+    # is left out of the hashed payload.
+    import hashlib
+    import json
+
+    cfg = FeatureConfig(method="rootsift", max_side=640)
+    old_fields = {"method": "rootsift", "max_features": 1000, "max_side": 640, "contrast_threshold": 0.04,
+                  "fast_threshold": 20, "akaze_threshold": 0.001}
+    payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, **old_fields}, sort_keys=True)
+    assert cfg.key() == "rootsift-" + hashlib.sha1(payload.encode()).hexdigest()[:12]
 
 
 @pytest.mark.parametrize(
@@ -86,6 +101,9 @@ def test_bad_config_is_a_one_line_error() -> None:
         FeatureConfig(max_features=0)
     with pytest.raises(TopolocError, match="max_side"):
         FeatureConfig(max_side=-1)
+    with pytest.raises(TopolocError, match="unknown preprocess 'gamma'"):
+        FeatureConfig(preprocess="gamma")
+    assert FeatureConfig(preprocess="CLAHE").preprocess == "clahe"
 
 
 # -- extraction ----------------------------------------------------------------------------
@@ -171,6 +189,32 @@ def test_max_side_does_not_touch_small_images() -> None:
     a = extract_features(img, FeatureConfig(max_features=100))
     b = extract_features(img, FeatureConfig(max_features=100, max_side=1000))
     np.testing.assert_array_equal(a.keypoints, b.keypoints)
+
+
+def test_clahe_recovers_keypoints_of_a_dim_low_contrast_image() -> None:
+    # A night-like copy of a textured image: intensities squeezed into [10, 40].
+    day = textured_image(7)
+    night = (10 + day.astype(np.float32) * (30 / 255)).astype(np.uint8)
+    cfg = FeatureConfig(max_features=1000)
+    n_day = len(extract_features(day, cfg))
+    n_plain = len(extract_features(night, cfg))
+    n_clahe = len(extract_features(night, FeatureConfig(max_features=1000, preprocess="clahe")))
+    assert n_plain < 0.5 * n_day
+    assert n_clahe > 2 * n_plain
+
+
+@pytest.mark.parametrize("preprocess", ["clahe", "equalize"])
+def test_preprocessing_is_applied_after_downscaling(preprocess: str) -> None:
+    big = cv2.resize(textured_image(8), (640, 480), interpolation=cv2.INTER_CUBIC)
+    small = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)
+    if preprocess == "clahe":
+        normalised = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(small)
+    else:
+        normalised = cv2.equalizeHist(small)
+    ref = extract_features(normalised, FeatureConfig(max_features=200))
+    fs = extract_features(big, FeatureConfig(max_features=200, max_side=320, preprocess=preprocess))
+    np.testing.assert_allclose(fs.keypoints[:, :2], (ref.keypoints[:, :2] + 0.5) * 2 - 0.5, atol=1e-3)
+    np.testing.assert_array_equal(fs.descriptors, ref.descriptors)
 
 
 def test_akaze_works_or_says_why_not() -> None:

@@ -97,6 +97,10 @@ def evaluate(
     param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
     features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
     max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    max_side: Annotated[str, typer.Option(
+        help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
+             "the traverses when their sizes differ, 0 = never.")] = "auto",
+    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
 ) -> None:
@@ -109,7 +113,7 @@ def evaluate(
         vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
         tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence,
         params=_parse_params(param or []), features=features, max_features=max_features,
-        cache_dir=cache_dir,
+        max_side=max_side, preprocess=preprocess, cache_dir=cache_dir,
     )
     with rich_progress(not quiet) as progress:
         metrics = run(opts, progress=progress)
@@ -157,6 +161,8 @@ def vocab_train_cmd(
     words: Annotated[int, typer.Option(help="Number of visual words.")] = 10000,
     features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
     max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    max_side: Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")] = 0,
+    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     cache_dir: Annotated[Path | None, typer.Option(help="Feature cache folder.")] = None,
 ) -> None:
@@ -164,8 +170,8 @@ def vocab_train_cmd(
     from topoloc.features import FeatureConfig, FeatureExtractor
     from topoloc.vocabulary import train_vocabulary
 
-    extractor = FeatureExtractor(FeatureConfig(method=features, max_features=max_features),
-                                 cache_dir=cache_dir)
+    config = FeatureConfig(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
+    extractor = FeatureExtractor(config, cache_dir=cache_dir)
     with rich_progress() as progress:
         voc = train_vocabulary(list(folders), extractor=extractor, n_words=words, seed=seed,
                                progress=progress)
@@ -229,18 +235,28 @@ def show_match_cmd(
     ] = None,
     vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
     param: Annotated[list[str] | None, typer.Option(help="Cooc-Map parameter KEY=VALUE (repeatable).")] = None,
+    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
+    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    max_side: Annotated[str, typer.Option(
+        help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
+             "the traverses when their sizes differ, 0 = never.")] = "auto",
+    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
 ) -> None:
     """Localise one image with Cooc-Map and draw it beside its best location with the consistent correspondences."""
     from topoloc.coocmap.visualise import show_match
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.pipeline import build_method, make_resources
+    from topoloc.evaluation.pipeline import build_method, make_resources, resolve_max_side
 
     method = build_method("coocmap", _parse_params(param or []))
     maps = [load_traverse(m) for m in map]
+    side = resolve_max_side(max_side, maps, images=[query_image])
     with rich_progress() as progress:
-        resources, _ = make_resources(vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words,
-                                      cache_dir=cache_dir, needs_vocabulary="show-match", progress=progress)
+        resources, _ = make_resources(
+            vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words, features=features,
+            max_features=max_features, max_side=side, preprocess=preprocess, cache_dir=cache_dir,
+            needs_vocabulary="show-match", progress=progress,
+        )
         method.fit(maps, resources=resources)
         info = show_match(query_image, list(map), out, resources=resources, method=method)  # type: ignore[arg-type]
     typer.echo(json.dumps(info, default=str))
@@ -263,6 +279,8 @@ def slam(
     min_gap: Annotated[int, typer.Option(help="Images between a place's last visit and a loop closure.")] = 10,
     features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
     max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
+    max_side: Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")] = 0,
+    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
 ) -> None:
@@ -275,7 +293,8 @@ def slam(
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(
             vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words, features=features,
-            max_features=max_features, cache_dir=cache_dir, needs_vocabulary="slam", progress=progress,
+            max_features=max_features, max_side=max_side, preprocess=preprocess, cache_dir=cache_dir,
+            needs_vocabulary="slam", progress=progress,
         )
         result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
                           threshold=threshold, p_new=p_new, min_gap=min_gap)

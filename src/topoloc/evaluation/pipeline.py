@@ -24,6 +24,7 @@ import os
 import platform
 import resource
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -39,7 +40,7 @@ from topoloc.datasets.groundtruth import (
     parse_tolerance,
     place_positions,
 )
-from topoloc.datasets.traverse import Traverse, find_images, load_traverse
+from topoloc.datasets.traverse import Traverse, find_images, load_traverse, read_image
 from topoloc.errors import TopolocError
 from topoloc.evaluation.metrics import Scores, compute_metrics
 from topoloc.evaluation.plots import plot_pr_curves
@@ -68,6 +69,8 @@ class EvaluateOptions:
     params: dict[str, str] = field(default_factory=dict)
     features: str = "sift"
     max_features: int = 1000
+    max_side: str = "auto"
+    preprocess: str = "none"
     cache_dir: Path | None = None
     seed: int = 0
 
@@ -90,6 +93,44 @@ def build_method(name: str, params: dict[str, str]) -> PlaceRecognizer:
     return cls(**kwargs)
 
 
+def resolve_max_side(
+    spec: str | int, traverses: Sequence[Traverse], *, images: Sequence[Path] = (), samples: int = 3
+) -> int:
+    """The ``max_side`` to extract features at: ``spec`` itself, or for ``"auto"`` a common scale.
+
+    SIFT and its kin are scale-invariant only up to their sampling of scale space:
+    the same scene imaged at 960 and at 640 pixels yields different keypoints, which
+    costs matches between traverses taken with different cameras or settings (on
+    gardens_point the night traverse is 640 x 360, the day traverses 960 x 540).
+    ``"auto"`` therefore returns the smallest longer image side found in
+    ``traverses`` when they differ (every traverse is then extracted at that size),
+    and 0 (no resizing) when all sizes agree.  Up to ``samples`` images per
+    traverse (first, middle, last), and every file in ``images``, are read to
+    find the sizes.
+
+    Raises
+    ------
+    TopolocError
+        If ``spec`` is neither ``"auto"`` nor a non-negative integer, or a sampled
+        image cannot be read.
+    """
+    text = str(spec).strip().lower()
+    if text != "auto":
+        try:
+            value = int(text)
+        except ValueError:
+            raise TopolocError(f"--max-side must be 'auto' or a number of pixels, got {spec!r}") from None
+        if value < 0:
+            raise TopolocError(f"--max-side must be >= 0 (0 = no resizing), got {value}")
+        return value
+    probe = list(images)
+    for trav in traverses:
+        n = len(trav.images)
+        probe += [trav.images[i] for i in sorted({0, n // 2, n - 1})[:samples]] if n else []
+    sides = {max(read_image(path).shape[:2]) for path in probe}
+    return min(sides) if len(sides) > 1 else 0
+
+
 def make_resources(
     *,
     vocab: Path | None = None,
@@ -97,6 +138,8 @@ def make_resources(
     vocab_words: int = 10000,
     features: str = "sift",
     max_features: int = 1000,
+    max_side: int = 0,
+    preprocess: str = "none",
     cache_dir: Path | None = None,
     seed: int = 0,
     needs_vocabulary: str = "",
@@ -109,7 +152,8 @@ def make_resources(
     """
     from topoloc.features import FeatureConfig, FeatureExtractor
 
-    extractor = FeatureExtractor(FeatureConfig(method=features, max_features=max_features), cache_dir=cache_dir)
+    config = FeatureConfig(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
+    extractor = FeatureExtractor(config, cache_dir=cache_dir)
     vocab_info: dict[str, Any] = {"used": False}
     vocabulary: Any = None
     training_images: list[Path] = []
@@ -215,9 +259,11 @@ def evaluate(opts: EvaluateOptions, *, progress: ProgressFactory | None = None) 
     maps = [load_traverse(m) for m in opts.maps]
     query = load_traverse(opts.query)
     method = build_method(opts.method, opts.params)
+    max_side = resolve_max_side(opts.max_side, [*maps, query])
     resources, vocab_info = make_resources(
         vocab=opts.vocab, vocab_train=opts.vocab_train, vocab_words=opts.vocab_words, features=opts.features,
-        max_features=opts.max_features, cache_dir=opts.cache_dir, seed=opts.seed,
+        max_features=opts.max_features, max_side=max_side, preprocess=opts.preprocess,
+        cache_dir=opts.cache_dir, seed=opts.seed,
         needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
     )
 
@@ -247,7 +293,10 @@ def evaluate(opts: EvaluateOptions, *, progress: ProgressFactory | None = None) 
             "map": [str(m) for m in opts.maps],
             "query": str(opts.query),
             "ground_truth": gt.description,
-            "features": {"method": opts.features, "max_features": opts.max_features},
+            "features": {
+                "method": opts.features, "max_features": opts.max_features, "max_side": max_side,
+                "max_side_option": str(opts.max_side), "preprocess": resources.extractor.config.preprocess,
+            },
             "vocabulary": vocab_info,
             "fit_seconds": fit_s,
             "ms_per_query_p95": float(np.percentile(ms_each, 95)) if len(ms_each) else 0.0,
@@ -303,9 +352,18 @@ def _method_label(m: dict[str, Any]) -> str:
         tags = [f"{k}={v}" for k, v in params.items() if k in defaults and defaults[k] != v]
     except TopolocError:
         pass  # a method this installation does not know: show the bare name
+    feats = m.get("run", {}).get("features", {})
+    if feats.get("method", "sift") != "sift":
+        tags.append(feats["method"])
+    # Runs written before preprocessing existed had none.
+    if feats.get("preprocess", "none") != _DEFAULT_PREPROCESS:
+        tags.append(f"preprocess={feats['preprocess']}")
     if seq and seq > 1:
         tags.append(f"seq {seq}")
     return m["method"] + (f" ({', '.join(tags)})" if tags else "")
+
+
+_DEFAULT_PREPROCESS = EvaluateOptions.preprocess
 
 
 def _run_title(m: dict[str, Any]) -> str:
@@ -332,6 +390,15 @@ def table_row(m: dict[str, Any]) -> str:
     )
 
 
+def _features_line(f: dict[str, Any]) -> str:
+    side = int(f.get("max_side", 0))
+    resize = f"images downscaled to a longer side of {side} px" if side else "images at full size"
+    if "max_side_option" in f:
+        resize += f" (--max-side {f['max_side_option']})"
+    return (f"{f['method']}, at most {f['max_features']} per image, {resize}, "
+            f"photometric preprocessing {f.get('preprocess', 'none')}")
+
+
 def render_run_report(m: dict[str, Any]) -> str:
     """``report.md`` of one run."""
     run = m["run"]
@@ -345,7 +412,7 @@ def render_run_report(m: dict[str, Any]) -> str:
         f"- map: {', '.join(f'`{x}`' for x in run['map'])}\n",
         f"- query: `{run['query']}` ({m['n_queries']} queries, {m['n_places']} map places)\n",
         f"- ground truth: {run['ground_truth']}\n",
-        f"- local features: {run['features']['method']}, at most {run['features']['max_features']} per image\n",
+        f"- local features: {_features_line(run['features'])}\n",
     ]
     if voc.get("used"):
         prov = {k: v for k, v in voc.items() if k not in {"used"}}

@@ -50,6 +50,7 @@ FEATURES_SCHEMA = 1
 """Version of the feature computation and cache-entry layout; part of every cache key."""
 
 METHODS = ("sift", "rootsift", "orb", "akaze")
+PREPROCESS = ("none", "clahe", "equalize")
 
 # method -> (descriptor columns, dtype name)
 _DESCRIPTORS: dict[str, tuple[int, str]] = {
@@ -83,6 +84,13 @@ class FeatureConfig:
         ORB FAST threshold (OpenCV default 20).
     akaze_threshold : float
         AKAZE detector response threshold (OpenCV default 0.001).
+    preprocess : {"none", "clahe", "equalize"}
+        Photometric normalisation of the gray image before detection.
+        ``"clahe"`` is contrast-limited adaptive histogram equalisation (Zuiderveld
+        1994; clip limit 2, 8 x 8 tiles): it lifts the dark, low-contrast regions of
+        night images to the contrast of day images, so the detector fires on the
+        same structures at every time of day instead of spending the keypoint budget
+        on the few bright lamps.  ``"equalize"`` is global histogram equalisation.
     """
 
     method: str = "sift"
@@ -91,6 +99,7 @@ class FeatureConfig:
     contrast_threshold: float = 0.04
     fast_threshold: int = 20
     akaze_threshold: float = 0.001
+    preprocess: str = "none"
 
     def __post_init__(self) -> None:
         method = str(self.method).lower()
@@ -109,6 +118,12 @@ class FeatureConfig:
         object.__setattr__(self, "contrast_threshold", float(self.contrast_threshold))
         object.__setattr__(self, "fast_threshold", int(self.fast_threshold))
         object.__setattr__(self, "akaze_threshold", float(self.akaze_threshold))
+        preprocess = str(self.preprocess).lower()
+        if preprocess not in PREPROCESS:
+            raise TopolocError(
+                f"unknown preprocess {self.preprocess!r} (choose from {', '.join(PREPROCESS)})"
+            )
+        object.__setattr__(self, "preprocess", preprocess)
 
     def key(self) -> str:
         """Stable short identifier of these settings, e.g. ``"sift-3f2a9c0d1b7e"``.
@@ -116,9 +131,11 @@ class FeatureConfig:
         A hash of every field, :data:`FEATURES_SCHEMA` and the OpenCV version
         (whose detectors may change between releases), used as cache key.
         """
-        payload = json.dumps(
-            {"schema": FEATURES_SCHEMA, "opencv": cv2.__version__, **asdict(self)}, sort_keys=True
-        )
+        fields = asdict(self)
+        if fields["preprocess"] == "none":
+            # Settings from before ``preprocess`` existed keep their cache entries.
+            del fields["preprocess"]
+        payload = json.dumps({"schema": FEATURES_SCHEMA, "opencv": cv2.__version__, **fields}, sort_keys=True)
         return f"{self.method}-{hashlib.sha1(payload.encode()).hexdigest()[:12]}"
 
     @property
@@ -273,6 +290,14 @@ def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float, floa
     return small, w / nw, h / nh
 
 
+def _normalise(gray: np.ndarray, preprocess: str) -> np.ndarray:
+    if preprocess == "clahe":
+        return _cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(gray)
+    if preprocess == "equalize":
+        return cv2.equalizeHist(gray)
+    return gray
+
+
 def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
     """Detect and describe local features of one image.
 
@@ -301,6 +326,7 @@ def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
     gray = _to_gray(image)
     h, w = gray.shape
     work, sx, sy = _downscale(gray, config.max_side)
+    work = _normalise(work, config.preprocess)
     dim, dtype = config.descriptor_dim, config.descriptor_dtype
     kps, desc = _detector(config).detectAndCompute(work, None)
     n = len(kps)
