@@ -14,6 +14,12 @@ time they were dropped (an upper bound on their score), strictly below the
 R@10 with the default ``top_k = 10``) are exact, and only the order below
 rank ``top_k`` uses bounds.  ``simultaneous=False`` matches every place to
 completion (all of ``S`` exact, slower).
+
+Features are the run's (``topoloc evaluate --features/--preprocess/--max-side``).
+With a map of day tours only and night queries, the co-occurrence statistics
+cannot hold night appearance; what then carries over is the geometry of the
+features the day and night images share, and ``--preprocess clahe`` roughly
+doubles that on gardens_point (see ``docs/results/coocmap.md``).
 """
 
 from __future__ import annotations
