@@ -63,6 +63,16 @@ def _setup(
     )
 
 
+# Feature options shared by every command that extracts features.
+FeaturesOption = Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")]
+MaxFeaturesOption = Annotated[int, typer.Option(help="Cap on features per image.")]
+MaxSideAutoOption = Annotated[str, typer.Option(
+    help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
+         "the traverses when their sizes differ, 0 = never.")]
+MaxSideOption = Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")]
+PreprocessOption = Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")]
+
+
 def _parse_params(items: list[str]) -> dict[str, str]:
     out = {}
     for it in items:
@@ -95,12 +105,10 @@ def evaluate(
     ] = None,
     sequence: Annotated[int, typer.Option(help="Sequence matching over each query and the N before it (0 = off).")] = 0,
     param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
-    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
-    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
-    max_side: Annotated[str, typer.Option(
-        help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
-             "the traverses when their sizes differ, 0 = never.")] = "auto",
-    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
+    features: FeaturesOption = "sift",
+    max_features: MaxFeaturesOption = 1000,
+    max_side: MaxSideAutoOption = "auto",
+    preprocess: PreprocessOption = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
 ) -> None:
@@ -159,10 +167,10 @@ def vocab_train_cmd(
     folders: Annotated[list[Path], typer.Argument(help="Image folders, searched recursively.")],
     out: Annotated[Path, typer.Option(help="Vocabulary file to write.")],
     words: Annotated[int, typer.Option(help="Number of visual words.")] = 10000,
-    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
-    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
-    max_side: Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")] = 0,
-    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
+    features: FeaturesOption = "sift",
+    max_features: MaxFeaturesOption = 1000,
+    max_side: MaxSideOption = 0,
+    preprocess: PreprocessOption = "none",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     cache_dir: Annotated[Path | None, typer.Option(help="Feature cache folder.")] = None,
 ) -> None:
@@ -235,12 +243,10 @@ def show_match_cmd(
     ] = None,
     vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
     param: Annotated[list[str] | None, typer.Option(help="Cooc-Map parameter KEY=VALUE (repeatable).")] = None,
-    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
-    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
-    max_side: Annotated[str, typer.Option(
-        help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
-             "the traverses when their sizes differ, 0 = never.")] = "auto",
-    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
+    features: FeaturesOption = "sift",
+    max_features: MaxFeaturesOption = 1000,
+    max_side: MaxSideAutoOption = "auto",
+    preprocess: PreprocessOption = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
 ) -> None:
     """Localise one image with Cooc-Map and draw it beside its best location with the consistent correspondences."""
@@ -277,10 +283,10 @@ def slam(
     threshold: Annotated[float, typer.Option(help="Posterior needed to accept a loop closure.")] = 0.98,
     p_new: Annotated[float, typer.Option(help="Prior probability of a new place.")] = 0.9,
     min_gap: Annotated[int, typer.Option(help="Images between a place's last visit and a loop closure.")] = 10,
-    features: Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")] = "sift",
-    max_features: Annotated[int, typer.Option(help="Cap on features per image.")] = 1000,
-    max_side: Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")] = 0,
-    preprocess: Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")] = "none",
+    features: FeaturesOption = "sift",
+    max_features: MaxFeaturesOption = 1000,
+    max_side: MaxSideOption = 0,
+    preprocess: PreprocessOption = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
 ) -> None:
