@@ -136,3 +136,19 @@ def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path,
     off = run(tmp_path / "off", "--max-side", "0", "--preprocess", "clahe")
     assert off["run"]["features"]["max_side"] == 0 and off["run"]["features"]["preprocess"] == "clahe"
     assert "| bow (preprocess=clahe) |" in (tmp_path / "off" / "report.md").read_text()
+
+
+def test_corrupt_image_probed_for_its_size_is_a_one_line_error(route: Path, tmp_path: Path) -> None:
+    import shutil
+
+    # The first image is one of those `--max-side auto` reads before any extraction.
+    q = tmp_path / "q"
+    shutil.copytree(route / "route" / "tour_1600", q)
+    bad = sorted(q.glob("*.jpg"))[0]
+    bad.write_bytes(b"")
+    r = runner.invoke(app, ["evaluate", "--method", "bow", "--map", str(route / "route" / "tour_1000"),
+                            "--query", str(q), "--vocab-train", str(route / "train"), "--vocab-words", "1000",
+                            "--cache-dir", str(route / "cache"), "--out", str(tmp_path / "o"), "--quiet"])
+    assert r.exit_code == 2 and bad.name in r.stderr and "empty" in r.stderr
+    assert "\n" not in r.stderr.strip()
+    assert not (tmp_path / "o").exists()

@@ -94,7 +94,7 @@ def build_method(name: str, params: dict[str, str]) -> PlaceRecognizer:
 
 
 def resolve_max_side(
-    spec: str | int, traverses: Sequence[Traverse], *, images: Sequence[Path] = (), samples: int = 3
+    spec: str | int, traverses: Sequence[Traverse], *, images: Sequence[Path] = ()
 ) -> int:
     """The ``max_side`` to extract features at: ``spec`` itself, or for ``"auto"`` a common scale.
 
@@ -104,9 +104,8 @@ def resolve_max_side(
     gardens_point the night traverse is 640 x 360, the day traverses 960 x 540).
     ``"auto"`` therefore returns the smallest longer image side found in
     ``traverses`` when they differ (every traverse is then extracted at that size),
-    and 0 (no resizing) when all sizes agree.  Up to ``samples`` images per
-    traverse (first, middle, last), and every file in ``images``, are read to
-    find the sizes.
+    and 0 (no resizing) when all sizes agree.  The first, middle and last image
+    of each traverse, and every file in ``images``, are read to find the sizes.
 
     Raises
     ------
@@ -126,7 +125,7 @@ def resolve_max_side(
     probe = list(images)
     for trav in traverses:
         n = len(trav.images)
-        probe += [trav.images[i] for i in sorted({0, n // 2, n - 1})[:samples]] if n else []
+        probe += [trav.images[i] for i in sorted({0, n // 2, n - 1})] if n else []
     sides = {max(read_image(path).shape[:2]) for path in probe}
     return min(sides) if len(sides) > 1 else 0
 
