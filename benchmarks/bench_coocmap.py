@@ -31,7 +31,7 @@ from benchmarks.common import (
     require_data,
     run,
 )
-from topoloc.coocmap.bench import bench_coocmap
+from topoloc.bench.coocmap_speed import bench_coocmap
 from topoloc.datasets.traverse import load_traverse
 
 TWO_TOUR = [(("day_left", "night_right"), "day_right"), (("day_left", "day_right"), "night_right")]

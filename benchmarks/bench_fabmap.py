@@ -8,7 +8,7 @@ map images; webcam_daynight runs: gardens_point images), never on the evaluated 
 The `bow` rows are the runs of benchmarks/bench_bow.py (run it first). Speed: FAB-MAP 2.0
 ms/query at 10,000 and 100,000 places, Bennett bail-out speed-up, and Chow-Liu training
 time and memory at 10,000 words, all on synthetic Zipf-distributed bag-of-words data
-(`topoloc.fabmap.bench`).
+(`topoloc.bench.fabmap_speed`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from benchmarks.common import (
     require_data,
     run,
 )
-from topoloc.fabmap.bench import bench_bailout, bench_chowliu, bench_fabmap2
+from topoloc.bench.fabmap_speed import bench_bailout, bench_chowliu, bench_fabmap2
 
 
 def accuracy() -> tuple[list[Path], list[Path]]:

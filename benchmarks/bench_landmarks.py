@@ -16,8 +16,8 @@ import json
 from pathlib import Path
 
 from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, gardens_section, report_table, require_data, run
-from topoloc.datasets.synthetic import RouteConfig, generate_route
-from topoloc.landmarks.bench import density_experiment
+from topoloc.bench.landmark_density import density_experiment
+from topoloc.synth.route import RouteConfig, generate_route
 
 
 def main() -> None:

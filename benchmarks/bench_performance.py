@@ -23,11 +23,11 @@ import cv2
 import numpy as np
 
 from benchmarks.common import GP, RESULTS, WEBCAM, require_data
+from topoloc.bench.quantisation import measure_quantisation, quantisation_agreement
 from topoloc.datasets.traverse import find_images, read_image
 from topoloc.evaluation.pipeline import peak_rss_mb
 from topoloc.features import FeatureConfig, FeatureExtractor, extract_features
 from topoloc.vocabulary import Vocabulary
-from topoloc.vocabulary.bench import measure_quantisation, quantisation_agreement
 
 
 def feature_speed(images: list[np.ndarray], method: str) -> dict[str, Any]:

@@ -39,7 +39,7 @@ from topoloc.datasets.groundtruth import ground_truth_from_places
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.evaluation.metrics import compute_metrics
 from topoloc.methods.base import Resources
-from topoloc.methods.seqslam import SeqSLAM, SingleImageSeqSLAM, difference_matrix
+from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM, difference_matrix
 from topoloc.sequence import acceleration_search, constant_velocity_search, contrast_enhance
 
 ANCHORS = {

@@ -42,7 +42,7 @@ def _runs(route: Path) -> list[tuple[str, list[Path], Path]]:
 
 def run_demo(out: Path, *, n_places: int = 60, progress: ProgressFactory | None = None) -> Path:
     """Generate the demo data, evaluate the methods and write ``out/report.md``."""
-    from topoloc.datasets.synthetic import RouteConfig, generate_route
+    from topoloc.synth.route import RouteConfig, generate_route
 
     out = Path(out)
     route = out / "route"

@@ -1,4 +1,4 @@
-"""Tests of the synthetic route generator (``topoloc.datasets.synthetic``)."""
+"""Tests of the synthetic route generator (``topoloc.synth.route``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from topoloc.datasets.synthetic import (
+from topoloc.datasets.traverse import Traverse, load_traverse, read_image
+from topoloc.errors import TopolocError
+from topoloc.synth.route import (
     DEFAULT_TOURS,
     Pose,
     RouteConfig,
@@ -20,8 +22,6 @@ from topoloc.datasets.synthetic import (
     speed_profile,
     tour_lighting,
 )
-from topoloc.datasets.traverse import Traverse, load_traverse, read_image
-from topoloc.errors import TopolocError
 
 SMALL = RouteConfig(n_places=16, width=160, height=120, seed=3)
 

@@ -18,7 +18,7 @@ runner = CliRunner()
 
 @pytest.fixture(scope="module")
 def route(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from topoloc.datasets.synthetic import RouteConfig, generate_route
+    from topoloc.synth.route import RouteConfig, generate_route
 
     root = tmp_path_factory.mktemp("route")
     generate_route(root / "route", config=RouteConfig(n_places=16, seed=3),

@@ -7,7 +7,7 @@ from math import exp, log
 import numpy as np
 import pytest
 
-from topoloc.fabmap.bench import revisit_queries, zipf_occurrence
+from topoloc.bench.fabmap_speed import revisit_queries, zipf_occurrence
 from topoloc.fabmap.likelihood import (
     InvertedIndex,
     ObservationModel,

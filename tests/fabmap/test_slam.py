@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from topoloc.bench.fabmap_speed import zipf_occurrence
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.fabmap.bench import zipf_occurrence
 from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.slam import FabMapSlam, motion_prior, run_slam
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from topoloc.datasets.synthetic import RouteConfig, generate_route
-from topoloc.landmarks.bench import density_experiment
+from topoloc.bench.landmark_density import density_experiment
+from topoloc.synth.route import RouteConfig, generate_route
 
 
 def test_density_rows(tmp_path: Path) -> None:

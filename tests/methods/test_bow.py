@@ -10,8 +10,8 @@ import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError
+from topoloc.methods.bag_of_words import BagOfWords, inverse_document_frequency, term_counts, tfidf
 from topoloc.methods.base import Resources
-from topoloc.methods.bow import BagOfWords, inverse_document_frequency, term_counts, tfidf
 
 
 class WordResources(Resources):

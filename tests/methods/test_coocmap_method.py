@@ -12,7 +12,7 @@ from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
 from topoloc.methods.base import Resources
-from topoloc.methods.coocmap import CoocMap, order_tours
+from topoloc.methods.cooc_map import CoocMap, order_tours
 
 N_WORDS = 40
 SHAPE = (480, 640)
@@ -112,7 +112,7 @@ def test_model_path_saves_then_loads(tmp_path: Path) -> None:
 def test_show_match_draws_query_beside_best_place(tmp_path: Path) -> None:
     import cv2
 
-    from topoloc.coocmap.visualise import show_match
+    from topoloc.methods.show_match import show_match
 
     res, _, _ = _data()
     rng = np.random.default_rng(1)

@@ -8,13 +8,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from topoloc.bench.fabmap_speed import zipf_occurrence
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
-from topoloc.fabmap.bench import zipf_occurrence
 from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.slam import DenseMap
 from topoloc.methods.base import parse_param
-from topoloc.methods.fabmap import FabMap, FabMap2
+from topoloc.methods.fab_map import FabMap, FabMap2
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 V = 300

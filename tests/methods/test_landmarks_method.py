@@ -11,7 +11,7 @@ from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
 from topoloc.methods.base import Resources, parse_param
-from topoloc.methods.landmarks import LandmarkMap
+from topoloc.methods.landmark_map import LandmarkMap
 
 N_FRAMES = 8
 

@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-import topoloc.methods.seqslam as seqslam_mod
+import topoloc.methods.seq_slam as seqslam_mod
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.methods.base import Resources, parse_param
-from topoloc.methods.seqslam import (
+from topoloc.methods.seq_slam import (
     SeqSLAM,
     SingleImageSeqSLAM,
     difference_matrix,

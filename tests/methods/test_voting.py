@@ -11,7 +11,7 @@ from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
 from topoloc.methods.base import Resources
-from topoloc.methods.voting import ImageVoting
+from topoloc.methods.image_voting import ImageVoting
 
 N = 6
 

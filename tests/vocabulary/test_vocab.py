@@ -11,15 +11,14 @@ import numpy as np
 import pytest
 
 import topoloc.vocabulary.vocab as vocab_module
+from topoloc.bench.quantisation import measure_quantisation, quantisation_agreement
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureConfig, FeatureExtractor
 from topoloc.io import write_container
 from topoloc.vocabulary import (
     Vocabulary,
     cached_vocabulary,
-    measure_quantisation,
     parse_descriptor_kind,
-    quantisation_agreement,
     train_vocabulary,
 )
 

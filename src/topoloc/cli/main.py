@@ -198,7 +198,7 @@ def synth(
     seed: Annotated[int, typer.Option(help="World seed.")] = 0,
 ) -> None:
     """Generate a synthetic route (tours at several times of day) for tests and demos."""
-    from topoloc.datasets.synthetic import RouteConfig, generate_route
+    from topoloc.synth.route import RouteConfig, generate_route
 
     tours = _tours(hours)
     dirs = generate_route(out, config=RouteConfig(n_places=places, width=width, height=height,
@@ -250,9 +250,9 @@ def show_match_cmd(
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
 ) -> None:
     """Localise one image with Cooc-Map and draw it beside its best location with the consistent correspondences."""
-    from topoloc.coocmap.visualise import show_match
     from topoloc.datasets.traverse import load_traverse
     from topoloc.evaluation.pipeline import build_method, make_resources, resolve_max_side
+    from topoloc.methods.show_match import show_match
 
     method = build_method("coocmap", _parse_params(param or []))
     maps = [load_traverse(m) for m in map]
@@ -319,7 +319,7 @@ def bench_fabmap2_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
 ) -> None:
     """FAB-MAP 2.0 (inverted index) ms per query on synthetic Zipf-distributed bag-of-words streams."""
-    from topoloc.fabmap.bench import bench_fabmap2
+    from topoloc.bench.fabmap_speed import bench_fabmap2
 
     res = bench_fabmap2(n_places=places, n_words=words, words_per_image=words_per_image, n_queries=queries,
                         seed=seed)
@@ -338,7 +338,7 @@ def bench_coocmap_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
 ) -> None:
     """Cooc-Map ms per localisation and map memory on a synthetic map of the paper's size."""
-    from topoloc.coocmap.bench import bench_coocmap
+    from topoloc.bench.coocmap_speed import bench_coocmap
 
     res = bench_coocmap(locations=locations, tours=tours, features=features, n_words=words, n_queries=queries,
                         seed=seed)

@@ -4,9 +4,7 @@
 * :mod:`~topoloc.coocmap.model` -- location models M_i, tours and
   interpolation (Sec. II-B, II-E), persistence;
 * :mod:`~topoloc.coocmap.matching` -- candidate correspondences, J_i,
-  elimination, simultaneous matching (Sec. II-C, II-D);
-* :mod:`~topoloc.coocmap.bench` -- synthetic map of the paper's size, timings;
-* :mod:`~topoloc.coocmap.visualise` -- match drawings (Fig. 1, 5).
+  elimination, simultaneous matching (Sec. II-C, II-D).
 
 Sequence matching (Sec. II-F) is :func:`topoloc.sequence.sequence_similarity`.
 """

@@ -14,9 +14,6 @@ Modules
 :mod:`~topoloc.fabmap.slam`
     Online loop-closure detection with a motion-model location prior
     (:func:`run_slam`, ``topoloc slam``).
-:mod:`~topoloc.fabmap.bench`
-    Synthetic Zipf bag-of-words streams and timings (:func:`bench_fabmap2`,
-    ``topoloc bench fabmap2``).
 
 Equation numbers refer to the overview paper, Cummins & Newman, "FAB-MAP:
 Appearance-Based Place Recognition and Mapping using a Learned Visual
@@ -24,7 +21,6 @@ Vocabulary Model", which cites IJRR 2008 (the model), ICRA 2008
 (the bail-out) and RSS 2009 / IJRR 2011 (FAB-MAP 2.0).
 """
 
-from topoloc.fabmap.bench import bench_bailout, bench_chowliu, bench_fabmap2, zipf_occurrence
 from topoloc.fabmap.chowliu import ChowLiuTree, chow_liu_tree, occurrence_matrix
 from topoloc.fabmap.likelihood import (
     InvertedIndex,
@@ -48,9 +44,6 @@ __all__ = [
     "PlaceModels",
     "SampledNormaliser",
     "SlamResult",
-    "bench_bailout",
-    "bench_chowliu",
-    "bench_fabmap2",
     "chow_liu_tree",
     "location_posterior",
     "log_likelihood_bailout",
@@ -59,5 +52,4 @@ __all__ = [
     "run_slam",
     "vocabulary_fingerprint",
     "write_slam_outputs",
-    "zipf_occurrence",
 ]

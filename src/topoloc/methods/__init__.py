@@ -12,14 +12,14 @@ from topoloc.errors import TopolocError
 from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
 
 _REGISTRY: dict[str, str] = {
-    "bow": "topoloc.methods.bow:BagOfWords",
-    "coocmap": "topoloc.methods.coocmap:CoocMap",
-    "fabmap": "topoloc.methods.fabmap:FabMap",
-    "fabmap2": "topoloc.methods.fabmap:FabMap2",
-    "landmarks": "topoloc.methods.landmarks:LandmarkMap",
-    "seqslam": "topoloc.methods.seqslam:SeqSLAM",
-    "seqslam-single": "topoloc.methods.seqslam:SingleImageSeqSLAM",
-    "voting": "topoloc.methods.voting:ImageVoting",
+    "bow": "topoloc.methods.bag_of_words:BagOfWords",
+    "coocmap": "topoloc.methods.cooc_map:CoocMap",
+    "fabmap": "topoloc.methods.fab_map:FabMap",
+    "fabmap2": "topoloc.methods.fab_map:FabMap2",
+    "landmarks": "topoloc.methods.landmark_map:LandmarkMap",
+    "seqslam": "topoloc.methods.seq_slam:SeqSLAM",
+    "seqslam-single": "topoloc.methods.seq_slam:SingleImageSeqSLAM",
+    "voting": "topoloc.methods.image_voting:ImageVoting",
 }
 
 

@@ -1,6 +1,5 @@
 """Visual vocabularies: k-means words over local descriptors and fast quantisation."""
 
-from topoloc.vocabulary.bench import measure_quantisation, quantisation_agreement
 from topoloc.vocabulary.vocab import (
     DEFAULT_EF_SEARCH,
     DEFAULT_N_ITER,
@@ -18,9 +17,7 @@ __all__ = [
     "VOCAB_SCHEMA",
     "Vocabulary",
     "cached_vocabulary",
-    "measure_quantisation",
     "parse_descriptor_kind",
-    "quantisation_agreement",
     "train_vocabulary",
     "vocabulary_cache_key",
 ]

@@ -18,8 +18,8 @@ import numpy as np
 
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.methods.base import PlaceRecognizer, Resources
-from topoloc.methods.landmarks import LandmarkMap
-from topoloc.methods.voting import ImageVoting
+from topoloc.methods.image_voting import ImageVoting
+from topoloc.methods.landmark_map import LandmarkMap
 
 
 def _subsample(t: Traverse, stride: int) -> Traverse:

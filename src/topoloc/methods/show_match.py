@@ -23,7 +23,7 @@ from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import load_traverse, read_image
 from topoloc.errors import input_error
 from topoloc.methods.base import Resources
-from topoloc.methods.coocmap import CoocMap
+from topoloc.methods.cooc_map import CoocMap
 
 
 def draw_correspondences(query_bgr: np.ndarray, map_bgr: np.ndarray, pts_query: np.ndarray,
