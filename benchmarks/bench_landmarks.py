@@ -17,7 +17,7 @@ from pathlib import Path
 
 from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, gardens_section, report_table, require_data, run
 from topoloc.bench.landmark_density import density_experiment
-from topoloc.synth.route import RouteConfig, generate_route
+from topoloc.synth import RouteConfig, generate_route
 
 
 def main() -> None:

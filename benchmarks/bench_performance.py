@@ -25,7 +25,7 @@ import numpy as np
 from benchmarks.common import GP, RESULTS, WEBCAM, require_data
 from topoloc.bench.quantisation import measure_quantisation, quantisation_agreement
 from topoloc.datasets.traverse import find_images, read_image
-from topoloc.evaluation.pipeline import peak_rss_mb
+from topoloc.evaluation.timing import peak_rss_mb
 from topoloc.features import FeatureConfig, FeatureExtractor, extract_features
 from topoloc.vocabulary import Vocabulary
 

@@ -38,7 +38,7 @@ from benchmarks.common import DATA, RESULTS
 from topoloc.datasets.groundtruth import ground_truth_from_places
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.evaluation.metrics import compute_metrics
-from topoloc.methods.base import Resources
+from topoloc.methods.resources import CachedResources
 from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM, difference_matrix
 from topoloc.sequence import acceleration_search, constant_velocity_search, contrast_enhance
 
@@ -84,7 +84,7 @@ def nordland(repeats: int) -> dict[str, Any]:
     ]
     runs = []
     for label, cls, params in variants:
-        res = Resources()
+        res = CachedResources()
         method = cls(**params).fit([summer], resources=res)
         t0 = time.perf_counter()
         items = method.encode(winter, resources=res)
@@ -108,7 +108,7 @@ def nordland(repeats: int) -> dict[str, Any]:
     out["runs"] = runs
 
     # Stage breakdown for the defaults.
-    res = Resources()
+    res = CachedResources()
     m = SeqSLAM().fit([summer], resources=res)
     Q = np.stack(m.encode(winter, resources=res))
     t_diff, _, D = timed(lambda: m.place_differences(Q), repeats)
@@ -166,7 +166,7 @@ def gardens_point() -> list[dict[str, Any]]:
         m, q = load_traverse(gp / mp), load_traverse(gp / qn)
         variants: list[dict[str, Any]] = [{}, {"enhance_window": 0}]
         for params in variants:
-            res = Resources()
+            res = CachedResources()
             meth = SeqSLAM(**params).fit([m], resources=res)
             S = meth.score(meth.encode(q, resources=res))
             rows.append({"map": mp, "query": qn, "params": params, **metrics(S, m, q, 0, 8)})

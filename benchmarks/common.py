@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from topoloc.evaluation.pipeline import build_report
+from topoloc.evaluation.report import build_report
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TOPOLOC_DATA", REPO.parent / "shared" / "data")).resolve()

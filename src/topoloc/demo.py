@@ -14,9 +14,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from topoloc.evaluation.pipeline import EvaluateOptions, build_report, evaluate
+from topoloc.evaluation.pipeline import EvaluateOptions, evaluate
+from topoloc.evaluation.report import build_report
 from topoloc.methods import available_methods
-from topoloc.methods.base import ProgressFactory
+from topoloc.progress import ProgressFactory
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ def _runs(route: Path) -> list[tuple[str, list[Path], Path]]:
 
 def run_demo(out: Path, *, n_places: int = 60, progress: ProgressFactory | None = None) -> Path:
     """Generate the demo data, evaluate the methods and write ``out/report.md``."""
-    from topoloc.synth.route import RouteConfig, generate_route
+    from topoloc.synth import RouteConfig, generate_route
 
     out = Path(out)
     route = out / "route"

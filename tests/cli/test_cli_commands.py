@@ -35,7 +35,7 @@ def _loop_closures(out: Path) -> list[tuple[int, int, float]]:
 
 
 def test_slam_exact_revisit(tmp_path: Path) -> None:
-    from topoloc.synth.route import RouteConfig, generate_route
+    from topoloc.synth import RouteConfig, generate_route
 
     (tour,) = generate_route(tmp_path / "route", config=RouteConfig(n_places=12, seed=5, place_spacing_m=6.0),
                              tours=(("tour_1000", 10.0),))
@@ -95,7 +95,7 @@ def test_bench_coocmap_json() -> None:
 
 
 def test_show_match_draws_png(tmp_path: Path) -> None:
-    from topoloc.synth.route import RouteConfig, generate_route
+    from topoloc.synth import RouteConfig, generate_route
 
     tours = generate_route(tmp_path / "route", config=RouteConfig(n_places=8, seed=2),
                            tours=(("tour_1000", 10.0), ("tour_1500", 15.0)))

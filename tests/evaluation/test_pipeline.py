@@ -18,7 +18,7 @@ runner = CliRunner()
 
 @pytest.fixture(scope="module")
 def route(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from topoloc.synth.route import RouteConfig, generate_route
+    from topoloc.synth import RouteConfig, generate_route
 
     root = tmp_path_factory.mktemp("route")
     generate_route(root / "route", config=RouteConfig(n_places=16, seed=3),
@@ -107,7 +107,7 @@ def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path,
     import cv2
 
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.pipeline import resolve_max_side
+    from topoloc.evaluation.prepare import resolve_max_side
 
     # The query camera gives smaller images than the map's (like gardens_point at night).
     q = tmp_path / "small"

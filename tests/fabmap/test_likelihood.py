@@ -7,22 +7,14 @@ from math import exp, log
 import numpy as np
 import pytest
 
-from topoloc.bench.fabmap_speed import revisit_queries, zipf_occurrence
-from topoloc.fabmap.likelihood import (
-    InvertedIndex,
-    ObservationModel,
-    PlaceModels,
-    SampledNormaliser,
-    WordCounts,
-    bennett_bound,
-    bennett_threshold,
-    location_posterior,
-    log_likelihood_bailout,
-    mean_field_log_likelihood,
-    merge_threshold,
-    smooth_likelihoods,
-)
+from topoloc.fabmap.bailout import bennett_bound, bennett_threshold, log_likelihood_bailout
+from topoloc.fabmap.inverted_index import InvertedIndex, WordCounts, merge_threshold
 from topoloc.fabmap.model import FabMapModel
+from topoloc.fabmap.normaliser import SampledNormaliser, mean_field_log_likelihood
+from topoloc.fabmap.observation import ObservationModel
+from topoloc.fabmap.places import PlaceModels
+from topoloc.fabmap.posterior import location_posterior, smooth_likelihoods
+from topoloc.synth.words import revisit_queries, zipf_occurrence
 
 # -- a 3-word model whose numbers are worked out by hand ---------------------------------
 # tree: 0 (root) -> 1 -> 2; detector p(z=1|e=0) = 0.01, p(z=0|e=1) = 0.6
@@ -259,7 +251,7 @@ def test_merge_threshold_and_word_counts() -> None:
 
 
 def test_numpy_fallback_scatter_matches(random_setup, monkeypatch) -> None:
-    import topoloc.fabmap.likelihood as lik
+    import topoloc.fabmap.inverted_index as lik
 
     om, places, queries = random_setup
     sets = [np.flatnonzero(r) for r in places]

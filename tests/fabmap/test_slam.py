@@ -1,18 +1,17 @@
-"""Online FAB-MAP: motion model, data association (Eq. 11), loop closures and outputs."""
+"""Online FAB-MAP: motion model, data association (Eq. 11) and loop closures."""
 
 from __future__ import annotations
 
-import csv
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from topoloc.bench.fabmap_speed import zipf_occurrence
-from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.fabmap.model import FabMapModel
-from topoloc.fabmap.slam import FabMapSlam, motion_prior, run_slam
+from topoloc.fabmap.slam import FabMapSlam, motion_prior, write_slam_outputs
+from topoloc.synth.words import zipf_occurrence
 
 V = 400
 
@@ -95,36 +94,19 @@ def test_posterior_rows_and_data_association(model: FabMapModel) -> None:
     assert post[0, -1] == 1.0  # the first image is always a new place
 
 
-def test_run_slam_writes_outputs(model: FabMapModel, tmp_path: Path) -> None:
-    seq, truth = loop_sequence(n_places=12)
-    images = tuple(tmp_path / f"{k}.jpg" for k in range(len(seq)))
-    tr = Traverse(root=tmp_path, images=images, places=np.arange(len(seq)))
-    model_file = tmp_path / "m.tfm"
-    model.save(model_file)
-    out = tmp_path / "out"
-    res = run_slam(tr, out_dir=out, model=model_file, words=seq, min_gap=5)
-    post = np.load(out / "posterior.npy")
-    assert post.shape == (len(seq), res.n_places + 1)
-    with (out / "loop_closures.csv").open() as fh:
-        rows = list(csv.reader(fh))
-    assert rows[0] == ["image", "matched_image", "probability"]
-    assert len(rows) - 1 == len(res.loop_closures()) > 0
-    for img, matched, p in rows[1:]:
-        assert int(img) >= 12 and int(matched) < 12 and float(p) >= 0.98
-        assert truth[int(img)] == truth[int(matched)]
-    assert (out / "loop_closures.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert (out / "assignments.csv").is_file() and (out / "slam.json").is_file()
-    lcm = res.loop_closure_matrix()
-    assert lcm.shape == (len(seq), len(seq))
-
-
-def test_run_slam_errors(model: FabMapModel, tmp_path: Path) -> None:
-    tr = Traverse(root=tmp_path, images=(tmp_path / "a.jpg",), places=np.arange(1))
-    with pytest.raises(TopolocError, match="traverse has"):
-        run_slam(tr, out_dir=tmp_path / "o", model=model, words=[np.array([1]), np.array([2])])
-    with pytest.raises(TopolocError, match="resources"):
-        run_slam(tr, out_dir=tmp_path / "o", model=model)
+def test_fabmap_slam_errors(model: FabMapModel) -> None:
     with pytest.raises(TopolocError, match="threshold"):
         FabMapSlam(model, threshold=0.0)
     with pytest.raises(TopolocError, match="variant"):
         FabMapSlam(model, variant="fabmap3")
+
+
+def test_write_slam_outputs_from_word_arrays(model: FabMapModel, tmp_path: Path) -> None:
+    seq, _ = loop_sequence(n_places=6)
+    res = FabMapSlam(model, min_gap=3).run(seq)
+    paths = write_slam_outputs(res, tmp_path, plot=False)
+    assert set(paths) == {"posterior", "loop_closures", "assignments", "summary"}
+    assert np.load(paths["posterior"]).shape == (len(seq), res.n_places + 1)
+    summary = json.loads(paths["summary"].read_text())
+    assert summary["n_images"] == len(seq) and summary["n_places"] == res.n_places
+    assert summary["n_loop_closures"] == len(res.loop_closures())

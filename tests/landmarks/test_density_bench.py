@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from topoloc.bench.landmark_density import density_experiment
-from topoloc.synth.route import RouteConfig, generate_route
+from topoloc.synth import RouteConfig, generate_route
 
 
 def test_density_rows(tmp_path: Path) -> None:

@@ -5,12 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from topoloc.features import FeatureSet
-from topoloc.landmarks.tracking import (
-    build_tracks,
-    epipolar_inliers,
-    mutual_matches,
-    normalise_descriptors,
-)
+from topoloc.geometry import normalise_descriptors
+from topoloc.landmarks.tracking import build_tracks, mutual_matches
 
 F, CX, CY = 500.0, 320.0, 240.0
 
@@ -24,12 +20,6 @@ def _frame(points: np.ndarray, desc: np.ndarray, cam_x: float) -> FeatureSet:
     return FeatureSet(keypoints=kp, descriptors=desc.astype(np.float32), image_shape=(480, 640))
 
 
-def test_normalise_descriptors() -> None:
-    d = normalise_descriptors(np.array([[3.0, 4.0], [0.0, 0.0]]))
-    np.testing.assert_allclose(d, [[0.6, 0.8], [0.0, 0.0]], atol=1e-7)
-    assert d.dtype == np.float32
-
-
 def test_mutual_matches_by_hand() -> None:
     a = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     # b0 ~ a0 (distance ~0.1); b1 is nearest to a1 but ~0.63 away (over the threshold);
@@ -38,17 +28,6 @@ def test_mutual_matches_by_hand() -> None:
     ia, ib, dist = mutual_matches(a, b, 0.45)
     assert ia.tolist() == [0, 2] and ib.tolist() == [0, 2]
     np.testing.assert_allclose(dist, np.array([np.linalg.norm(b[0] - a[0]), 0.0]), atol=1e-6)
-
-
-def test_epipolar_inliers_reject_a_false_match() -> None:
-    rng = np.random.default_rng(1)
-    pts = np.c_[rng.uniform(-4, 4, 30), rng.uniform(-3, 3, 30), rng.uniform(6, 20, 30)]
-    a, b = _frame(pts, np.eye(30, 128), 0.0), _frame(pts, np.eye(30, 128), 0.5)
-    xa, xb = a.xy.copy(), b.xy.copy()
-    xb[0] += (0.0, 60.0)  # moved off its epipolar line (the motion is horizontal)
-    ok = epipolar_inliers(xa, xb, ransac_px=1.0)
-    assert not ok[0] and ok[1:].all()
-    assert not epipolar_inliers(xa[:7], xb[:7]).any()  # too few to estimate F
 
 
 def test_three_frame_track() -> None:

@@ -2,32 +2,23 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
+from topoloc.bow import inverse_document_frequency, term_counts, tfidf
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError
-from topoloc.methods.bag_of_words import BagOfWords, inverse_document_frequency, term_counts, tfidf
-from topoloc.methods.base import Resources
+from topoloc.methods.bag_of_words import BagOfWords
+from topoloc.methods.resources import InMemoryResources
+from topoloc.testing import word_vocabulary
 
 
-class WordResources(Resources):
-    """Resources whose images are already word lists (no features needed)."""
-
-    def __init__(self, words: dict[str, list[np.ndarray]], n_words: int) -> None:
-        super().__init__(vocabulary=SimpleNamespace(n_words_=n_words, quantize=None))  # type: ignore[arg-type]
-        self._w = words
-
-    def words(self, traverse: Traverse) -> list[np.ndarray]:
-        return self._w[traverse.name]
+def _trav(name: str, words: list[np.ndarray], places: list[int]) -> Traverse:
+    return Traverse.from_words(words, places, name=name)
 
 
-def _trav(name: str, places: list[int]) -> Traverse:
-    return Traverse(root=Path(f"/{name}"), images=tuple(Path(f"/{name}/{i}.png") for i in range(len(places))),
-                    places=np.asarray(places, dtype=np.int64), name=name)
+def _res(n_words: int) -> InMemoryResources:
+    return InMemoryResources(vocabulary=word_vocabulary(n_words))
 
 
 def test_tfidf_by_hand() -> None:
@@ -46,9 +37,9 @@ def test_inverted_file_equals_dense_cosine() -> None:
     n_words = 50
     map_words = [rng.integers(0, n_words, 30) for _ in range(8)]
     q_words = [rng.integers(0, n_words, 30) for _ in range(3)]
-    res = WordResources({"m": map_words, "q": q_words}, n_words)
-    bow = BagOfWords().fit([_trav("m", list(range(8)))], resources=res)
-    S = bow.score(bow.encode(_trav("q", [0, 1, 2]), resources=res))
+    res = _res(n_words)
+    bow = BagOfWords().fit([_trav("m", map_words, list(range(8)))], resources=res)
+    S = bow.score(bow.encode(_trav("q", q_words, [0, 1, 2]), resources=res))
     counts = term_counts(map_words, n_words)
     idf = inverse_document_frequency(counts)
     M = tfidf(counts, idf).toarray()
@@ -64,11 +55,11 @@ def test_places_merged_over_traverses() -> None:
         "b": [np.array([2, 3]), np.array([5, 6]), np.array([7, 8])],
         "q": [np.array([5, 6]), np.array([0, 1])],
     }
-    res = WordResources(words, 10)
-    maps = [_trav("a", [0, 1, 2]), _trav("b", [0, 1, 2])]
+    res = _res(10)
+    maps = [_trav("a", words["a"], [0, 1, 2]), _trav("b", words["b"], [0, 1, 2])]
     for merge in ("max", "sum"):
         bow = BagOfWords(merge=merge).fit(maps, resources=res)
-        S = bow.score(bow.encode(_trav("q", [1, 1]), resources=res))
+        S = bow.score(bow.encode(_trav("q", words["q"], [1, 1]), resources=res))
         assert S.shape == (3, 2)
         assert np.argmax(S, axis=0).tolist() == [1, 1]
     assert bow.place_ids_.tolist() == [0, 1, 2]
@@ -78,4 +69,4 @@ def test_not_fitted_and_bad_param() -> None:
     with pytest.raises(NotFittedError):
         BagOfWords().score([np.array([1])])
     with pytest.raises(Exception, match="merge"):
-        BagOfWords(merge="mean").fit([_trav("a", [0])], resources=WordResources({"a": [np.array([0])]}, 2))
+        BagOfWords(merge="mean").fit([_trav("a", [np.array([0])], [0])], resources=_res(2))

@@ -3,40 +3,18 @@
 from __future__ import annotations
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
-from topoloc.features import FeatureSet
-from topoloc.methods.base import Resources
 from topoloc.methods.cooc_map import CoocMap, order_tours
+from topoloc.methods.resources import InMemoryResources
+from topoloc.testing import features_for_words, word_vocabulary
 
 N_WORDS = 40
 SHAPE = (480, 640)
-
-
-class FakeResources(Resources):
-    """Resources whose images are hand-made feature sets with known words."""
-
-    def __init__(self, images: dict[str, list[tuple[np.ndarray, np.ndarray]]]) -> None:
-        voc = SimpleNamespace(n_words_=N_WORDS, descriptor_kind_="sift-128-float32",
-                              words_=np.zeros((N_WORDS, 1), np.float32), quantize=None)
-        super().__init__(vocabulary=voc)  # type: ignore[arg-type]
-        self._img = images
-
-    def features(self, traverse: Traverse, *, timed: bool = True) -> list[FeatureSet]:
-        out = []
-        for words, xy in self._img[traverse.name]:
-            kp = np.zeros((len(words), 5), np.float32)
-            kp[:, :2] = xy
-            out.append(FeatureSet(kp, words.astype(np.float32)[:, None], SHAPE))
-        return out
-
-    def words(self, traverse: Traverse, *, timed: bool = True) -> list[np.ndarray]:
-        return [w for w, _ in self._img[traverse.name]]
 
 
 def _trav(name: str, places: list[int], hour: int | None = None) -> Traverse:
@@ -51,17 +29,24 @@ def _scene(rng: np.random.Generator, n: int = 30) -> tuple[np.ndarray, np.ndarra
     return rng.integers(0, N_WORDS, n), rng.uniform([0, 0], [640, 480], (n, 2)).astype(np.float32)
 
 
-def _data() -> tuple[FakeResources, list[Traverse], Traverse]:
+def _feature_traverse(name: str, scenes: list[tuple[np.ndarray, np.ndarray]], places: list[int],
+                      hour: int | None = None) -> Traverse:
+    times = None
+    if hour is not None:
+        times = np.array([f"2020-01-01T{hour:02d}:00:00"] * len(places), dtype="datetime64[s]")
+    return Traverse.from_features([features_for_words(w, xy, SHAPE) for w, xy in scenes], places,
+                                  name=name, times=times)
+
+
+def _data() -> tuple[InMemoryResources, list[Traverse], Traverse]:
     rng = np.random.default_rng(0)
     day = [_scene(rng) for _ in range(6)]
     night = [_scene(rng) for _ in range(6)]  # night shows other features
     # Queries: place 2 at night (shifted 40 px: offsets unchanged), place 4 by day.
-    images = {
-        "day": day, "night": night,
-        "q": [(night[2][0], night[2][1] + 40), (day[4][0][:20], day[4][1][:20] - 30)],
-    }
-    maps = [_trav("night", list(range(6)), hour=22), _trav("day", list(range(6)), hour=12)]
-    return FakeResources(images), maps, _trav("q", [2, 4])
+    queries = [(night[2][0], night[2][1] + 40), (day[4][0][:20], day[4][1][:20] - 30)]
+    maps = [_feature_traverse("night", night, list(range(6)), hour=22),
+            _feature_traverse("day", day, list(range(6)), hour=12)]
+    return InMemoryResources(vocabulary=word_vocabulary(N_WORDS)), maps, _feature_traverse("q", queries, [2, 4])
 
 
 def test_fit_score_recognises_day_and_night() -> None:
@@ -102,37 +87,18 @@ def test_model_path_saves_then_loads(tmp_path: Path) -> None:
     b = CoocMap(grid_x=6, grid_y=4, model_path=str(path)).fit(maps, resources=res)
     items = a.encode(query, resources=res)
     np.testing.assert_array_equal(a.score(items), b.score(items))
-    res._vocabulary = SimpleNamespace(  # type: ignore[assignment]
-        n_words_=N_WORDS, descriptor_kind_="sift-128-float32",
-        words_=np.ones((N_WORDS, 1), np.float32), quantize=None)
+    other = InMemoryResources(vocabulary=word_vocabulary(N_WORDS + 1))
     with pytest.raises(TopolocError, match="another vocabulary"):
-        CoocMap(grid_x=6, grid_y=4, model_path=str(path)).fit(maps, resources=res)
+        CoocMap(grid_x=6, grid_y=4, model_path=str(path)).fit(maps, resources=other)
 
 
-def test_show_match_draws_query_beside_best_place(tmp_path: Path) -> None:
-    import cv2
+def test_match_drawing_draws_query_beside_best_place() -> None:
+    from topoloc.methods.show_match import match_drawing
 
-    from topoloc.methods.show_match import show_match
-
-    res, _, _ = _data()
-    rng = np.random.default_rng(1)
-    for tour in ("day", "night"):
-        (tmp_path / tour).mkdir()
-        for i in range(6):
-            img = rng.integers(0, 255, (SHAPE[0], SHAPE[1], 3), dtype=np.uint8)
-            cv2.imwrite(str(tmp_path / tour / f"{i}.png"), img)
-    qpath = tmp_path / "query.png"
-    cv2.imwrite(str(qpath), rng.integers(0, 255, (SHAPE[0], SHAPE[1], 3), dtype=np.uint8))
-    qw, qxy = res._img["q"][0]  # place 2 at night
-    kp = np.zeros((len(qw), 5), np.float32)
-    kp[:, :2] = qxy
-    res._extractor = SimpleNamespace(  # type: ignore[assignment]
-        extract_path=lambda p: FeatureSet(kp, qw.astype(np.float32)[:, None], SHAPE))
-    res._vocabulary.quantize = lambda d: d[:, 0].astype(np.int64)  # type: ignore[union-attr,method-assign]
-    out = tmp_path / "match.png"
-    info = show_match(qpath, [tmp_path / "day", tmp_path / "night"], out, resources=res,
-                      grid_x=6, grid_y=4)
+    res, maps, query = _data()
+    method = CoocMap(grid_x=6, grid_y=4).fit(maps, resources=res)
+    canvas, info = match_drawing(method, query, maps)  # place 2 at night
     assert info["best_place"] == 2 and info["score"] >= 20
-    assert info["map_image"].endswith("night/2.png") and info["n_lines"] >= 20
-    drawn = cv2.imread(str(out))
-    assert drawn is not None and drawn.shape == (SHAPE[0], 2 * SHAPE[1], 3)
+    assert info["map_image"] == "night/2" and info["n_lines"] >= 20
+    # Feature traverses have no pixels: drawn on white canvases of the images' size.
+    assert canvas.shape == (SHAPE[0], 2 * SHAPE[1], 3) and (canvas < 255).any()

@@ -8,51 +8,28 @@ from typing import Any
 import numpy as np
 import pytest
 
-from topoloc.bench.fabmap_speed import zipf_occurrence
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.fabmap.model import FabMapModel
-from topoloc.fabmap.slam import DenseMap
+from topoloc.fabmap.place_map import DenseMap
 from topoloc.methods.base import parse_param
 from topoloc.methods.fab_map import FabMap, FabMap2
+from topoloc.methods.resources import InMemoryResources
+from topoloc.synth.words import zipf_occurrence
+from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 V = 300
 
 
-class FakeVocabulary:
-    def __init__(self, seed: int = 0, n_words: int = V) -> None:
-        self.n_words_ = n_words
-        self.descriptor_kind_ = "sift:f32:128"
-        self.words_ = np.random.default_rng(seed).random((n_words, 8)).astype(np.float32)
-
-
-class FakeResources:
-    """``words(traverse)`` by traverse name, ``training_words()``, ``vocabulary``."""
-
-    has_vocabulary = True
-
-    def __init__(self, words: dict[str, list[np.ndarray]], training: list[np.ndarray],
-                 vocabulary: FakeVocabulary) -> None:
-        self._words = words
-        self._training = training
-        self.vocabulary = vocabulary
-
-    def words(self, traverse: Traverse) -> list[np.ndarray]:
-        return self._words[traverse.name]
-
-    def training_words(self) -> list[np.ndarray]:
-        return self._training
+def _vocabulary(seed: int = 0, n_words: int = V) -> Vocabulary:
+    """A vocabulary of ``n_words`` random SIFT-space words (FAB-MAP only needs its size and identity)."""
+    words = np.random.default_rng(seed).random((n_words, 128)).astype(np.float32)
+    return Vocabulary.from_words(words, descriptor_kind="sift-128-float32")
 
 
 def _rows(x: Any) -> list[np.ndarray]:
     return [x.indices[x.indptr[i]:x.indptr[i + 1]].astype(np.int64) for i in range(x.shape[0])]
-
-
-def _traverse(name: str, places: np.ndarray) -> Traverse:
-    root = Path("/nonexistent") / name
-    return Traverse(root=root, images=tuple(root / f"{i}.jpg" for i in range(len(places))),
-                    places=np.asarray(places, dtype=np.int64), name=name)
 
 
 def _observe(words: np.ndarray, rng: np.random.Generator, fresh: np.ndarray) -> np.ndarray:
@@ -73,12 +50,12 @@ def world() -> dict[str, Any]:
     map_b = [_observe(places[i], rng, fr[25 + i]) for i in range(25)]
     q_idx = rng.permutation(25)[:15]
     queries = [_observe(places[i], rng, fr[50 + k]) for k, i in enumerate(q_idx)]
-    voc = FakeVocabulary()
-    res = FakeResources({"a": map_a, "b": map_b[::-1], "q": queries}, training, voc)
+    voc = _vocabulary()
+    res = InMemoryResources(vocabulary=voc, training=Traverse.from_words(training, name="training"))
     return {
         "res": res,
-        "maps": [_traverse("a", ids), _traverse("b", ids[::-1])],
-        "query": _traverse("q", ids[q_idx]),
+        "maps": [Traverse.from_words(map_a, ids, name="a"), Traverse.from_words(map_b[::-1], ids[::-1], name="b")],
+        "query": Traverse.from_words(queries, ids[q_idx], name="q"),
         "truth": ids[q_idx],
         "ids": ids,
         "voc": voc,
@@ -139,15 +116,9 @@ def test_bad_params(world: dict[str, Any]) -> None:
 
 
 def test_missing_training_images(world: dict[str, Any]) -> None:
-    class NoTraining:
-        vocabulary = world["voc"]
-        has_vocabulary = True
-
-        def words(self, traverse: Traverse) -> list[np.ndarray]:
-            return world["res"].words(traverse)
-
+    # A vocabulary that records no training folders, and no training images given.
     with pytest.raises(TopolocError, match="training images"):
-        FabMap().fit(world["maps"], resources=NoTraining())  # type: ignore[arg-type]
+        FabMap().fit(world["maps"], resources=InMemoryResources(vocabulary=world["voc"]))
 
 
 def test_model_save_load_and_vocabulary_binding(world: dict[str, Any], tmp_path: Path) -> None:
@@ -171,10 +142,10 @@ def test_model_save_load_and_vocabulary_binding(world: dict[str, Any], tmp_path:
 
     # another vocabulary (same size, other centres): refused, naming the file
     with pytest.raises(TopolocError, match="another vocabulary") as err:
-        FabMapModel.load(path, vocabulary=FakeVocabulary(seed=1))
+        FabMapModel.load(path, vocabulary=_vocabulary(seed=1))
     assert str(path) in str(err.value) and "\n" not in str(err.value)
     with pytest.raises(TopolocError, match="visual words"):
-        FabMapModel.load(path, vocabulary=FakeVocabulary(n_words=V + 1))
+        FabMapModel.load(path, vocabulary=_vocabulary(n_words=V + 1))
 
     # truncated and corrupted files
     data = path.read_bytes()

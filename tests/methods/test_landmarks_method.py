@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
-from topoloc.methods.base import Resources, parse_param
+from topoloc.methods.base import parse_param
 from topoloc.methods.landmark_map import LandmarkMap
+from topoloc.methods.resources import InMemoryResources
 
 N_FRAMES = 8
 
@@ -36,21 +35,7 @@ def _view(pts: np.ndarray, desc: np.ndarray, cam_x: float, cam_z: float, noise: 
     return FeatureSet(keypoints=kp, descriptors=(d * 100).astype(np.float32), image_shape=(480, 640))
 
 
-class SceneResources(Resources):
-    def __init__(self, feats: dict[str, list[FeatureSet]]) -> None:
-        super().__init__()
-        self._f = feats
-
-    def features(self, traverse: Traverse, *, timed: bool = True) -> list[FeatureSet]:
-        return self._f[traverse.name]
-
-
-def _trav(name: str, n: int = N_FRAMES) -> Traverse:
-    return Traverse(root=Path(f"/{name}"), images=tuple(Path(f"/{name}/{i}.png") for i in range(n)),
-                    places=np.arange(n, dtype=np.int64), name=name)
-
-
-def _resources() -> SceneResources:
+def _resources() -> tuple[InMemoryResources, dict[str, Traverse]]:
     pts, desc = _scene()
     rng = np.random.default_rng(1)
     tours = {
@@ -58,41 +43,41 @@ def _resources() -> SceneResources:
         "tour2": [_view(pts, desc, 2.0 * i + 0.2, 0.3, 0.02, rng) for i in range(N_FRAMES)],
         "query": [_view(pts, desc, 2.0 * i + 0.3, 0.5, 0.02, rng) for i in range(N_FRAMES)],
     }
-    return SceneResources(tours)
+    return InMemoryResources(), {k: Traverse.from_features(v, name=k) for k, v in tours.items()}
 
 
 def test_localises_shifted_tour() -> None:
-    res = _resources()
-    m = LandmarkMap().fit([_trav("map")], resources=res)
+    res, tr = _resources()
+    m = LandmarkMap().fit([tr["map"]], resources=res)
     assert m.place_ids_.tolist() == list(range(N_FRAMES))
     assert m.model_.n_landmarks_ > 50
-    S = m.score(m.encode(_trav("query"), resources=res))
+    S = m.score(m.encode(tr["query"], resources=res))
     assert S.shape == (N_FRAMES, N_FRAMES) and S.dtype == np.float32
     assert np.mean(np.argmax(S, axis=0) == np.arange(N_FRAMES)) >= 0.75
 
 
 def test_later_tour_feeds_online_learning() -> None:
-    res = _resources()
-    m = LandmarkMap().fit([_trav("map"), _trav("tour2")], resources=res)
+    res, tr = _resources()
+    m = LandmarkMap().fit([tr["map"], tr["tour2"]], resources=res)
     # Each of tour2's 8 images was localised to a node and counted there.
     assert m.model_.node_count_.sum() == N_FRAMES + N_FRAMES
     w = m.weights_.data
     assert (w <= 1.0).all() and (w < 1.0).any()  # some landmarks were not re-matched
-    sup = LandmarkMap(online_supervised=True).fit([_trav("map"), _trav("tour2")], resources=res)
+    sup = LandmarkMap(online_supervised=True).fit([tr["map"], tr["tour2"]], resources=res)
     np.testing.assert_array_equal(sup.model_.node_count_, 2.0)  # each node matched once more
-    S = sup.score(sup.encode(_trav("query"), resources=res))
+    S = sup.score(sup.encode(tr["query"], resources=res))
     assert np.mean(np.argmax(S, axis=0) == np.arange(N_FRAMES)) >= 0.75
 
 
 def test_splitting_and_verification_options() -> None:
-    res = _resources()
-    base = LandmarkMap().fit([_trav("map")], resources=res)
+    res, tr = _resources()
+    base = LandmarkMap().fit([tr["map"]], resources=res)
     r = base.model_.ratios().min()
-    split = LandmarkMap(r_min=float(r) * 1.5, max_splits=30).fit([_trav("map")], resources=res)
+    split = LandmarkMap(r_min=float(r) * 1.5, max_splits=30).fit([tr["map"]], resources=res)
     assert 0 < len(split.splits_) <= 30
     assert split.model_.n_landmarks_ == base.model_.n_landmarks_ + len(split.splits_)
-    ver = LandmarkMap(verify_nodes=3, normalise=True).fit([_trav("map")], resources=res)
-    S = ver.score(ver.encode(_trav("query"), resources=res))
+    ver = LandmarkMap(verify_nodes=3, normalise=True).fit([tr["map"]], resources=res)
+    S = ver.score(ver.encode(tr["query"], resources=res))
     np.testing.assert_allclose(S.sum(axis=0), 1.0, rtol=1e-5)
     assert np.mean(np.argmax(S, axis=0) == np.arange(N_FRAMES)) >= 0.75
 
@@ -103,4 +88,5 @@ def test_not_fitted_and_params() -> None:
     assert parse_param(LandmarkMap, "r_min", "0.5") == 0.5
     assert parse_param(LandmarkMap, "top_k_neighbours", "4") == 4
     with pytest.raises(TopolocError):
-        LandmarkMap(match_threshold=0.0).fit([_trav("map")], resources=_resources())
+        res, tr = _resources()
+        LandmarkMap(match_threshold=0.0).fit([tr["map"]], resources=res)

@@ -11,14 +11,10 @@ import pytest
 import topoloc.methods.seq_slam as seqslam_mod
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import NotFittedError, TopolocError
-from topoloc.methods.base import Resources, parse_param
-from topoloc.methods.seq_slam import (
-    SeqSLAM,
-    SingleImageSeqSLAM,
-    difference_matrix,
-    patch_normalize,
-    preprocess_image,
-)
+from topoloc.methods.base import parse_param
+from topoloc.methods.resources import InMemoryResources
+from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM
+from topoloc.seqslam import difference_matrix, patch_normalize, preprocess_image
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 
@@ -120,7 +116,7 @@ def test_difference_matrix_is_mean_absolute_difference() -> None:
 
 # ------------------------------------------------------------------- method
 def test_seqslam_recovers_the_route(world: dict[str, Traverse]) -> None:
-    res = Resources(n_jobs=1)
+    res = InMemoryResources(n_jobs=1)
     m = SeqSLAM().fit([world["map"]], resources=res)
     np.testing.assert_array_equal(m.place_ids_, np.arange(40))
     items = m.encode(world["query"], resources=res)
@@ -134,7 +130,7 @@ def test_seqslam_recovers_the_route(world: dict[str, Traverse]) -> None:
 
 
 def test_single_image_and_acceleration_variants(world: dict[str, Traverse]) -> None:
-    res = Resources(n_jobs=1)
+    res = InMemoryResources(n_jobs=1)
     single = SingleImageSeqSLAM().fit([world["map"]], resources=res)
     assert not single.scores_whole_sequence and SeqSLAM.scores_whole_sequence
     assert "ds" not in single.get_params()
@@ -156,7 +152,7 @@ def test_single_image_and_acceleration_variants(world: dict[str, Traverse]) -> N
 
 
 def test_several_map_traverses_take_the_best_image(world: dict[str, Traverse]) -> None:
-    res = Resources(n_jobs=1)
+    res = InMemoryResources(n_jobs=1)
     both = SeqSLAM().fit([world["map"], world["map2"]], resources=res)
     np.testing.assert_array_equal(both.place_ids_, np.arange(40))
     one = SeqSLAM().fit([world["map"]], resources=res)
@@ -173,7 +169,7 @@ def test_several_map_traverses_take_the_best_image(world: dict[str, Traverse]) -
 def test_blocks_of_queries_give_the_same_scores(
     world: dict[str, Traverse], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    res = Resources(n_jobs=1)
+    res = InMemoryResources(n_jobs=1)
     for search in ("constant", "acceleration"):
         m = SeqSLAM(search=search).fit([world["map"]], resources=res)
         items = m.encode(world["query"], resources=res)
@@ -185,7 +181,7 @@ def test_blocks_of_queries_give_the_same_scores(
 
 
 def test_not_fitted_and_bad_items(world: dict[str, Traverse]) -> None:
-    res = Resources(n_jobs=1)
+    res = InMemoryResources(n_jobs=1)
     m = SeqSLAM()
     with pytest.raises(NotFittedError):
         m.score([np.zeros(2048, np.uint8)])
@@ -213,7 +209,7 @@ def test_parameters(world: dict[str, Traverse]) -> None:
     assert (p["v_min"], p["v_max"], p["v_step"]) == (0.8, 1.2, 0.1)
     assert parse_param(SeqSLAM, "ds", "5") == 5
     assert parse_param(SeqSLAM, "search", "acceleration") == "acceleration"
-    res = Resources(n_jobs=1)
+    res = InMemoryResources(n_jobs=1)
     for bad in ({"search": "zigzag"}, {"patch_size": 1}, {"v_min": 1.5}, {"ds": -1},
                 {"levels_per_std": 0.0}, {"enhance_window": -2}, {"uniqueness": -1}):
         with pytest.raises(TopolocError):
@@ -232,7 +228,7 @@ def test_nordland_first_200_frames() -> None:
 
     summer = first(load_traverse(root / "summer"))
     winter = first(load_traverse(root / "winter"))
-    res = Resources()
+    res = InMemoryResources()
     m = SeqSLAM().fit([summer], resources=res)
     S = m.score(m.encode(winter, resources=res))
     right = np.abs(np.argmax(S, axis=0) - np.arange(200)) <= 2

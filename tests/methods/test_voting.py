@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
-from topoloc.methods.base import Resources
 from topoloc.methods.image_voting import ImageVoting
+from topoloc.methods.resources import InMemoryResources
 
 N = 6
 
@@ -35,38 +33,30 @@ def _views(seed: int, cam_dx: float, noise: float) -> list[FeatureSet]:
     return out
 
 
-class FakeResources(Resources):
-    def __init__(self, feats: dict[str, list[FeatureSet]]) -> None:
-        super().__init__()
-        self._f = feats
-
-    def features(self, traverse: Traverse, *, timed: bool = True) -> list[FeatureSet]:
-        return self._f[traverse.name]
-
-
-def _trav(name: str, places: list[int]) -> Traverse:
-    return Traverse(root=Path(f"/{name}"), images=tuple(Path(f"/{name}/{i}.png") for i in range(len(places))),
-                    places=np.asarray(places, dtype=np.int64), name=name)
+def _trav(feats: dict[str, list[FeatureSet]], name: str, places: list[int]) -> Traverse:
+    return Traverse.from_features(feats[name], places, name=name)
 
 
 def test_votes_pick_the_right_image() -> None:
-    res = FakeResources({"map": _views(1, 0.0, 0.01), "q": _views(2, 0.4, 0.02)})
-    v = ImageVoting().fit([_trav("map", list(range(N)))], resources=res)
-    assert v.index_.ntotal == sum(len(f) for f in res.features(_trav("map", [])))
-    S = v.score(v.encode(_trav("q", list(range(N))), resources=res))
+    feats = {"map": _views(1, 0.0, 0.01), "q": _views(2, 0.4, 0.02)}
+    res = InMemoryResources()
+    v = ImageVoting().fit([_trav(feats, "map", list(range(N)))], resources=res)
+    assert v.index_.ntotal == sum(len(f) for f in feats["map"])
+    S = v.score(v.encode(_trav(feats, "q", list(range(N))), resources=res))
     assert S.shape == (N, N) and S.dtype == np.float32
     assert np.argmax(S, axis=0).tolist() == list(range(N))
     # Votes are RANSAC inliers: at most the number of query features.
-    assert S.max() <= max(len(f) for f in res.features(_trav("q", [])))
+    assert S.max() <= max(len(f) for f in feats["q"])
     assert S.max() >= 8
 
 
 def test_several_images_per_place_take_the_max() -> None:
     map_feats = _views(1, 0.0, 0.01)
-    res = FakeResources({"a": map_feats[:3], "b": map_feats[3:], "q": _views(2, 0.4, 0.02)})
+    feats = {"a": map_feats[:3], "b": map_feats[3:], "q": _views(2, 0.4, 0.02)}
+    res = InMemoryResources()
     # Two traverses covering places 0,1,2 with different images: place p has images p and p+3.
-    v = ImageVoting().fit([_trav("a", [0, 1, 2]), _trav("b", [0, 1, 2])], resources=res)
-    S = v.score(v.encode(_trav("q", list(range(N))), resources=res))
+    v = ImageVoting().fit([_trav(feats, "a", [0, 1, 2]), _trav(feats, "b", [0, 1, 2])], resources=res)
+    S = v.score(v.encode(_trav(feats, "q", list(range(N))), resources=res))
     assert S.shape == (3, N)
     assert np.argmax(S, axis=0).tolist() == [0, 1, 2, 0, 1, 2]
 
@@ -77,14 +67,16 @@ def test_ratio_test_rejects_ambiguous_matches() -> None:
     d = np.random.default_rng(1).standard_normal((10, 128)).astype(np.float32)
     fs = FeatureSet(keypoints=kp, descriptors=np.vstack([d, d]), image_shape=(480, 640))
     q = FeatureSet(keypoints=kp[:10], descriptors=d, image_shape=(480, 640))
-    res = FakeResources({"m": [fs], "q": [q]})
-    v = ImageVoting().fit([_trav("m", [0])], resources=res)
+    feats = {"m": [fs], "q": [q]}
+    res = InMemoryResources()
+    v = ImageVoting().fit([_trav(feats, "m", [0])], resources=res)
     assert v.score([q]).tolist() == [[0.0]]
 
 
 def test_not_fitted_and_bad_params() -> None:
     with pytest.raises(NotFittedError):
         ImageVoting().score([])
-    res = FakeResources({"m": _views(1, 0.0, 0.01)})
+    feats = {"m": _views(1, 0.0, 0.01)}
+    res = InMemoryResources()
     with pytest.raises(TopolocError):
-        ImageVoting(ratio=1.5).fit([_trav("m", list(range(N)))], resources=res)
+        ImageVoting(ratio=1.5).fit([_trav(feats, "m", list(range(N)))], resources=res)

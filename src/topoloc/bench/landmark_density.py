@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 
 from topoloc.datasets.traverse import Traverse, load_traverse
-from topoloc.methods.base import PlaceRecognizer, Resources
+from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.image_voting import ImageVoting
 from topoloc.methods.landmark_map import LandmarkMap
+from topoloc.methods.resources import CachedResources, Resources
 
 
 def _subsample(t: Traverse, stride: int) -> Traverse:
@@ -80,7 +81,7 @@ def density_experiment(
     if max_queries is not None:
         query = Traverse(root=query.root, images=query.images[:max_queries],
                          places=query.places[:max_queries], name=query.name)
-    res = resources or Resources()
+    res = resources or CachedResources()
     tol = tolerance if tolerance is not None else max(strides) // 2 + 1
     classes: dict[str, type[PlaceRecognizer]] = {"landmarks": LandmarkMap, "voting": ImageVoting}
     rows: list[dict[str, Any]] = []

@@ -113,8 +113,9 @@ def evaluate(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
 ) -> None:
     """Run one method on map and query traverses and score it (PROTOCOL.md)."""
-    from topoloc.evaluation.pipeline import TABLE_HEADER, EvaluateOptions, table_row
+    from topoloc.evaluation.pipeline import EvaluateOptions
     from topoloc.evaluation.pipeline import evaluate as run
+    from topoloc.evaluation.report import TABLE_HEADER, table_row
 
     opts = EvaluateOptions(
         method=method, maps=list(map), query=query, out=out, vocab=vocab,
@@ -137,7 +138,7 @@ def report(
     title: Annotated[str, typer.Option(help="Title of the report.")] = "Results",
 ) -> None:
     """Put several evaluate runs side by side: one table and one PNG of PR curves."""
-    from topoloc.evaluation.pipeline import build_report
+    from topoloc.evaluation.report import build_report
 
     path = build_report(list(runs), out, title=title)
     typer.echo(path.read_text(), nl=False)
@@ -198,7 +199,7 @@ def synth(
     seed: Annotated[int, typer.Option(help="World seed.")] = 0,
 ) -> None:
     """Generate a synthetic route (tours at several times of day) for tests and demos."""
-    from topoloc.synth.route import RouteConfig, generate_route
+    from topoloc.synth import RouteConfig, generate_route
 
     tours = _tours(hours)
     dirs = generate_route(out, config=RouteConfig(n_places=places, width=width, height=height,
@@ -251,7 +252,7 @@ def show_match_cmd(
 ) -> None:
     """Localise one image with Cooc-Map and draw it beside its best location with the consistent correspondences."""
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.pipeline import build_method, make_resources, resolve_max_side
+    from topoloc.evaluation.prepare import build_method, make_resources, resolve_max_side
     from topoloc.methods.show_match import show_match
 
     method = build_method("coocmap", _parse_params(param or []))
@@ -292,8 +293,8 @@ def slam(
 ) -> None:
     """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.pipeline import make_resources
-    from topoloc.fabmap.slam import run_slam
+    from topoloc.evaluation.prepare import make_resources
+    from topoloc.methods.slam import run_slam
 
     trav = load_traverse(traverse)
     with rich_progress(not quiet) as progress:

@@ -16,7 +16,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from topoloc.methods.base import ProgressFactory
+from topoloc.progress import ProgressFactory
 
 console = Console(stderr=True)
 

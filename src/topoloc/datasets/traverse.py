@@ -15,19 +15,23 @@ from __future__ import annotations
 
 import csv
 import re
+import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
-from topoloc.errors import input_error
+from topoloc.errors import TopolocError, input_error
 
 IMAGE_SUFFIXES = frozenset(
     {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 )
 SIDECAR = "places.csv"
+TRAVERSE_KINDS = ("files", "images", "features", "words")
 
 
 def natural_key(name: str) -> list[object]:
@@ -51,6 +55,15 @@ class Traverse:
         Capture time of each image when ``places.csv`` has a ``time`` column.
     xy : ndarray of float64, shape (n, 2), or None
         Position in metres when ``places.csv`` has ``x`` and ``y`` columns.
+    name : str
+        Short name (the folder's name by default).
+    kind : {"files", "images", "features", "words"}
+        What the traverse holds: image files on disk, or, in memory
+        (:meth:`from_images`, :meth:`from_features`, :meth:`from_words`),
+        pixel arrays, already-extracted local features or visual-word ids.
+        For the in-memory kinds ``images`` holds names only (``<name>/k``).
+    frames : tuple, length n, or None
+        The in-memory content of each image (None for ``"files"``).
     """
 
     root: Path
@@ -59,12 +72,116 @@ class Traverse:
     times: np.ndarray | None = None
     xy: np.ndarray | None = None
     name: str = field(default="")
+    kind: str = "files"
+    frames: tuple[Any, ...] | None = None
 
     def __post_init__(self) -> None:
         if len(self.images) != len(self.places):
             raise ValueError("images and places differ in length")
+        if self.kind not in TRAVERSE_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(TRAVERSE_KINDS)}, got {self.kind!r}")
+        if (self.frames is None) != (self.kind == "files") or (
+            self.frames is not None and len(self.frames) != len(self.images)
+        ):
+            raise ValueError("an in-memory traverse needs one frame per image, a file traverse none")
         if not self.name:
             object.__setattr__(self, "name", self.root.name)
+
+    # -- the in-memory door ---------------------------------------------------------------
+    @classmethod
+    def from_images(
+        cls, images: Sequence[np.ndarray], places: Sequence[int] | np.ndarray | None = None, *,
+        name: str = "images", times: np.ndarray | None = None, xy: np.ndarray | None = None,
+    ) -> Traverse:
+        """A traverse of images held in memory (camera frames, decoded video...).
+
+        Parameters
+        ----------
+        images : sequence of ndarray, each (H, W) grey or (H, W, 3) BGR
+            uint8 pixels (other integer or float types are clipped to 0..255).
+        places : sequence of int, shape (n,), optional
+            Place id of each image (default: image ``k`` shows place ``k``).
+        name : str
+            Name used in messages and reports.
+        times, xy : ndarray, optional
+            As for a folder with ``places.csv``.
+
+        Raises
+        ------
+        TopolocError
+            For an image that is not a 2-D or 3-channel array, or is empty.
+        """
+        frames = tuple(_as_image(img, i, name) for i, img in enumerate(images))
+        return cls._in_memory("images", frames, places, name, times, xy)
+
+    @classmethod
+    def from_features(
+        cls, features: Sequence[Any], places: Sequence[int] | np.ndarray | None = None, *,
+        name: str = "features", times: np.ndarray | None = None, xy: np.ndarray | None = None,
+    ) -> Traverse:
+        """A traverse of already-extracted local features (:class:`~topoloc.features.FeatureSet`)."""
+        frames = tuple(features)
+        for i, f in enumerate(frames):
+            if not (hasattr(f, "descriptors") and hasattr(f, "keypoints")):
+                raise TopolocError(f"traverse {name!r}: item {i} is not a FeatureSet ({type(f).__name__})")
+        return cls._in_memory("features", frames, places, name, times, xy)
+
+    @classmethod
+    def from_words(
+        cls, words: Sequence[np.ndarray], places: Sequence[int] | np.ndarray | None = None, *,
+        name: str = "words", times: np.ndarray | None = None, xy: np.ndarray | None = None,
+    ) -> Traverse:
+        """A traverse of visual-word ids per image (features already quantised), each shape (n_features,)."""
+        frames = []
+        for i, w in enumerate(words):
+            a = np.asarray(w)
+            if a.ndim != 1 or (a.size and not np.issubdtype(a.dtype, np.integer)):
+                raise TopolocError(f"traverse {name!r}: word list {i} is not a 1-D integer array ({a.shape}, "
+                                   f"{a.dtype})")
+            if a.size and a.min() < 0:
+                raise TopolocError(f"traverse {name!r}: word list {i} has negative word ids")
+            frames.append(a.astype(np.int64, copy=False))
+        return cls._in_memory("words", tuple(frames), places, name, times, xy)
+
+    @classmethod
+    def _in_memory(
+        cls, kind: str, frames: tuple[Any, ...], places: Sequence[int] | np.ndarray | None, name: str,
+        times: np.ndarray | None, xy: np.ndarray | None,
+    ) -> Traverse:
+        n = len(frames)
+        ids = np.arange(n, dtype=np.int64) if places is None else np.asarray(places)
+        if ids.shape != (n,) or (n and not np.issubdtype(ids.dtype, np.integer)):
+            raise TopolocError(f"traverse {name!r}: places must be {n} integer ids, got shape {ids.shape}")
+        for label, arr, shape in (("times", times, (n,)), ("xy", xy, (n, 2))):
+            if arr is not None and np.shape(arr) != shape:
+                raise TopolocError(f"traverse {name!r}: {label} must have shape {shape}, got {np.shape(arr)}")
+        # A unique root keys per-run memos: two in-memory traverses never share one.
+        return cls(root=Path(f"<{name}#{uuid.uuid4().hex}>"), images=tuple(Path(f"{name}/{k}") for k in range(n)),
+                   places=ids.astype(np.int64), times=times, xy=None if xy is None else np.asarray(xy, float),
+                   name=name, kind=kind, frames=frames)
+
+    def read(self, index: int, *, gray: bool = True) -> np.ndarray:
+        """Pixels of image ``index``: read from disk, or the in-memory frame.
+
+        Returns
+        -------
+        ndarray of uint8, shape (H, W) if ``gray`` else (H, W, 3) BGR
+
+        Raises
+        ------
+        TopolocError
+            For an unreadable file, or a traverse that holds features or words, not images.
+        """
+        if self.kind == "files":
+            return read_image(self.images[index], gray=gray)
+        if self.kind != "images" or self.frames is None:
+            raise TopolocError(f"traverse {self.name!r} holds {self.kind}, not images")
+        img = self.frames[index]
+        if gray and img.ndim == 3:
+            return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if not gray and img.ndim == 2:
+            return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        return img
 
     def __len__(self) -> int:
         return len(self.images)
@@ -81,6 +198,18 @@ class Traverse:
         day = self.times.astype("datetime64[D]")
         hours = (self.times - day).astype("timedelta64[s]").astype(np.float64) / 3600.0
         return float(np.median(hours))
+
+
+def _as_image(img: Any, index: int, name: str) -> np.ndarray:
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)) or a.size == 0:
+        raise TopolocError(f"traverse {name!r}: image {index} must be (H, W) grey or (H, W, 3) BGR, "
+                           f"got shape {a.shape}")
+    if a.dtype != np.uint8:
+        a = np.clip(np.nan_to_num(a), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(a)
 
 
 def _list_images(folder: Path) -> list[Path]:

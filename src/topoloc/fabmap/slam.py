@@ -31,6 +31,11 @@ a floor of ``(1 - sigma) / n_k`` of the likelihood, which caps the posterior of
 a place in a map of a few dozen places at about 0.99, so a 0.99 threshold would
 rarely be reachable there.
 
+:class:`FabMapSlam` works on visual-word arrays and a trained model; the maps
+it grows are those of :mod:`topoloc.fabmap.place_map`.  ``topoloc slam`` runs
+it over a traverse through :func:`topoloc.methods.slam.run_slam`, which
+supplies the words and the model from the run's features and vocabulary.
+
 Outputs (:func:`write_slam_outputs`), under ``out_dir``:
 
 ``posterior.npy``
@@ -66,201 +71,12 @@ from typing import Any
 
 import numpy as np
 
-from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import TopolocError
-from topoloc.fabmap.likelihood import (
-    InvertedIndex,
-    Observation,
-    ObservationModel,
-    PlaceModels,
-    SampledNormaliser,
-    WordCounts,
-    location_posterior,
-    log_likelihood_bailout,
-    log_mean_exp,
-    mean_field_log_likelihood,
-    training_index,
-)
 from topoloc.fabmap.model import FabMapModel
+from topoloc.fabmap.observation import ObservationModel
+from topoloc.fabmap.place_map import make_map
+from topoloc.fabmap.posterior import location_posterior
 from topoloc.io.container import atomic_write_bytes
-
-VARIANTS = ("fabmap", "fabmap2")
-NORMALISERS = ("sampled", "mean_field")
-
-# ---------------------------------------------------------------------------------------
-# Maps of places: FAB-MAP 1.0 (dense models) and FAB-MAP 2.0 (inverted index)
-# ---------------------------------------------------------------------------------------
-
-
-class DenseMap:
-    """FAB-MAP 1.0 map: dense place models, exact likelihoods, optional bail-out.
-
-    Parameters
-    ----------
-    obs_model : ObservationModel
-    normaliser : {"sampled", "mean_field"}
-        New-place term (Eq. 10 or the mean-field approximation).
-    n_samples : int
-        Training images used as sampled places (all if <= 0).
-    seed : int
-    bailout : bool
-        Evaluate likelihoods with the Bennett bail-out (ICRA 2008).
-    p_bailout : float
-        Bail-out probability bound.
-    """
-
-    def __init__(
-        self,
-        obs_model: ObservationModel,
-        *,
-        normaliser: str = "sampled",
-        n_samples: int = 1000,
-        seed: int = 0,
-        bailout: bool = False,
-        p_bailout: float = 1e-6,
-    ) -> None:
-        _check_choice("normaliser", normaliser, NORMALISERS)
-        self.obs_model = obs_model
-        self.places = PlaceModels(obs_model)
-        self.normaliser = normaliser
-        self.n_samples = n_samples
-        self.seed = seed
-        self.bailout = bailout
-        self.p_bailout = p_bailout
-        self._sampled: SampledNormaliser | None = None
-
-    @property
-    def n_places(self) -> int:
-        return self.places.n_places
-
-    def add(self, obs: Observation) -> int:
-        """New place from one observation (Eq. 11 from the prior); returns its index."""
-        return self.places.add_observation(obs)
-
-    def add_beliefs(self, e: np.ndarray) -> int:
-        """Append places with given beliefs (k, V); returns the first index."""
-        return self.places.add(e)
-
-    def update(self, i: int, obs: Observation) -> None:
-        """Merge an observation into place ``i`` (Eq. 11)."""
-        self.places.update(i, obs)
-
-    def log_likelihood(self, obs: Observation) -> np.ndarray:
-        """``log p(Z | L_i)`` of every place (Eq. 4-5), shape (n_places,)."""
-        if self.bailout and self.n_places > 1:
-            return log_likelihood_bailout(self.places, obs, p_bailout=self.p_bailout).log_lik
-        return self.places.log_likelihood(obs)
-
-    def prepare_normaliser(self) -> None:
-        """Build the sampled places now (otherwise on the first query)."""
-        if self.normaliser == "sampled" and self._sampled is None:
-            self._sampled = SampledNormaliser(self.obs_model, n_samples=self.n_samples,
-                                              seed=self.seed)
-
-    def new_place_log_likelihood(self, obs: Observation) -> float:
-        """The new-place term: Eq. 10 (sampled) or mean-field."""
-        if self.normaliser == "mean_field":
-            return mean_field_log_likelihood(self.obs_model, obs)
-        self.prepare_normaliser()
-        assert self._sampled is not None
-        return self._sampled.log_likelihood(obs)
-
-
-class IndexMap:
-    """FAB-MAP 2.0 map: two-level place models scored through an inverted index.
-
-    Parameters are those of :class:`DenseMap` (no bail-out: the index already
-    touches only the words that matter).
-    """
-
-    def __init__(
-        self,
-        obs_model: ObservationModel,
-        *,
-        normaliser: str = "sampled",
-        n_samples: int = 1000,
-        seed: int = 0,
-    ) -> None:
-        _check_choice("normaliser", normaliser, NORMALISERS)
-        self.obs_model = obs_model
-        m = obs_model.model
-        self.counts = WordCounts(p_fp=m.p_fp, p_fn=m.p_fn)
-        self.index = InvertedIndex(obs_model)
-        self.normaliser = normaliser
-        self.n_samples = n_samples
-        self.seed = seed
-        self._samples: InvertedIndex | None = None
-
-    @property
-    def n_places(self) -> int:
-        return self.index.n_places
-
-    def add(self, obs: Observation) -> int:
-        """New place observed once; returns its index."""
-        i = self.counts.add(obs.words)
-        self.index.add_place(self.counts.word_set(i))
-        return i
-
-    def update(self, i: int, obs: Observation) -> None:
-        """Merge an observation into place ``i`` (Eq. 11 with two-level models)."""
-        self.counts.update(i, obs.words)
-        self.index.set_place(i, self.counts.word_set(i))
-
-    def build(self, observations: Sequence[Sequence[Observation]]) -> None:
-        """Bulk-create places, each from its list of observations (one index build)."""
-        if self.n_places:
-            raise TopolocError("IndexMap.build needs an empty map")
-        sets = []
-        for obs_list in observations:
-            if not obs_list:
-                raise TopolocError("every place needs at least one observation")
-            i = self.counts.add(obs_list[0].words)
-            for o in obs_list[1:]:
-                self.counts.update(i, o.words)
-            sets.append(self.counts.word_set(i))
-        self.index = InvertedIndex(self.obs_model, sets)
-
-    def log_likelihood(self, obs: Observation) -> np.ndarray:
-        """``log p(Z | L_i)`` under FAB-MAP 2.0 place models, shape (n_places,)."""
-        return self.index.log_likelihood(obs)
-
-    def prepare_normaliser(self) -> None:
-        """Index the sampled training places now (otherwise on the first query)."""
-        if self.normaliser == "sampled" and self._samples is None:
-            self._samples = training_index(self.obs_model, n_samples=self.n_samples,
-                                           seed=self.seed)
-
-    def new_place_log_likelihood(self, obs: Observation) -> float:
-        """The new-place term: Eq. 10 over an index of training places, or mean-field."""
-        if self.normaliser == "mean_field":
-            return mean_field_log_likelihood(self.obs_model, obs)
-        self.prepare_normaliser()
-        assert self._samples is not None
-        return log_mean_exp(self._samples.log_likelihood(obs))
-
-
-def _check_choice(name: str, value: str, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise TopolocError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
-
-
-def make_map(
-    obs_model: ObservationModel,
-    *,
-    variant: str = "fabmap",
-    normaliser: str = "sampled",
-    n_samples: int = 1000,
-    seed: int = 0,
-    bailout: bool = False,
-    p_bailout: float = 1e-6,
-) -> DenseMap | IndexMap:
-    """A :class:`DenseMap` (``"fabmap"``) or an :class:`IndexMap` (``"fabmap2"``)."""
-    _check_choice("variant", variant, VARIANTS)
-    if variant == "fabmap2":
-        return IndexMap(obs_model, normaliser=normaliser, n_samples=n_samples, seed=seed)
-    return DenseMap(obs_model, normaliser=normaliser, n_samples=n_samples, seed=seed,
-                    bailout=bailout, p_bailout=p_bailout)
-
 
 # ---------------------------------------------------------------------------------------
 # Location prior (motion model)
@@ -522,7 +338,7 @@ class FabMapSlam:
 
 
 # ---------------------------------------------------------------------------------------
-# Outputs and the entry point of ``topoloc slam``
+# Outputs of ``topoloc slam``
 # ---------------------------------------------------------------------------------------
 
 
@@ -598,110 +414,3 @@ def _plot_png(result: SlamResult) -> bytes:
     fig.savefig(buf, format="png")
     plt.close(fig)
     return buf.getvalue()
-
-
-def train_model_from_resources(resources: Any, **kwargs: Any) -> FabMapModel:
-    """Train a model on ``resources.training_words()`` with ``resources.vocabulary``.
-
-    Raises
-    ------
-    TopolocError
-        If the resources cannot provide training images.
-    """
-    fn = getattr(resources, "training_words", None)
-    if fn is None:
-        raise TopolocError(
-            "FAB-MAP needs training images that are not the map: pass --vocab-train DIR "
-            "(or a pre-trained model with --param model_path=FILE)"
-        )
-    words = fn()
-    if words is None or len(words) < 2:
-        raise TopolocError(
-            "FAB-MAP needs at least 2 training images that are not the map: pass --vocab-train DIR"
-        )
-    voc = resources.vocabulary
-    return FabMapModel.train(list(words), n_words=int(voc.n_words_), vocabulary=voc, **kwargs)
-
-
-def load_or_train_model(
-    model: FabMapModel | str | Path | None, resources: Any = None
-) -> FabMapModel:
-    """A model given directly, loaded from a file (checked against the run's vocabulary),
-    or trained from ``resources.training_words()``."""
-    if isinstance(model, FabMapModel):
-        return model
-    voc = None
-    if resources is not None and getattr(resources, "has_vocabulary", True):
-        voc = resources.vocabulary
-    if model is not None and str(model):
-        return FabMapModel.load(model, vocabulary=voc)
-    if resources is None:
-        raise TopolocError("FAB-MAP needs a trained model (model=...) or resources to train one")
-    return train_model_from_resources(resources)
-
-
-def run_slam(
-    traverse: Traverse | str | Path,
-    *,
-    out_dir: str | Path,
-    model: FabMapModel | str | Path | None = None,
-    resources: Any = None,
-    words: Sequence[np.ndarray] | None = None,
-    variant: str = "fabmap",
-    threshold: float = 0.98,
-    p_new: float = 0.9,
-    min_gap: int = 10,
-    naive_bayes: bool = False,
-    normaliser: str = "sampled",
-    n_samples: int = 1000,
-    smoothing: float = 0.99,
-    p_stay: float = 1.0 / 3.0,
-    p_uniform: float = 0.01,
-    bailout: bool = False,
-    seed: int = 0,
-    plot: bool = True,
-) -> SlamResult:
-    """Run online FAB-MAP over one traverse in order and write the outputs.
-
-    Parameters
-    ----------
-    traverse : Traverse or path
-        The images, processed in traverse order.
-    out_dir : path
-        Output folder (module docstring for the files).
-    model : FabMapModel, path, or None
-        Trained model, a saved model file (checked against ``resources.vocabulary``),
-        or None to train on ``resources.training_words()``.
-    resources : Resources, optional
-        Provides ``words(traverse)`` (features quantised with the run's
-        vocabulary), ``vocabulary`` and ``training_words()``.
-    words : sequence of int arrays, optional
-        Visual words of each image, instead of ``resources.words(traverse)``.
-    variant, threshold, p_new, min_gap, naive_bayes, normaliser, n_samples, smoothing,
-    p_stay, p_uniform, bailout, seed
-        See :class:`FabMapSlam`.
-    plot : bool
-        Write ``loop_closures.png``.
-
-    Returns
-    -------
-    SlamResult
-    """
-    tr = traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
-    if words is None:
-        if resources is None:
-            raise TopolocError("run_slam needs resources (features + vocabulary) or words")
-        words = resources.words(tr)
-    if len(words) != len(tr):
-        raise TopolocError(f"got words for {len(words)} images but the traverse has {len(tr)}")
-    fm = load_or_train_model(model, resources)
-    slam = FabMapSlam(
-        fm, variant=variant, naive_bayes=naive_bayes, normaliser=normaliser,
-        n_samples=n_samples, p_new=p_new, threshold=threshold, smoothing=smoothing,
-        p_stay=p_stay, p_uniform=p_uniform, min_gap=min_gap, bailout=bailout, seed=seed,
-    )
-    result = slam.run(words)
-    result.params["traverse"] = str(tr.root)
-    result.params["images"] = [p.name for p in tr.images]
-    write_slam_outputs(result, out_dir, plot=plot)
-    return result

@@ -443,6 +443,17 @@ class FeatureExtractor:
         self._store_entry(entry, fs)
         return fs
 
+    def extract_image(self, image: np.ndarray) -> FeatureSet:
+        """Features of an image held in memory (never cached: it has no file to key the cache by).
+
+        Parameters
+        ----------
+        image : ndarray of uint8, shape (H, W) or (H, W, 3) BGR
+        """
+        t0 = time.perf_counter()
+        fs = extract_features(image, self.config)
+        return replace(fs, extract_ms=1e3 * (time.perf_counter() - t0))
+
     def extract_paths(
         self,
         paths: Iterable[str | Path],
@@ -458,7 +469,7 @@ class FeatureExtractor:
             Image files.
         progress : callable, optional
             ``progress(description, total)`` returning ``advance(n)``, called once
-            per image (see ``topoloc.methods.base.ProgressFactory``).
+            per image (see ``topoloc.progress.ProgressFactory``).
         description : str, optional
             Progress label (default ``"features <method>"``).
 

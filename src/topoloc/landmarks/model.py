@@ -1,44 +1,39 @@
-"""Landmark map of a dense continuous topology (Johns & Yang 2011, Sec. III-V, VII).
+"""The landmark map of a dense continuous topology (Johns & Yang 2011, Sec. III-VII).
 
-A landmark is a feature track (:mod:`topoloc.landmarks.tracking`) described by
+Johns & Yang, "Global Localization in a Dense Continuous Topological Map"
+(ICRA 2011).  :class:`LandmarkModel` holds the map built from the feature
+tracks (:mod:`topoloc.landmarks.tracking`) of the map-building tour: every
+image is a node, every track long enough a landmark, and every (landmark,
+node) pair an observation.  It keeps these tables consistent as landmarks are
+matched, learned and split; the arithmetic lives in pure functions:
 
-* ``d_mean``: the mean of its (unit-normalised) descriptors and ``d_max``,
-  the largest distance of a track descriptor from it (Sec. III);
-* neighbour landmarks co-occurring with it in at least one image, each with
-  the minimum/maximum image distance ``delta`` and angle ``theta`` over the
-  co-occurring images (Sec. III); the top ``k`` by co-occurrence frequency are
-  kept for matching (Sec. IV);
+* landmark descriptions (Sec. III-IV: ``d_mean``, ``d_max``, top-k
+  neighbours and their spatial ranges, the ``S`` test) in
+  :mod:`topoloc.landmarks.description`;
+* the Bayesian network of Fig. 3 (Eq. 1-4) in :mod:`topoloc.landmarks.probability`;
+* node similarity (Eq. 5) in :mod:`topoloc.landmarks.similarity`;
+* the splitting ratios and choice (Eq. 6-8) in :mod:`topoloc.landmarks.splitting`.
 
-and every node (image of the map-building tour) lists its landmarks.
+Matching a query (Sec. IV, :meth:`LandmarkModel.match_pairs`) gives every
+landmark the largest ``P(L=1 | E_L=1)`` (Eq. 1) over its verified (feature,
+neighbour) pairs.
 
-Probabilities of the Bayesian network of Fig. 3 (Sec. IV), per landmark ``l``
-and neighbour ``n``:
+Online learning (Sec. V, :meth:`LandmarkModel.learn`) keeps, for every
+landmark ``l`` of node ``x``, the count of localisations at ``x`` in which
+``l`` was matched; ``p(L=1 | x)`` is that count over the number of
+localisations at ``x`` (the map-building tour counts as one, so it starts
+at 1).
 
-* Eq. 1  ``P(L=1 | E_L=1) = p(L) / (p(L) + p(E_L=1 | L=0) (1 - p(L)))``
-  (``p(E_L=1 | L=1) = 1``), with ``p(L) = a / b`` (track length over the
-  features of the tour);
-* Eq. 2  ``p(E_L=1 | L=0) = p(D_L=1 | L=0) [p(N=1 | L=0)
-  + p(D_N=1 | N=0) p(S=1 | N=0) (1 - p(N=1 | L=0))]`` (the ``N=1`` terms
-  ``p(D_N=1 | N=1) = p(S=1 | N=1) = 1``);
-* ``p(D_L=1 | L=0)``: the fraction of the tour's features (a random sample of
-  ``n_background`` of them) within ``d_max`` of ``d_mean`` that are not in
-  the track, with a pseudo-count ``alpha`` so that it is never exactly 0;
-* Eq. 3  ``p(S=1 | N=0) = (theta_max - theta_min)(delta_max - delta_min) / (2 pi w h)``;
-* Eq. 4  ``p(N=1 | L=0) = 1/|x| sum_{x containing n} 1/|f_x|``.
-
-Online learning (Sec. V) keeps, for every landmark ``l`` of node ``x``, the
-count of localisations at ``x`` in which ``l`` was matched; ``p(L=1 | x)`` is
-that count over the number of localisations at ``x`` (the map-building tour
-counts as one, so it starts at 1).
-
-Optimisation (Sec. VII, Eq. 6-8) splits the most false-positive-prone
-landmark of the worst node into two halves of its track until
-``r = min_x r_x > r_min``.
+Optimisation (Sec. VII, :meth:`LandmarkModel.optimise`) splits the most
+false-positive-prone landmark of the worst node into two halves of its track
+until ``r = min_x r_x > r_min``.
 
 Departures from the paper, all parameters: ``radius_floor`` (a lower bound
 on ``d_max``), ``distance_margin`` and ``angle_margin`` (widen the spatial
 ranges) make landmarks seen in few images matchable from a shifted viewpoint;
-with all three at 0 the paper's exact ranges are used.
+with all three at 0 the paper's exact ranges are used.  ``alpha`` is a
+pseudo-count that keeps ``p(D_L=1 | L=0)`` above 0, estimated on a random
+sample of ``n_background`` map features.
 """
 
 from __future__ import annotations
@@ -52,60 +47,17 @@ import scipy.sparse as sp
 
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
+from topoloc.geometry import normalise_descriptors
+from topoloc.landmarks.description import descriptor_ranges, in_spatial_range, spatial_ranges, top_neighbours
+from topoloc.landmarks.probability import (
+    descriptor_false_positive,
+    landmark_prior,
+    neighbour_presence,
+    pair_probabilities,
+)
 from topoloc.landmarks.similarity import node_similarity
-from topoloc.landmarks.tracking import Tracks, normalise_descriptors
-
-TWO_PI = 2.0 * np.pi
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
-    return (a + np.pi) % TWO_PI - np.pi
-
-
-def posterior(prior: np.ndarray, p_false: np.ndarray) -> np.ndarray:
-    """Eq. 1: ``P(L=1 | E_L=1)`` with ``p(E_L=1 | L=1) = 1``.
-
-    Parameters
-    ----------
-    prior : ndarray
-        ``p(L=1)``.
-    p_false : ndarray, broadcastable to ``prior``
-        ``p(E_L=1 | L=0)`` (Eq. 2).
-    """
-    prior = np.asarray(prior, np.float64)
-    den = prior + np.asarray(p_false, np.float64) * (1.0 - prior)
-    return np.divide(prior, den, out=np.zeros(np.broadcast(prior, den).shape), where=den > 0)
-
-
-def evidence_false_positive(
-    p_desc: np.ndarray, p_desc_nbr: np.ndarray, p_spatial: np.ndarray, p_nbr_present: np.ndarray
-) -> np.ndarray:
-    """Eq. 2: ``p(E_L=1 | L=0)``, marginalised over the neighbour state ``N``.
-
-    Parameters
-    ----------
-    p_desc : ndarray
-        ``p(D_L=1 | L=0)`` of the landmark.
-    p_desc_nbr : ndarray
-        ``p(D_N=1 | N=0)``: the same fraction for the neighbour landmark.
-    p_spatial : ndarray
-        ``p(S=1 | N=0)`` (Eq. 3).
-    p_nbr_present : ndarray
-        ``p(N=1 | L=0)`` (Eq. 4).
-    """
-    pn = np.asarray(p_nbr_present, np.float64)
-    return np.asarray(p_desc, np.float64) * (
-        1.0 * 1.0 * pn + np.asarray(p_desc_nbr) * np.asarray(p_spatial) * (1.0 - pn)
-    )
-
-
-def spatial_false_positive(
-    theta_width: np.ndarray, delta_min: np.ndarray, delta_max: np.ndarray, width: float, height: float
-) -> np.ndarray:
-    """Eq. 3: ``p(S=1 | N=0) = (theta_max - theta_min)(delta_max - delta_min) / (2 pi w h)``, clipped to [0, 1]."""
-    p = np.asarray(theta_width) * (np.asarray(delta_max) - np.asarray(delta_min)) / (TWO_PI * width * height)
-    return np.clip(p, 0.0, 1.0)
+from topoloc.landmarks.splitting import node_ratios, split_candidate
+from topoloc.landmarks.tracking import Tracks
 
 
 class LandmarkModel:
@@ -277,7 +229,7 @@ class LandmarkModel:
             setattr(self, name, np.zeros((self.n_landmarks_, k), np.float64))
         self._update_landmarks(ids)
         self._update_neighbours(ids)
-        self._update_probabilities(ids)
+        self._update_probabilities()
         self._build_index()
         return self
 
@@ -302,134 +254,31 @@ class LandmarkModel:
         """``d_mean``, ``d_max``, ``a`` and ``p(D_L=1 | L=0)`` of landmarks ``ids``."""
         if len(ids) == 0:
             return
-        lo, hi = self.lm_ptr_[ids], self.lm_ptr_[ids + 1]
-        lengths = hi - lo
-        rows = np.repeat(np.arange(len(ids)), lengths)
-        obs = lo[rows] + (np.arange(len(rows)) - np.repeat(np.cumsum(lengths) - lengths, lengths))
-        sums = np.zeros((len(ids), self.obs_desc_.shape[1]), np.float64)
-        np.add.at(sums, rows, self.obs_desc_[obs])
-        mean = (sums / np.maximum(lengths, 1)[:, None]).astype(np.float32)
-        dist = np.linalg.norm(self.obs_desc_[obs] - mean[rows], axis=1)
-        radius = np.zeros(len(ids), np.float32)
-        np.maximum.at(radius, rows, dist.astype(np.float32))
-        self.mean_[ids] = mean
-        self.radius_[ids] = radius
-        self.length_[ids] = lengths
-        self.p_desc_[ids] = self._descriptor_false_positive(ids)
+        self.mean_[ids], self.radius_[ids], self.length_[ids] = descriptor_ranges(self.obs_desc_, self.lm_ptr_, ids)
+        bg_lm = np.where(self.bg_obs_ >= 0, self.obs_lm_[np.maximum(self.bg_obs_, 0)], -1)  # -1: in no landmark
+        self.p_desc_[ids] = descriptor_false_positive(
+            ids, self.mean_[ids], self.effective_radius(ids), self._bg_index, bg_lm, self.n_landmarks_, self.alpha)
 
     def effective_radius(self, ids: np.ndarray | None = None) -> np.ndarray:
         """``max(d_max, radius_floor)`` of landmarks ``ids`` (all by default)."""
         r = self.radius_ if ids is None else self.radius_[ids]
         return np.maximum(r, np.float32(self.radius_floor))
 
-    def _descriptor_false_positive(self, ids: np.ndarray) -> np.ndarray:
-        """``p(D_L=1 | L=0)``: share of other-track map features inside the landmark's range."""
-        n_bg = len(self.bg_desc_)
-        out = np.zeros(len(ids), np.float64)
-        if n_bg == 0:
-            return out
-        radius = self.effective_radius(ids).astype(np.float64)
-        r_max = float(radius.max())
-        lims, dist2, hits = self._bg_index.range_search(
-            np.ascontiguousarray(self.mean_[ids], dtype=np.float32), float(r_max * r_max * (1 + 1e-6)))
-        rows = np.repeat(np.arange(len(ids)), np.diff(lims.astype(np.int64)))
-        bg_lm = np.where(self.bg_obs_ >= 0, self.obs_lm_[np.maximum(self.bg_obs_, 0)], -1)
-        inside = (dist2 <= radius[rows] ** 2 * (1 + 1e-6)) & (bg_lm[hits] != ids[rows])
-        count = np.bincount(rows[inside], minlength=len(ids)).astype(np.float64)
-        own = np.bincount(bg_lm[bg_lm >= 0], minlength=self.n_landmarks_)[ids] if len(ids) else 0
-        n_other = n_bg - own
-        return (count + self.alpha) / (n_other + 2.0 * self.alpha)
+    def _update_neighbours(self, ids: np.ndarray) -> None:
+        """Top-k co-occurring neighbours of landmarks ``ids`` and their spatial ranges (Sec. III-IV)."""
+        self.nbr_[ids], self.nbr_freq_[ids] = top_neighbours(self.incidence_, self.length_, ids, self.top_k)
+        self.nbr_dmin_[ids], self.nbr_dmax_[ids], self.nbr_tmin_[ids], self.nbr_twidth_[ids] = spatial_ranges(
+            ids, self.nbr_[ids], self.lm_ptr_, self.obs_node_, self.obs_key_, self.obs_xy_, self.n_nodes_,
+            distance_margin=self.distance_margin, angle_margin=self.angle_margin)
 
-    # -- neighbours (Sec. III-IV) -------------------------------------------------------
-    def _update_neighbours(self, ids: np.ndarray, chunk: int = 2048) -> None:
-        """Top-k co-occurring neighbours of landmarks ``ids`` and their spatial ranges."""
-        k = self.top_k
-        inc_T = sp.csr_matrix(self.incidence_.T)
-        for start in range(0, len(ids), chunk):
-            part = ids[start:start + chunk]
-            C = sp.csr_matrix(inc_T[part] @ self.incidence_)  # co-occurrence counts (part, n_lm)
-            rows = np.repeat(np.arange(len(part)), np.diff(C.indptr))
-            cols = C.indices.astype(np.int64)
-            cnt = C.data.astype(np.float64)
-            ok = cols != part[rows]
-            rows, cols, cnt = rows[ok], cols[ok], cnt[ok]
-            freq = cnt / np.maximum(self.length_[part[rows]], 1)
-            # Paper: most frequent co-occurrence first; ties (common, e.g. every landmark
-            # of a 2-image track) go to the longer neighbour track, which a later
-            # query is more likely to match, then to the lower id for determinism.
-            order = np.lexsort((cols, -self.length_[cols], -freq, rows))
-            rows, cols, freq = rows[order], cols[order], freq[order]
-            first = np.searchsorted(rows, np.arange(len(part)))
-            rank = np.arange(len(rows)) - first[rows]
-            top = rank < k
-            self.nbr_[part] = -1
-            self.nbr_freq_[part] = 0.0
-            self.nbr_[part[rows[top]], rank[top]] = cols[top]
-            self.nbr_freq_[part[rows[top]], rank[top]] = freq[top]
-        self._update_geometry(ids)
-
-    def _update_geometry(self, ids: np.ndarray) -> None:
-        """Distance and angle ranges of every (landmark, neighbour) pair over co-occurring nodes."""
-        k = self.top_k
-        pair_l = np.repeat(ids, k)
-        pair_n = self.nbr_[ids].ravel()
-        valid = pair_n >= 0
-        pair_idx = np.flatnonzero(valid)
-        pl, pn = pair_l[valid], pair_n[valid]
-        # Expand each pair over the nodes of its landmark, then keep nodes holding the neighbour.
-        lens = self.lm_ptr_[pl + 1] - self.lm_ptr_[pl]
-        rep = np.repeat(np.arange(len(pl)), lens)
-        obs_l = self.lm_ptr_[pl][rep] + (np.arange(len(rep)) - np.repeat(np.cumsum(lens) - lens, lens))
-        key = pn[rep] * self.n_nodes_ + self.obs_node_[obs_l]
-        pos = np.minimum(np.searchsorted(self.obs_key_, key), len(self.obs_key_) - 1)
-        hit = self.obs_key_[pos] == key if len(self.obs_key_) else np.zeros(len(key), bool)
-        rep, obs_l, obs_n = rep[hit], obs_l[hit], pos[hit]
-        vec = self.obs_xy_[obs_n].astype(np.float64) - self.obs_xy_[obs_l].astype(np.float64)
-        dist = np.hypot(vec[:, 0], vec[:, 1])
-        ang = np.arctan2(vec[:, 1], vec[:, 0])
-        n_pairs = len(pl)
-        dmin = np.full(n_pairs, np.inf)
-        dmax = np.full(n_pairs, -np.inf)
-        np.minimum.at(dmin, rep, dist)
-        np.maximum.at(dmax, rep, dist)
-        # Angles relative to the first co-occurrence, so that ranges never straddle +-pi.
-        first = np.full(n_pairs, -1, np.int64)
-        first[rep[::-1]] = np.arange(len(rep))[::-1]
-        ref = np.where(first >= 0, ang[np.maximum(first, 0)] if len(ang) else 0.0, 0.0)
-        off = _wrap(ang - ref[rep])
-        omin = np.full(n_pairs, np.inf)
-        omax = np.full(n_pairs, -np.inf)
-        np.minimum.at(omin, rep, off)
-        np.maximum.at(omax, rep, off)
-        m_d, m_t = self.distance_margin, self.angle_margin
-        seen = np.isfinite(dmin)
-        dmin_e = np.where(seen, dmin * (1.0 - m_d), 0.0)
-        dmax_e = np.where(seen, dmax * (1.0 + m_d), 0.0)
-        tmin_e = np.where(seen, ref + omin - m_t, 0.0)
-        twidth_e = np.where(seen, np.minimum(omax - omin + 2.0 * m_t, TWO_PI), 0.0)
-        for name, vals in (("nbr_dmin_", dmin_e), ("nbr_dmax_", dmax_e),
-                           ("nbr_tmin_", tmin_e), ("nbr_twidth_", twidth_e)):
-            arr = getattr(self, name)
-            flat = arr[ids].ravel()
-            flat[:] = 0.0
-            flat[pair_idx] = vals
-            arr[ids] = flat.reshape(len(ids), k)
-
-    def _update_probabilities(self, ids: np.ndarray | None = None) -> None:
-        """Eq. 4 for every landmark, then Eq. 3, 2 and 1 for every neighbour pair."""
-        # Eq. 4 depends only on the nodes of the neighbour landmark; cheap for all.
-        inv_f = 1.0 / np.maximum(self.node_features_, 1).astype(np.float64)
-        self.p_nbr_present_ = np.bincount(self.obs_lm_, weights=inv_f[self.obs_node_],
-                                          minlength=self.n_landmarks_) / self.n_nodes_
-        h_w = self.image_area_
-        n = np.maximum(self.nbr_, 0)
-        valid = self.nbr_ >= 0
-        self.nbr_p_spatial_ = np.where(
-            valid, spatial_false_positive(self.nbr_twidth_, self.nbr_dmin_, self.nbr_dmax_, h_w, 1.0), 0.0)
-        self.nbr_p_false_ = np.where(valid, evidence_false_positive(
-            self.p_desc_[:, None], self.p_desc_[n], self.nbr_p_spatial_, self.p_nbr_present_[n]), 0.0)
-        self.prior_ = self.length_.astype(np.float64) / max(self.n_map_features_, 1)
-        self.nbr_post_ = np.where(valid, posterior(self.prior_[:, None], self.nbr_p_false_), 0.0)
+    def _update_probabilities(self) -> None:
+        """Eq. 4 and ``p(L)`` for every landmark, then Eq. 3, 2 and 1 for every neighbour pair."""
+        self.p_nbr_present_ = neighbour_presence(self.obs_lm_, self.obs_node_, self.node_features_,
+                                                 self.n_landmarks_)
+        self.prior_ = landmark_prior(self.length_, self.n_map_features_)
+        self.nbr_p_spatial_, self.nbr_p_false_, self.nbr_post_ = pair_probabilities(
+            self.nbr_, self.p_desc_, self.p_nbr_present_, self.prior_,
+            self.nbr_twidth_, self.nbr_dmin_, self.nbr_dmax_, self.image_area_)
 
     def _build_index(self) -> None:
         d = self.mean_.shape[1]
@@ -517,12 +366,8 @@ class LandmarkModel:
         lm = l_s[m]
         sl = slot[pair]
         xy = fs.xy.astype(np.float64)
-        vec = xy[fn] - xy[f]
-        dist = np.hypot(vec[:, 0], vec[:, 1])
-        ang = np.arctan2(vec[:, 1], vec[:, 0])
-        ok_d = (dist >= self.nbr_dmin_[lm, sl]) & (dist <= self.nbr_dmax_[lm, sl])
-        ok_t = np.mod(ang - self.nbr_tmin_[lm, sl], TWO_PI) <= self.nbr_twidth_[lm, sl]
-        verified = ok_d & ok_t & (fn != f)  # S = 1
+        verified = in_spatial_range(xy[fn] - xy[f], self.nbr_dmin_[lm, sl], self.nbr_dmax_[lm, sl],
+                                    self.nbr_tmin_[lm, sl], self.nbr_twidth_[lm, sl]) & (fn != f)  # S = 1
         np.maximum.at(out, lm[verified], self.nbr_post_[lm[verified], sl[verified]])
         fl = np.unique(f[verified] * self.n_landmarks_ + lm[verified])
         return out, fl // self.n_landmarks_, fl % self.n_landmarks_
@@ -555,26 +400,8 @@ class LandmarkModel:
 
     # -- optimisation (Sec. VII) --------------------------------------------------------
     def ratios(self) -> np.ndarray:
-        """``r_x`` of every node (Eq. 6-8), shape (n_nodes,).
-
-        Eq. 7: ``E_true(x) = sum_{l in I_x} P(L|E) p(L|x) / sum_{l in I_x} p(L|x)``.
-        Eq. 8 (read with the sum over the landmarks of the competing node ``y``,
-        since the printed ``l in I_x`` would make the maximum over ``y``
-        vacuous): ``E_false(y) = sum_{l in I_y} P(L|E) p(E_L|L=0) / sum_{l in I_y} p(L|y)``.
-        Eq. 6: ``r_x = E_true(x) / max_{y != x} E_false(y)``; ``eta`` cancels.
-        """
-        W = self.weights()
-        post = self.landmark_posterior()
-        pfp = self.landmark_false_positive()
-        den = np.asarray(W.sum(axis=1)).ravel()
-        safe = np.where(den > 0, den, 1.0)
-        e_true = np.where(den > 0, (W @ post) / safe, 0.0)
-        e_false = np.where(den > 0, (self.incidence_ @ (post * pfp)) / safe, 0.0)
-        if self.n_nodes_ == 1:
-            return np.full(1, np.inf)
-        top2 = np.sort(e_false)[-2:]
-        best_other = np.where(e_false >= top2[1], top2[0], top2[1])
-        return np.divide(e_true, best_other, out=np.full(self.n_nodes_, np.inf), where=best_other > 0)
+        """``r_x`` of every node (Eq. 6-8), shape (n_nodes,); see :func:`topoloc.landmarks.splitting.node_ratios`."""
+        return node_ratios(self.weights(), self.incidence_, self.landmark_posterior(), self.landmark_false_positive())
 
     def split(self, landmark: int) -> int:
         """Split a landmark into two, each with half of its track (first half keeps the id).
@@ -622,16 +449,10 @@ class LandmarkModel:
         """
         done: list[int] = []
         while len(done) < max_splits:
-            r = self.ratios()
-            x = int(np.argmin(r))
-            if r[x] > r_min:
+            target = split_candidate(self.ratios(), r_min, self.obs_lm_, self.obs_node_, self.length_,
+                                     self.landmark_false_positive())
+            if target is None:
                 break
-            lms = self.obs_lm_[self.obs_node_ == x]
-            lms = lms[self.length_[lms] >= 2]
-            if len(lms) == 0:
-                break
-            pfp = self.landmark_false_positive()[lms]
-            target = int(lms[np.argmax(pfp)])
             self.split(target)
             done.append(target)
         if done:

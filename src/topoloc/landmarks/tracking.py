@@ -4,9 +4,10 @@ SIFT features of image ``i`` are matched to those of image ``i + 1`` when they
 are mutual nearest neighbours and their distance is below a threshold (0.45
 for unit-normalised SIFT in the paper, "less than 1% false feature matches");
 false matches are then pruned by estimating the epipolar geometry of the two
-images with RANSAC (``cv2.findFundamentalMat``).  A matched feature is tracked
-continually across consecutive images until no match is found, so every track
-covers a contiguous run of frames with exactly one feature per frame.
+images with RANSAC (:func:`topoloc.geometry.epipolar_inliers`).  A matched
+feature is tracked continually across consecutive images until no match is
+found, so every track covers a contiguous run of frames with exactly one
+feature per frame.
 """
 
 from __future__ import annotations
@@ -14,27 +15,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import faiss
 import numpy as np
 
 from topoloc.features import FeatureSet
-
-
-def normalise_descriptors(desc: np.ndarray) -> np.ndarray:
-    """Unit-L2 rows (the "normalised SIFT" of the paper's 0.45 threshold).
-
-    Parameters
-    ----------
-    desc : ndarray, shape (n, d)
-
-    Returns
-    -------
-    ndarray of float32, shape (n, d), C-contiguous; all-zero rows stay zero.
-    """
-    d = np.asarray(desc, dtype=np.float32)
-    norms = np.linalg.norm(d, axis=1, keepdims=True)
-    return np.ascontiguousarray(d / np.maximum(norms, np.float32(1e-12)), dtype=np.float32)
+from topoloc.geometry import epipolar_inliers, normalise_descriptors
 
 
 def mutual_matches(
@@ -70,48 +55,6 @@ def mutual_matches(
     dist = np.sqrt(np.maximum(d_ab[:, 0], 0.0))
     keep = (ib >= 0) & (i_ba[np.maximum(ib, 0), 0] == ia) & (dist < threshold)
     return ia[keep].astype(np.int64), ib[keep].astype(np.int64), dist[keep].astype(np.float32)
-
-
-def epipolar_inliers(
-    xy_a: np.ndarray,
-    xy_b: np.ndarray,
-    *,
-    ransac_px: float = 3.0,
-    confidence: float = 0.99,
-    min_matches: int = 8,
-    seed: int = 0,
-) -> np.ndarray:
-    """Inlier mask of correspondences under a RANSAC fundamental matrix.
-
-    Parameters
-    ----------
-    xy_a, xy_b : ndarray, shape (m, 2)
-        Corresponding pixel positions.
-    ransac_px : float
-        Largest distance (pixels) of a point from its epipolar line.
-    confidence : float
-        RANSAC confidence.
-    min_matches : int
-        With fewer correspondences the geometry cannot be estimated (the
-        8-point algorithm needs 8) and none is accepted.
-    seed : int
-        OpenCV RNG seed, so that results are reproducible.
-
-    Returns
-    -------
-    ndarray of bool, shape (m,)
-    """
-    m = len(xy_a)
-    if m < max(min_matches, 8):
-        return np.zeros(m, bool)
-    cv2.setRNGSeed(seed)
-    _, mask = cv2.findFundamentalMat(
-        np.ascontiguousarray(xy_a, np.float64), np.ascontiguousarray(xy_b, np.float64),
-        cv2.FM_RANSAC, ransac_px, confidence,
-    )
-    if mask is None:
-        return np.zeros(m, bool)
-    return mask.ravel().astype(bool)
 
 
 @dataclass(frozen=True)
@@ -186,7 +129,7 @@ def build_tracks(
     features : sequence of FeatureSet
         The frames of one traverse, in traverse order.
     threshold, ransac_px, min_matches
-        See :func:`mutual_matches` and :func:`epipolar_inliers`.
+        See :func:`mutual_matches` and :func:`topoloc.geometry.epipolar_inliers`.
     normalised : sequence of ndarray, optional
         Pre-normalised descriptors of each frame (saves recomputing them).
 

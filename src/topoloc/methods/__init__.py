@@ -9,7 +9,8 @@ from __future__ import annotations
 import importlib
 
 from topoloc.errors import TopolocError
-from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.resources import CachedResources, InMemoryResources, Resources
 
 _REGISTRY: dict[str, str] = {
     "bow": "topoloc.methods.bag_of_words:BagOfWords",
@@ -39,4 +40,7 @@ def get_method(name: str) -> type[PlaceRecognizer]:
     return getattr(importlib.import_module(module), cls)
 
 
-__all__ = ["PlaceRecognizer", "Resources", "available_methods", "get_method", "map_place_ids"]
+__all__ = [
+    "CachedResources", "InMemoryResources", "PlaceRecognizer", "Resources", "available_methods", "get_method",
+    "map_place_ids",
+]

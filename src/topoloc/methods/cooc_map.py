@@ -24,12 +24,13 @@ doubles that on gardens_point (see ``docs/results/coocmap.md``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar
 
 import numpy as np
 
+from topoloc._params import Constraint, Interval, OfType, Options
 from topoloc.coocmap.matching import (
     ConsistencyGraphs,
     MatchResult,
@@ -42,7 +43,8 @@ from topoloc.coocmap.model import CoocModel, Observation
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.resources import Resources
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 #: A query item: (word ids (n,), normalised positions (n, 2) uint16).
@@ -115,6 +117,12 @@ class CoocMap(PlaceRecognizer):
 
     name: ClassVar[str] = "coocmap"
     uses_vocabulary: ClassVar[bool] = True
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "grid_x": Interval(int, 1), "grid_y": Interval(int, 1), "interpolate": OfType(bool),
+        "simultaneous": OfType(bool), "schedule": Options(("lazy", "best_first", "rounds")),
+        "top_k": Interval(int, 1), "max_features": Interval(int, 0), "seed": Interval(int),
+        "spatial_tolerance": Interval(int, 0), "position_bits": Interval(int, 1, 16), "model_path": OfType(str),
+    }
 
     def __init__(self, *, grid_x: int = 12, grid_y: int = 8, interpolate: bool = True,
                  simultaneous: bool = True, schedule: str = "lazy", top_k: int = 10, max_features: int = 0,
@@ -132,18 +140,6 @@ class CoocMap(PlaceRecognizer):
         self.position_bits = position_bits
         self.model_path = model_path
 
-    def _check_params(self) -> None:
-        if self.grid_x < 1 or self.grid_y < 1:
-            raise TopolocError(f"coocmap: grid must be at least 1 x 1, got {self.grid_x} x {self.grid_y}")
-        if self.top_k < 1:
-            raise TopolocError(f"coocmap: top_k must be >= 1, got {self.top_k}")
-        if self.spatial_tolerance < 0:
-            raise TopolocError(f"coocmap: spatial_tolerance must be >= 0, got {self.spatial_tolerance}")
-        if self.schedule not in ("lazy", "best_first", "rounds"):
-            raise TopolocError(f"coocmap: schedule must be lazy, best_first or rounds, not {self.schedule!r}")
-        if self.max_features < 0:
-            raise TopolocError(f"coocmap: max_features must be >= 0 (0 = all), got {self.max_features}")
-
     def _observations(self, traverse: Traverse, resources: Resources) -> list[Item]:
         feats = resources.features(traverse)
         words = resources.words(traverse)
@@ -151,19 +147,15 @@ class CoocMap(PlaceRecognizer):
         return [(np.asarray(w[:k], np.int64), normalise_xy(f.keypoints[:k, :2], f.image_shape))
                 for f, w in zip(feats, words, strict=True)]
 
-    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
-        self._check_params()
+    def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         place_ids = map_place_ids(maps)
         vocab = resources.vocabulary
-        try:
-            fingerprint = vocabulary_fingerprint(vocab)
-        except AttributeError:  # a stand-in vocabulary without word centres (tests)
-            fingerprint = {}
+        fingerprint = vocabulary_fingerprint(vocab)
         tours = order_tours(maps)
         model: CoocModel | None = None
         path = Path(self.model_path) if self.model_path else None
         if path is not None and path.is_file():
-            model = CoocModel.load(path, vocabulary=fingerprint or None)
+            model = CoocModel.load(path, vocabulary=fingerprint)
             if (model.n_locations != len(place_ids) or model.grid_x != self.grid_x
                     or model.grid_y != self.grid_y or model.position_bits != self.position_bits):
                 raise TopolocError(f"coocmap file does not fit these maps or grid: {path}")
@@ -184,9 +176,8 @@ class CoocMap(PlaceRecognizer):
         self.model_ = model
         self.tour_order_ = [t.name for t in tours]
         self.place_ids_ = place_ids
-        return self
 
-    def encode(self, query: Traverse, *, resources: Resources) -> list[Any]:
+    def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return list(self._observations(query, resources))
 
     def match(self, item: Item) -> tuple[ConsistencyGraphs, MatchResult]:

@@ -30,17 +30,21 @@ Parameters (keyword-only, ``--param KEY=VALUE``): ``model_path``, ``output``,
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, ClassVar, Self
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 
+from topoloc._params import Constraint, Interval, OfType, Options
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.fabmap.likelihood import Observation, ObservationModel, location_posterior
 from topoloc.fabmap.model import DEFAULT_P_FN, DEFAULT_P_FP, FabMapModel
-from topoloc.fabmap.slam import DenseMap, IndexMap, load_or_train_model, make_map
-from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.fabmap.observation import Observation, ObservationModel
+from topoloc.fabmap.place_map import DenseMap, IndexMap, make_map
+from topoloc.fabmap.posterior import location_posterior
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.resources import Resources
+from topoloc.methods.slam import load_or_train_model
 
 OUTPUTS = ("loglik", "posterior")
 
@@ -79,6 +83,13 @@ class FabMap(PlaceRecognizer):
     name: ClassVar[str] = "fabmap"
     uses_vocabulary: ClassVar[bool] = True
     variant: ClassVar[str] = "fabmap"
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "model_path": OfType(str), "output": Options(OUTPUTS), "naive_bayes": OfType(bool),
+        "normaliser": Options(("sampled", "mean_field")), "n_samples": Interval(int, 0),
+        "p_new": Interval(float, 0.0, 1.0, closed="left"), "smoothing": Interval(float, 0.0, 1.0, closed="right"),
+        "p_fp": Interval(float, 0.0, 1.0, closed="neither"), "p_fn": Interval(float, 0.0, 1.0, closed="neither"),
+        "bailout": OfType(bool), "p_bailout": Interval(float, 0.0, 1.0, closed="neither"), "seed": Interval(int),
+    }
 
     def __init__(
         self,
@@ -109,17 +120,8 @@ class FabMap(PlaceRecognizer):
         self.p_bailout = p_bailout
         self.seed = seed
 
-    def _check_params(self) -> None:
-        if self.output not in OUTPUTS:
-            raise TopolocError(f"{self.name}: output must be loglik or posterior, got {self.output!r}")
-        if not 0.0 <= self.p_new < 1.0:
-            raise TopolocError(f"{self.name}: p_new must be in [0, 1), got {self.p_new}")
-        if not 0.0 < self.smoothing <= 1.0:
-            raise TopolocError(f"{self.name}: smoothing must be in (0, 1], got {self.smoothing}")
-
-    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
+    def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         """Train (or load) the model and build one appearance model per map place."""
-        self._check_params()
         model = load_or_train_model(self.model_path or None, resources)
         if (model.p_fp, model.p_fn) != (self.p_fp, self.p_fn):
             model = model.with_detector(p_fp=self.p_fp, p_fn=self.p_fn)
@@ -145,9 +147,8 @@ class FabMap(PlaceRecognizer):
         self.obs_model_ = om
         self.map_ = pmap
         self.place_ids_ = place_ids
-        return self
 
-    def encode(self, query: Traverse, *, resources: Resources) -> list[Any]:
+    def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         """Visual-word ids of each query image (sorted, unique, int32)."""
         return [np.unique(np.asarray(w, dtype=np.int64)).astype(np.int32)
                 for w in resources.words(query)]

@@ -20,17 +20,18 @@ the others score 0.  Several map images of one place: the maximum.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, ClassVar, Self
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
 
 import faiss
 import numpy as np
 
+from topoloc._params import Constraint, Interval
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
-from topoloc.landmarks.tracking import epipolar_inliers, normalise_descriptors
-from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.geometry import epipolar_inliers, normalise_descriptors
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.resources import Resources
 
 
 class ImageVoting(PlaceRecognizer):
@@ -62,6 +63,11 @@ class ImageVoting(PlaceRecognizer):
     """
 
     name: ClassVar[str] = "voting"
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "ratio": Interval(float, 0.0, 1.0, closed="right"), "n_neighbours": Interval(int, 2),
+        "n_verify": Interval(int, 1), "ransac_px": Interval(float, 0.0, closed="neither"),
+        "min_matches": Interval(int, 1),
+    }
 
     def __init__(
         self,
@@ -78,11 +84,7 @@ class ImageVoting(PlaceRecognizer):
         self.ransac_px = ransac_px
         self.min_matches = min_matches
 
-    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
-        if not 0 < self.ratio <= 1:
-            raise TopolocError(f"voting: ratio must be in (0, 1], got {self.ratio}")
-        if self.n_neighbours < 2 or self.n_verify < 1:
-            raise TopolocError("voting: n_neighbours must be >= 2 and n_verify >= 1")
+    def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         place_ids = map_place_ids(maps)
         feats = [f for m in maps for f in resources.features(m)]
         places = np.concatenate([m.places for m in maps])
@@ -98,9 +100,8 @@ class ImageVoting(PlaceRecognizer):
         if descs:
             self.index_.add(np.ascontiguousarray(np.concatenate(descs)))
         self.place_ids_ = place_ids
-        return self
 
-    def encode(self, query: Traverse, *, resources: Resources) -> list[Any]:
+    def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return list(resources.features(query))
 
     def image_votes(self, fs: FeatureSet) -> np.ndarray:

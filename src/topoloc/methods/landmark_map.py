@@ -13,18 +13,20 @@ and the parameters that depart from the paper.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, ClassVar, Self
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 
+from topoloc._params import Constraint, Interval, OfType, Options
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
+from topoloc.geometry import epipolar_inliers, normalise_descriptors
 from topoloc.landmarks.model import LandmarkModel
 from topoloc.landmarks.similarity import node_similarity
-from topoloc.landmarks.tracking import build_tracks, epipolar_inliers, normalise_descriptors
-from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.landmarks.tracking import build_tracks
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.resources import Resources
 
 
 class LandmarkMap(PlaceRecognizer):
@@ -79,6 +81,15 @@ class LandmarkMap(PlaceRecognizer):
     """
 
     name: ClassVar[str] = "landmarks"
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "match_threshold": Interval(float, 0.0, 2.0, closed="right"),
+        "ransac_px": Interval(float, 0.0, closed="neither"),
+        "top_k_neighbours": Interval(int, 0), "radius_floor": Interval(float, 0.0),
+        "distance_margin": Interval(float, 0.0), "angle_margin": Interval(float, 0.0),
+        "n_candidates": Interval(int, 1), "min_track_length": Interval(int, 2), "index": Options(("flat", "hnsw")),
+        "r_min": Interval(float, 0.0), "max_splits": Interval(int, 0), "online_supervised": OfType(bool),
+        "verify_nodes": Interval(int, 0), "n_background": Interval(int, 1), "normalise": OfType(bool),
+    }
 
     def __init__(
         self,
@@ -115,11 +126,7 @@ class LandmarkMap(PlaceRecognizer):
         self.n_background = n_background
         self.normalise = normalise
 
-    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
-        if not 0 < self.match_threshold <= 2:
-            raise TopolocError(f"landmarks: match_threshold must be in (0, 2], got {self.match_threshold}")
-        if self.verify_nodes < 0:
-            raise TopolocError(f"landmarks: verify_nodes must be >= 0, got {self.verify_nodes}")
+    def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         place_ids = map_place_ids(maps)
         feats = resources.features(maps[0])
         normalised = [normalise_descriptors(f.descriptors) for f in feats]
@@ -138,7 +145,6 @@ class LandmarkMap(PlaceRecognizer):
         self.weights_ = model.weights()
         for tour in maps[1:]:
             self.learn_tour(tour, resources=resources)
-        return self
 
     def learn_tour(self, tour: Traverse, *, resources: Resources) -> np.ndarray:
         """Online learning (Sec. V) from a later tour; returns the node each image was localised to.
@@ -168,7 +174,7 @@ class LandmarkMap(PlaceRecognizer):
         self.weights_ = self.model_.weights()
         return nodes
 
-    def encode(self, query: Traverse, *, resources: Resources) -> list[Any]:
+    def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return list(resources.features(query))
 
     def _node_scores(

@@ -68,17 +68,17 @@ the sequence search: ``S = -`` contrast-enhanced difference.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from functools import lru_cache
-from pathlib import Path
-from typing import Any, ClassVar, Self
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
 
-import cv2
 import numpy as np
 
-from topoloc.datasets.traverse import Traverse, read_image
+from topoloc._params import Check, Constraint, Interval, Options
+from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.methods.base import PlaceRecognizer, Resources, map_place_ids
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.resources import Resources
+from topoloc.seqslam import difference_matrix, preprocess_image
 from topoloc.sequence.search import contrast_enhance, sequence_search, uniqueness_margin
 
 # Query columns of the difference matrix held at once in score(): bounds the
@@ -86,141 +86,6 @@ from topoloc.sequence.search import contrast_enhance, sequence_search, uniquenes
 # _MIN_BLOCK_QUERIES queries per block so that the ds-query overlap stays cheap.
 _MAX_BLOCK_CELLS = 1 << 25
 _MIN_BLOCK_QUERIES = 256
-
-
-# ------------------------------------------------------------------ preprocessing
-@lru_cache(maxsize=16)
-def _patch_labels(height: int, width: int, patch_size: int) -> tuple[np.ndarray, int]:
-    """Patch index of every pixel (row-major), and the number of patches."""
-    ny = -(-height // patch_size)
-    nx = -(-width // patch_size)
-    yy, xx = np.mgrid[0:height, 0:width]
-    labels = (yy // patch_size) * nx + (xx // patch_size)
-    labels.setflags(write=False)
-    return labels.ravel(), ny * nx
-
-
-def patch_normalize(img: np.ndarray, patch_size: int = 8) -> np.ndarray:
-    """Patch normalisation of SeqSLAM (OpenSeqSLAM ``patchNormalize.m``, mode 1).
-
-    Every ``patch_size x patch_size`` patch is standardised to zero mean and
-    unit sample standard deviation (``ddof=1``, MATLAB's ``std``), which
-    removes local brightness and contrast (day/night, season, exposure).
-    Vectorised with one ``bincount`` per statistic; patches cut by the image
-    border are normalised on their own pixels (the release leaves them raw).
-    Patches without spread become 0.
-
-    Parameters
-    ----------
-    img : ndarray, shape (H, W)
-        Grey image.
-    patch_size : int
-        Side of the patches, >= 2.
-
-    Returns
-    -------
-    ndarray of float64, shape (H, W)
-        Normalised intensities ``z``.
-    """
-    if img.ndim != 2:
-        raise ValueError(f"expected a grey image (H, W), got shape {img.shape}")
-    if patch_size < 2:
-        raise ValueError(f"patch_size must be >= 2, got {patch_size}")
-    h, w = img.shape
-    labels, n_patches = _patch_labels(h, w, int(patch_size))
-    x = img.astype(np.float64).ravel()
-    cnt = np.bincount(labels, minlength=n_patches).astype(np.float64)
-    s1 = np.bincount(labels, weights=x, minlength=n_patches)
-    mean = s1 / cnt
-    d = x - mean[labels]
-    ss = np.bincount(labels, weights=d * d, minlength=n_patches)
-    std = np.sqrt(ss / np.maximum(cnt - 1.0, 1.0))
-    ok = (cnt >= 2) & (std > 1e-9)
-    inv = np.where(ok, 1.0 / np.where(ok, std, 1.0), 0.0)
-    return (d * inv[labels]).reshape(h, w)
-
-
-def preprocess_image(
-    img: np.ndarray,
-    *,
-    width: int = 64,
-    height: int = 32,
-    patch_size: int = 8,
-    levels_per_std: float = 16.0,
-) -> np.ndarray:
-    """SeqSLAM's image preprocessing: grey, downsample, patch-normalise, quantise.
-
-    Parameters
-    ----------
-    img : ndarray of uint8, shape (H, W) or (H, W, 3) BGR
-    width, height : int
-        Size after downsampling (area interpolation when shrinking, which
-        averages like MATLAB's antialiased ``imresize``; linear when growing).
-    patch_size : int
-        Patch normalisation side; ``0`` keeps the raw grey levels.
-    levels_per_std : float
-        Grey levels per standard deviation when storing the normalised image
-        as ``127 + round(levels_per_std * z)`` (clipped to 0..255);
-        ``1`` is OpenSeqSLAM's own rounding.
-
-    Returns
-    -------
-    ndarray of uint8, shape (height * width,)
-    """
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    if img.dtype != np.uint8:
-        img = np.clip(img, 0, 255).astype(np.uint8)
-    if img.shape != (height, width):
-        shrink = img.shape[0] >= height and img.shape[1] >= width
-        img = cv2.resize(
-            img, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-        )
-    if patch_size == 0:
-        return np.ascontiguousarray(img).ravel()
-    z = patch_normalize(img, patch_size)
-    q = np.clip(np.rint(127.0 + levels_per_std * z), 0, 255)
-    return q.astype(np.uint8).ravel()
-
-
-def difference_matrix(db: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """Mean absolute difference between every database and query vector.
-
-    ``D[i, j] = sum_x |db[i, x] - queries[j, x]| / n_pixels`` (SeqSLAM's image
-    difference; OpenSeqSLAM's ``getDifferenceMatrix.m`` divides by the number
-    of images instead, a constant factor).  Each query is compared with all
-    database rows in one OpenCV ``batchDistance`` call (SIMD sums of absolute
-    differences on uint8, threaded over rows), so the only Python loop is
-    over queries.
-
-    Parameters
-    ----------
-    db : ndarray of uint8, shape (n_db, n_pixels)
-    queries : ndarray of uint8, shape (n_q, n_pixels)
-
-    Returns
-    -------
-    ndarray of float32, shape (n_db, n_q)
-    """
-    if db.ndim != 2 or queries.ndim != 2 or db.shape[1] != queries.shape[1]:
-        raise ValueError(f"vectors of different sizes: {db.shape} and {queries.shape}")
-    n_db, n_pix = db.shape
-    out = np.empty((queries.shape[0], n_db), dtype=np.float32)
-    if n_db == 0 or queries.shape[0] == 0:
-        return out.T.copy()
-    db = np.ascontiguousarray(db, dtype=np.uint8)
-    # int32 is exact up to 8.4 million pixels of 255; float32 would round
-    # sums above 2**24.
-    dist = np.empty((n_db, 1), dtype=np.int32)
-    for j in range(queries.shape[0]):
-        q = np.ascontiguousarray(queries[j : j + 1], dtype=np.uint8)
-        # K=1 against a single query row: the "nearest" distance of each
-        # database row is its distance to that query (OpenCV's Python
-        # binding cannot return the full matrix, which needs K=0).
-        d, _ = cv2.batchDistance(db, q, cv2.CV_32S, dist, normType=cv2.NORM_L1, K=1)
-        out[j] = np.asarray(d)[:, 0]
-    out *= np.float32(1.0 / n_pix)
-    return np.ascontiguousarray(out.T)
 
 
 # ------------------------------------------------------------------------- methods
@@ -268,6 +133,16 @@ class SeqSLAM(PlaceRecognizer):
 
     name: ClassVar[str] = "seqslam"
     scores_whole_sequence: ClassVar[bool] = True
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "width": Interval(int, 1), "height": Interval(int, 1),
+        "patch_size": Check(lambda v: not isinstance(v, bool) and int(v) == v and (v == 0 or v >= 2),
+                            "0 or an integer >= 2"),
+        "levels_per_std": Interval(float, 0.0, closed="neither"), "enhance_window": Interval(int, 0),
+        "ds": Interval(int, 0), "v_min": Interval(float, 0.0), "v_max": Interval(float, 0.0),
+        "v_step": Interval(float, 0.0, closed="neither"), "search": Options(("constant", "acceleration")),
+        "max_skip": Interval(int, 0), "step_penalty": Interval(float, 0.0, float("inf"), closed="left"),
+        "uniqueness": Interval(int, 0),
+    }
 
     map_vectors_: np.ndarray
     map_rows_: np.ndarray
@@ -304,29 +179,12 @@ class SeqSLAM(PlaceRecognizer):
         self.uniqueness = uniqueness
 
     # -- parameters ---------------------------------------------------------------
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """The per-parameter constraints, and ``v_min <= v_max`` (the only rule across parameters)."""
+        super().validate_params()
         p = self.get_params()
-        for key in ("width", "height"):
-            if int(p[key]) != p[key] or p[key] < 1:
-                raise TopolocError(f"{self.name}: {key} must be a positive integer, got {p[key]}")
-        if p["patch_size"] != 0 and (int(p["patch_size"]) != p["patch_size"] or p["patch_size"] < 2):
-            raise TopolocError(f"{self.name}: patch_size must be 0 or an integer >= 2")
-        if not p["levels_per_std"] > 0:
-            raise TopolocError(f"{self.name}: levels_per_std must be > 0")
-        if int(p["enhance_window"]) != p["enhance_window"] or p["enhance_window"] < 0:
-            raise TopolocError(f"{self.name}: enhance_window must be an integer >= 0")
-        if "ds" in p and (int(p["ds"]) != p["ds"] or p["ds"] < 0):
-            raise TopolocError(f"{self.name}: ds must be an integer >= 0")
-        if "search" in p and p["search"] not in ("constant", "acceleration"):
-            raise TopolocError(f"{self.name}: search must be 'constant' or 'acceleration'")
-        if "max_skip" in p and (int(p["max_skip"]) != p["max_skip"] or p["max_skip"] < 0):
-            raise TopolocError(f"{self.name}: max_skip must be an integer >= 0")
-        if "v_min" in p and not (0 <= p["v_min"] <= p["v_max"] and p["v_step"] > 0):
-            raise TopolocError(f"{self.name}: need 0 <= v_min <= v_max and v_step > 0")
-        if "step_penalty" in p and not (0 <= p["step_penalty"] < float("inf")):
-            raise TopolocError(f"{self.name}: step_penalty must be finite and >= 0")
-        if int(p["uniqueness"]) != p["uniqueness"] or p["uniqueness"] < 0:
-            raise TopolocError(f"{self.name}: uniqueness must be an integer >= 0")
+        if "v_min" in p and p["v_min"] > p["v_max"]:
+            raise TopolocError(f"{self.name}: v_min must be <= v_max, got {p['v_min']} > {p['v_max']}")
 
     @property
     def _n_pixels(self) -> int:
@@ -337,9 +195,9 @@ class SeqSLAM(PlaceRecognizer):
             f"seqslam:{self.width}x{self.height}:p{self.patch_size}:l{self.levels_per_std:g}"
         )
 
-    def _preprocess_path(self, path: Path) -> np.ndarray:
+    def _preprocess(self, gray: np.ndarray) -> np.ndarray:
         return preprocess_image(
-            read_image(path, gray=True),
+            gray,
             width=int(self.width),
             height=int(self.height),
             patch_size=int(self.patch_size),
@@ -348,14 +206,14 @@ class SeqSLAM(PlaceRecognizer):
 
     def _vectors(self, traverse: Traverse, resources: Resources) -> np.ndarray:
         items = resources.per_image(
-            traverse, self._key(), self._preprocess_path, f"{self.name} {traverse.name}"
+            traverse, self._key(), self._preprocess, f"{self.name} {traverse.name}"
         )
         if not items:
             return np.zeros((0, self._n_pixels), dtype=np.uint8)
         return np.stack(items)
 
     # -- contract -------------------------------------------------------------------
-    def fit(self, maps: Sequence[Traverse], *, resources: Resources) -> Self:
+    def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         """Preprocess every map image; rows of ``S`` are the sorted place ids.
 
         Parameters
@@ -367,7 +225,6 @@ class SeqSLAM(PlaceRecognizer):
         resources : Resources
             Per-image work runs through ``resources.per_image`` (timed).
         """
-        self._check_params()
         place_ids = map_place_ids(maps)
         vecs = [self._vectors(m, resources) for m in maps]
         rows = np.concatenate([np.searchsorted(place_ids, m.places) for m in maps])
@@ -377,16 +234,10 @@ class SeqSLAM(PlaceRecognizer):
         self.map_vectors_ = np.concatenate(vecs)[order]
         self.map_rows_ = rows[order].astype(np.int64)
         self.place_ids_ = place_ids
-        return self
 
-    def encode(self, query: Traverse, *, resources: Resources) -> list[np.ndarray]:
+    def _encode(self, query: Traverse, resources: Resources) -> list[np.ndarray]:
         """Preprocessed query images, each uint8 of shape (height * width,)."""
-        self.check_fitted()
-        return list(
-            resources.per_image(
-                query, self._key(), self._preprocess_path, f"{self.name} {query.name}"
-            )
-        )
+        return list(resources.per_image(query, self._key(), self._preprocess, f"{self.name} {query.name}"))
 
     def _query_matrix(self, items: Sequence[Any]) -> np.ndarray:
         n_pix = self.map_vectors_.shape[1]

@@ -20,10 +20,11 @@ import cv2
 import numpy as np
 
 from topoloc.coocmap.spatial import normalise_xy
-from topoloc.datasets.traverse import load_traverse, read_image
+from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import input_error
-from topoloc.methods.base import Resources
+from topoloc.io.container import atomic_write_bytes
 from topoloc.methods.cooc_map import CoocMap
+from topoloc.methods.resources import Resources
 
 
 def draw_correspondences(query_bgr: np.ndarray, map_bgr: np.ndarray, pts_query: np.ndarray,
@@ -70,10 +71,73 @@ def _pair_up(qw: np.ndarray, qxy: np.ndarray, mw: np.ndarray, mxy: np.ndarray) -
     return qxy[ok], mxy[j[ok]]
 
 
+def _pixels(traverse: Traverse, index: int, shape: tuple[int, int]) -> np.ndarray:
+    """The image to draw on: its pixels, or a white canvas of its size for a traverse of features."""
+    if traverse.kind in ("files", "images"):
+        return traverse.read(index, gray=False)
+    return np.full((*shape, 3), 255, np.uint8)
+
+
+def match_drawing(
+    method: CoocMap, query: Traverse, maps: Sequence[Traverse], *, index: int = 0,
+    resources: Resources | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Localise image ``index`` of ``query`` and draw it beside its best match (Fig. 1 / 5 of the paper).
+
+    Parameters
+    ----------
+    method : CoocMap
+        Fitted on ``maps``.
+    query : Traverse
+        Holds the query image (files, an in-memory image or its features).
+    maps : sequence of Traverse
+        The map traverses ``method`` was fitted on (the model keeps no images).
+    index : int
+        Which image of ``query``.
+    resources : Resources, optional
+        Default: the ones ``method`` was fitted with.
+
+    Returns
+    -------
+    canvas : ndarray of uint8, shape (H, W, 3)
+    info : dict
+        ``best_place``, ``score`` (size of ``K``), ``map_image`` (the training
+        image drawn), ``n_lines``.
+    """
+    method.check_fitted()
+    res = resources if resources is not None else method.resources_
+    fs = res.features(query)[index]
+    k = method.max_features or None
+    words = np.asarray(res.words(query)[index], np.int64)[:k]
+    kp = fs.keypoints[:k, :2]
+    graphs, result = method.match((words, normalise_xy(kp, fs.image_shape)))
+    best = result.best
+    group = result.group(graphs, best)
+    place = int(method.place_ids_[best])
+    # The training image of the best place holding the most words of K.
+    best_ref, best_hits, best_feats = None, -1, None
+    for t in maps:
+        feats = res.features(t)
+        tw = res.words(t)
+        for i in np.flatnonzero(t.places == place):
+            hits = int(np.isin(words[group], tw[i][:k]).sum())
+            if hits > best_hits:
+                best_ref, best_hits, best_feats = (t, int(i)), hits, (tw[i][:k], feats[i])
+    if best_ref is None or best_feats is None:
+        raise input_error("the best place has no image in the map traverses", str(place))
+    pq, pm = _pair_up(words[group], kp[group].astype(np.float64), np.asarray(best_feats[0]),
+                      best_feats[1].keypoints[:k, :2].astype(np.float64))
+    canvas = draw_correspondences(_pixels(query, index, fs.image_shape),
+                                  _pixels(best_ref[0], best_ref[1], best_feats[1].image_shape),
+                                  pq, pm, seed=method.seed)
+    return canvas, {"best_place": place, "score": float(result.scores[best]),
+                    "map_image": str(best_ref[0].images[best_ref[1]]), "n_lines": len(pq)}
+
+
 def show_match(query_image: str | Path, map_dirs: Sequence[str | Path], out_png: str | Path, *,
                resources: Resources, method: CoocMap | None = None,
                **params: Any) -> dict[str, Any]:
-    """Localise one image and draw its best match (Fig. 1 / 5 of the paper).
+    """Localise one image file against map folders and write the drawing of :func:`match_drawing`.
 
     Parameters
     ----------
@@ -91,40 +155,18 @@ def show_match(query_image: str | Path, map_dirs: Sequence[str | Path], out_png:
     Returns
     -------
     dict
-        ``best_place``, ``score`` (size of ``K``), ``map_image`` (the training
-        image drawn), ``n_lines``, ``out``.
+        ``best_place``, ``score``, ``map_image``, ``n_lines``, ``out``.
     """
     maps = [load_traverse(d) for d in map_dirs]
     if method is None:
         method = CoocMap(**params).fit(maps, resources=resources)
-    fs = resources.extractor.extract_path(query_image)
-    k = method.max_features or None
-    words = np.asarray(resources.vocabulary.quantize(fs.descriptors), np.int64)[:k]
-    kp = fs.keypoints[:k, :2]
-    graphs, result = method.match((words, normalise_xy(kp, fs.image_shape)))
-    best = result.best
-    group = result.group(graphs, best)
-    place = int(method.place_ids_[best])
-    # The training image of the best place holding the most words of K.
-    best_img, best_hits, best_feats = None, -1, None
-    for t in maps:
-        feats = resources.features(t)
-        tw = resources.words(t)
-        for i in np.flatnonzero(t.places == place):
-            hits = int(np.isin(words[group], tw[i][:k]).sum())
-            if hits > best_hits:
-                best_img, best_hits, best_feats = t.images[i], hits, (tw[i][:k], feats[i].keypoints[:k, :2])
-    if best_img is None or best_feats is None:
-        raise input_error("the best place has no image in the map traverses", str(place))
-    pq, pm = _pair_up(words[group], kp[group].astype(np.float64), np.asarray(best_feats[0]),
-                      best_feats[1].astype(np.float64))
-    canvas = draw_correspondences(read_image(query_image, gray=False), read_image(best_img, gray=False),
-                                  pq, pm, seed=method.seed)
+    path = Path(query_image)
+    query = Traverse(root=path.parent, images=(path,), places=np.zeros(1, np.int64), name=path.name)
+    canvas, info = match_drawing(method, query, maps, resources=resources)
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     ok, buf = cv2.imencode(".png", canvas)
     if not ok:
         raise input_error("could not encode the drawing", out)
-    out.write_bytes(buf.tobytes())
-    return {"best_place": place, "score": float(result.scores[best]), "map_image": str(best_img),
-            "n_lines": len(pq), "out": str(out)}
+    atomic_write_bytes(out, buf.tobytes())
+    return {**info, "out": str(out)}

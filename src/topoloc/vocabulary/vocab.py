@@ -314,6 +314,43 @@ class Vocabulary:
         self._index, self._index_for = None, None
         return self
 
+    @classmethod
+    def from_words(
+        cls, words: np.ndarray, *, descriptor_kind: str, provenance: dict[str, Any] | None = None, **params: Any
+    ) -> Vocabulary:
+        """A fitted vocabulary with the given word centres (e.g. trained elsewhere).
+
+        Parameters
+        ----------
+        words : ndarray of float32, shape (n_words, d)
+            The centres, in the space of :meth:`fit`'s words (unpacked bits for
+            binary kinds: ``d = 8 * bytes``).
+        descriptor_kind : str
+            Kind of descriptors they quantise, e.g. ``"sift-128-float32"``.
+        provenance : dict, optional
+            Facts to record (defaults to ``{"source": "from_words"}``).
+        **params
+            Constructor parameters (``index``, ``ef_search``...); ``n_words`` is taken from ``words``.
+
+        Raises
+        ------
+        TopolocError
+            If the centres do not fit the descriptor kind, are fewer than 2 or not finite.
+        """
+        _, dim, dtype = parse_descriptor_kind(descriptor_kind)
+        W = np.asarray(words, dtype=np.float32)
+        space_dim = 8 * dim if dtype == np.uint8 else dim
+        if W.ndim != 2 or W.shape[1] != space_dim or len(W) < 2 or not np.isfinite(W).all():
+            raise TopolocError(f"word centres of shape {W.shape} do not fit descriptor kind {descriptor_kind} "
+                               "(need at least 2 finite rows)")
+        voc = cls(**{**params, "n_words": len(W)})
+        voc.words_ = np.ascontiguousarray(W)
+        voc.n_words_ = len(W)
+        voc.descriptor_kind_ = str(descriptor_kind)
+        voc.n_features_in_ = dim
+        voc.provenance_ = json.loads(json.dumps(provenance or {"source": "from_words"}, default=str))
+        return voc
+
     # -- quantisation ----------------------------------------------------------------------
     def _check_descriptors(self, descriptors: np.ndarray, source: str | Path | None = None) -> np.ndarray:
         X = np.asarray(descriptors)

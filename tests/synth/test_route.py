@@ -1,4 +1,4 @@
-"""Tests of the synthetic route generator (``topoloc.synth.route``)."""
+"""Tests of the synthetic route generator (``topoloc.synth``)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 from topoloc.datasets.traverse import Traverse, load_traverse, read_image
 from topoloc.errors import TopolocError
-from topoloc.synth.route import (
+from topoloc.synth import (
     DEFAULT_TOURS,
     Pose,
     RouteConfig,

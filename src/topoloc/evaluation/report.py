@@ -1,0 +1,147 @@
+"""Reports of ``evaluate`` runs: labels, markdown tables, ``report.md`` and side-by-side reports.
+
+A run's label names the method with the parameters that differ from its
+defaults, non-default features and preprocessing, and the sequence length, so
+that two rows of a table that differ in how they were run never look alike.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc._params import keyword_defaults
+from topoloc.errors import TopolocError
+from topoloc.evaluation.plots import plot_pr_curves
+from topoloc.io.container import atomic_write_bytes
+from topoloc.methods import get_method
+
+#: Photometric preprocessing of ``evaluate`` when none is asked for (runs written before it existed had none).
+DEFAULT_PREPROCESS = "none"
+
+
+def _short(path: str) -> str:
+    p = Path(path)
+    return f"{p.parent.name}/{p.name}" if p.parent.name else p.name
+
+
+def _maps_label(maps: list[str], sep: str) -> str:
+    names = [_short(x) for x in maps]
+    if len(names) > 3:
+        return f"{len(names)} traverses {names[0]}{sep}...{sep}{names[-1]}"
+    return sep.join(names)
+
+
+def _method_label(m: dict[str, Any]) -> str:
+    """Method name with the parameters that differ from its defaults, e.g. ``seqslam (search=acceleration)``."""
+    params = dict(m.get("params", {}))
+    seq = params.pop("sequence", 0)
+    tags = []
+    try:
+        cls = get_method(m["method"])
+        defaults = keyword_defaults(cls)
+        tags = [f"{k}={v}" for k, v in params.items() if k in defaults and defaults[k] != v]
+    except TopolocError:
+        pass  # a method this installation does not know: show the bare name
+    feats = m.get("run", {}).get("features", {})
+    if feats.get("method", "sift") != "sift":
+        tags.append(feats["method"])
+    # Runs written before preprocessing existed had none.
+    if feats.get("preprocess", "none") != DEFAULT_PREPROCESS:
+        tags.append(f"preprocess={feats['preprocess']}")
+    if seq and seq > 1:
+        tags.append(f"seq {seq}")
+    return m["method"] + (f" ({', '.join(tags)})" if tags else "")
+
+
+
+
+def run_title(m: dict[str, Any]) -> str:
+    run = m.get("run", {})
+    return f"{_method_label(m)}: {_maps_label(run.get('map', []), '+')} -> {_short(run.get('query', '?'))}"
+
+
+TABLE_HEADER = (
+    "| method | map | query | AUC | R@100P | R@1 | R@5 | R@10 | ms/query | ms features | peak MiB |\n"
+    "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+)
+
+
+def table_row(m: dict[str, Any]) -> str:
+    """One markdown table row for a run's metrics."""
+    run = m.get("run", {})
+    maps = _maps_label(run.get("map", []), " + ")
+    method = _method_label(m)
+    return (
+        f"| {method} | {maps} | {_short(run.get('query', '?'))} | {m['auc']:.3f} | "
+        f"{m['recall_at_100_precision']:.3f} | {m['recall_at_1']:.3f} | {m['recall_at_5']:.3f} | "
+        f"{m['recall_at_10']:.3f} | {m['ms_per_query']:.2f} | {m['ms_features']:.1f} | "
+        f"{m['peak_rss_mb']:.0f} |\n"
+    )
+
+
+def _features_line(f: dict[str, Any]) -> str:
+    side = int(f.get("max_side", 0))
+    resize = f"images downscaled to a longer side of {side} px" if side else "images at full size"
+    if "max_side_option" in f:
+        resize += f" (--max-side {f['max_side_option']})"
+    return (f"{f['method']}, at most {f['max_features']} per image, {resize}, "
+            f"photometric preprocessing {f.get('preprocess', 'none')}")
+
+
+def render_run_report(m: dict[str, Any]) -> str:
+    """``report.md`` of one run."""
+    run = m["run"]
+    voc = run["vocabulary"]
+    lines = [
+        f"# {run_title(m)}\n\n",
+        TABLE_HEADER,
+        table_row(m),
+        "\n## What was run\n\n",
+        f"- method `{m['method']}`, parameters `{json.dumps(m['params'], default=str)}`\n",
+        f"- map: {', '.join(f'`{x}`' for x in run['map'])}\n",
+        f"- query: `{run['query']}` ({m['n_queries']} queries, {m['n_places']} map places)\n",
+        f"- ground truth: {run['ground_truth']}\n",
+        f"- local features: {_features_line(run['features'])}\n",
+    ]
+    if voc.get("used"):
+        prov = {k: v for k, v in voc.items() if k not in {"used"}}
+        lines.append(f"- vocabulary: `{json.dumps(prov, default=str)}`\n")
+    else:
+        lines.append("- vocabulary: none (this method does not use one)\n")
+    lines += [
+        f"- fit time {run['fit_seconds']:.2f} s; ms/query median {m['ms_per_query']:.2f}, "
+        f"95th percentile {run['ms_per_query_p95']:.2f} (feature extraction excluded)\n",
+        f"- machine: {run['machine']}; date {run['date']}\n",
+    ]
+    return "".join(lines)
+
+
+def load_run(run_dir: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+    """Metrics and PR curve (precision, recall) of an ``evaluate`` output folder."""
+    mpath = run_dir / "metrics.json"
+    if not mpath.is_file():
+        raise TopolocError(f"not an evaluate output folder (no metrics.json): {run_dir}")
+    try:
+        m = json.loads(mpath.read_text())
+        pr = np.loadtxt(run_dir / "pr.csv", delimiter=",", skiprows=1, ndmin=2)
+    except (ValueError, OSError) as exc:
+        raise TopolocError(f"corrupt evaluate output ({exc.__class__.__name__}): {run_dir}") from None
+    return m, pr[:, 0], pr[:, 1]
+
+
+def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Path:
+    """Side-by-side table (``README.md``-style markdown) and one PNG of all PR curves."""
+    runs = [load_run(Path(d)) for d in run_dirs]
+    out.mkdir(parents=True, exist_ok=True)
+    md = [f"# {title}\n\n", TABLE_HEADER, *(table_row(m) for m, _, _ in runs)]
+    md.append("\nRuns: " + ", ".join(f"`{d}`" for d in run_dirs) + "\n\n![PR curves](pr_curves.png)\n")
+    curves = [(f"{run_title(m)} (AUC {m['auc']:.2f})", p, r) for m, p, r in runs]
+    plot_pr_curves(curves, out / "pr_curves.png", title=title)
+    path = out / "report.md"
+    atomic_write_bytes(path, "".join(md).encode())
+    return path
+

@@ -1,0 +1,108 @@
+"""SeqSLAM's image preprocessing: grey, downsample, patch-normalise, quantise (Milford & Wyeth, ICRA 2012).
+
+Patch normalisation follows OpenSeqSLAM's ``patchNormalize.m``; the
+quantisation keeps ``levels_per_std`` grey levels per standard deviation
+(``1`` is the original release's rounding), see
+:mod:`topoloc.methods.seq_slam` for why.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+
+@lru_cache(maxsize=16)
+def _patch_labels(height: int, width: int, patch_size: int) -> tuple[np.ndarray, int]:
+    """Patch index of every pixel (row-major), and the number of patches."""
+    ny = -(-height // patch_size)
+    nx = -(-width // patch_size)
+    yy, xx = np.mgrid[0:height, 0:width]
+    labels = (yy // patch_size) * nx + (xx // patch_size)
+    labels.setflags(write=False)
+    return labels.ravel(), ny * nx
+
+
+def patch_normalize(img: np.ndarray, patch_size: int = 8) -> np.ndarray:
+    """Patch normalisation of SeqSLAM (OpenSeqSLAM ``patchNormalize.m``, mode 1).
+
+    Every ``patch_size x patch_size`` patch is standardised to zero mean and
+    unit sample standard deviation (``ddof=1``, MATLAB's ``std``), which
+    removes local brightness and contrast (day/night, season, exposure).
+    Vectorised with one ``bincount`` per statistic; patches cut by the image
+    border are normalised on their own pixels (the release leaves them raw).
+    Patches without spread become 0.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W)
+        Grey image.
+    patch_size : int
+        Side of the patches, >= 2.
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W)
+        Normalised intensities ``z``.
+    """
+    if img.ndim != 2:
+        raise ValueError(f"expected a grey image (H, W), got shape {img.shape}")
+    if patch_size < 2:
+        raise ValueError(f"patch_size must be >= 2, got {patch_size}")
+    h, w = img.shape
+    labels, n_patches = _patch_labels(h, w, int(patch_size))
+    x = img.astype(np.float64).ravel()
+    cnt = np.bincount(labels, minlength=n_patches).astype(np.float64)
+    s1 = np.bincount(labels, weights=x, minlength=n_patches)
+    mean = s1 / cnt
+    d = x - mean[labels]
+    ss = np.bincount(labels, weights=d * d, minlength=n_patches)
+    std = np.sqrt(ss / np.maximum(cnt - 1.0, 1.0))
+    ok = (cnt >= 2) & (std > 1e-9)
+    inv = np.where(ok, 1.0 / np.where(ok, std, 1.0), 0.0)
+    return (d * inv[labels]).reshape(h, w)
+
+
+def preprocess_image(
+    img: np.ndarray,
+    *,
+    width: int = 64,
+    height: int = 32,
+    patch_size: int = 8,
+    levels_per_std: float = 16.0,
+) -> np.ndarray:
+    """SeqSLAM's image preprocessing: grey, downsample, patch-normalise, quantise.
+
+    Parameters
+    ----------
+    img : ndarray of uint8, shape (H, W) or (H, W, 3) BGR
+    width, height : int
+        Size after downsampling (area interpolation when shrinking, which
+        averages like MATLAB's antialiased ``imresize``; linear when growing).
+    patch_size : int
+        Patch normalisation side; ``0`` keeps the raw grey levels.
+    levels_per_std : float
+        Grey levels per standard deviation when storing the normalised image
+        as ``127 + round(levels_per_std * z)`` (clipped to 0..255);
+        ``1`` is OpenSeqSLAM's own rounding.
+
+    Returns
+    -------
+    ndarray of uint8, shape (height * width,)
+    """
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    if img.shape != (height, width):
+        shrink = img.shape[0] >= height and img.shape[1] >= width
+        img = cv2.resize(
+            img, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+        )
+    if patch_size == 0:
+        return np.ascontiguousarray(img).ravel()
+    z = patch_normalize(img, patch_size)
+    q = np.clip(np.rint(127.0 + levels_per_std * z), 0, 255)
+    return q.astype(np.uint8).ravel()

@@ -1,0 +1,76 @@
+"""``run_slam``: online FAB-MAP over a traverse, its outputs and its argument checks."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.fabmap.model import FabMapModel
+from topoloc.methods.slam import run_slam
+from topoloc.synth.words import zipf_occurrence
+
+V = 400
+
+
+@pytest.fixture(scope="module")
+def model() -> FabMapModel:
+    x = zipf_occurrence(300, n_words=V, words_per_image=40, seed=21, permutation_seed=0)
+    return FabMapModel.train(x, n_words=V)
+
+
+def _noisy(words: np.ndarray, rng: np.random.Generator, fresh: np.ndarray) -> np.ndarray:
+    kept = words[rng.random(words.size) < 0.75]
+    return np.union1d(kept, rng.choice(fresh, size=min(8, fresh.size), replace=False))
+
+
+def loop_sequence(n_places: int = 20, seed: int = 3) -> tuple[list[np.ndarray], np.ndarray]:
+    """Two passes over ``n_places`` distinct places: images 0..n-1, then n..2n-1 revisit them."""
+    rng = np.random.default_rng(seed)
+    places = zipf_occurrence(n_places, n_words=V, words_per_image=40, seed=seed,
+                             permutation_seed=0)
+    fresh = zipf_occurrence(2 * n_places, n_words=V, words_per_image=40, seed=seed + 1,
+                            permutation_seed=0)
+    seq, truth = [], []
+    for k in range(2 * n_places):
+        p = k % n_places
+        w = places.indices[places.indptr[p]:places.indptr[p + 1]]
+        f = fresh.indices[fresh.indptr[k]:fresh.indptr[k + 1]]
+        seq.append(_noisy(w, rng, f))
+        truth.append(p)
+    return seq, np.array(truth)
+
+
+def test_run_slam_writes_outputs(model: FabMapModel, tmp_path: Path) -> None:
+    seq, truth = loop_sequence(n_places=12)
+    images = tuple(tmp_path / f"{k}.jpg" for k in range(len(seq)))
+    tr = Traverse(root=tmp_path, images=images, places=np.arange(len(seq)))
+    model_file = tmp_path / "m.tfm"
+    model.save(model_file)
+    out = tmp_path / "out"
+    res = run_slam(tr, out_dir=out, model=model_file, words=seq, min_gap=5)
+    post = np.load(out / "posterior.npy")
+    assert post.shape == (len(seq), res.n_places + 1)
+    with (out / "loop_closures.csv").open() as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["image", "matched_image", "probability"]
+    assert len(rows) - 1 == len(res.loop_closures()) > 0
+    for img, matched, p in rows[1:]:
+        assert int(img) >= 12 and int(matched) < 12 and float(p) >= 0.98
+        assert truth[int(img)] == truth[int(matched)]
+    assert (out / "loop_closures.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "assignments.csv").is_file() and (out / "slam.json").is_file()
+    lcm = res.loop_closure_matrix()
+    assert lcm.shape == (len(seq), len(seq))
+
+
+def test_run_slam_errors(model: FabMapModel, tmp_path: Path) -> None:
+    tr = Traverse(root=tmp_path, images=(tmp_path / "a.jpg",), places=np.arange(1))
+    with pytest.raises(TopolocError, match="traverse has"):
+        run_slam(tr, out_dir=tmp_path / "o", model=model, words=[np.array([1]), np.array([2])])
+    with pytest.raises(TopolocError, match="resources"):
+        run_slam(tr, out_dir=tmp_path / "o", model=model)
