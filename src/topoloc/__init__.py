@@ -1,5 +1,14 @@
 """topoloc: appearance-based localisation and loop closure.
 
+Everything a user needs is importable from here (loaded on first use, so that
+``import topoloc`` and the command line start fast)::
+
+    import topoloc
+    day = topoloc.load_traverse("route/day")                  # a folder of images
+    cam = topoloc.Traverse.from_images(frames)                # or images in memory
+    rec = topoloc.SeqSLAM().fit(day)                          # any recogniser
+    S = rec.similarity(cam)                                   # (n_map_places, n_frames)
+
 Conventions used everywhere in the package
 ------------------------------------------
 Every recogniser produces a similarity matrix ``S`` of shape
@@ -9,7 +18,125 @@ higher values mean "more similar".  Ground truth comes as two boolean matrices
 ``GThard`` and ``GTsoft`` of the same shape (see :mod:`topoloc.datasets.groundtruth`).
 """
 
-from topoloc.errors import TopolocError
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from topoloc.errors import NotFittedError, TopolocError
 
 __version__ = "0.1.0"
-__all__ = ["TopolocError", "__version__"]
+
+# Public name -> module that defines it.
+_LAZY: dict[str, str] = {
+    # recognisers and their contract
+    "BagOfWords": "topoloc.methods.bag_of_words",
+    "CoocMap": "topoloc.methods.cooc_map",
+    "FabMap": "topoloc.methods.fab_map",
+    "FabMap2": "topoloc.methods.fab_map",
+    "ImageVoting": "topoloc.methods.image_voting",
+    "LandmarkMap": "topoloc.methods.landmark_map",
+    "SeqSLAM": "topoloc.methods.seq_slam",
+    "SingleImageSeqSLAM": "topoloc.methods.seq_slam",
+    "PlaceRecognizer": "topoloc.methods.base",
+    "available_methods": "topoloc.methods",
+    "get_method": "topoloc.methods",
+    "Resources": "topoloc.methods.resources",
+    "CachedResources": "topoloc.methods.resources",
+    "InMemoryResources": "topoloc.methods.resources",
+    # inputs
+    "Traverse": "topoloc.datasets.traverse",
+    "load_traverse": "topoloc.datasets.traverse",
+    "read_image": "topoloc.datasets.traverse",
+    "GroundTruth": "topoloc.datasets.groundtruth",
+    "ground_truth_from_places": "topoloc.datasets.groundtruth",
+    "ground_truth_from_xy": "topoloc.datasets.groundtruth",
+    "ground_truth_from_file": "topoloc.datasets.groundtruth",
+    "FeatureConfig": "topoloc.features.local",
+    "FeatureExtractor": "topoloc.features.local",
+    "FeatureSet": "topoloc.features.local",
+    "extract_features": "topoloc.features.local",
+    "Vocabulary": "topoloc.vocabulary.vocab",
+    "train_vocabulary": "topoloc.vocabulary.vocab",
+    # evaluation
+    "evaluate": "topoloc.evaluation.pipeline",
+    "EvaluateOptions": "topoloc.evaluation.pipeline",
+    "compute_metrics": "topoloc.evaluation.metrics",
+    "Scores": "topoloc.evaluation.metrics",
+    "sequence_similarity": "topoloc.sequence.search",
+}
+
+__all__ = [
+    "BagOfWords",
+    "CachedResources",
+    "CoocMap",
+    "EvaluateOptions",
+    "FabMap",
+    "FabMap2",
+    "FeatureConfig",
+    "FeatureExtractor",
+    "FeatureSet",
+    "GroundTruth",
+    "ImageVoting",
+    "InMemoryResources",
+    "LandmarkMap",
+    "NotFittedError",
+    "PlaceRecognizer",
+    "Resources",
+    "Scores",
+    "SeqSLAM",
+    "SingleImageSeqSLAM",
+    "TopolocError",
+    "Traverse",
+    "Vocabulary",
+    "__version__",
+    "available_methods",
+    "compute_metrics",
+    "evaluate",
+    "extract_features",
+    "get_method",
+    "ground_truth_from_file",
+    "ground_truth_from_places",
+    "ground_truth_from_xy",
+    "load_traverse",
+    "read_image",
+    "sequence_similarity",
+    "train_vocabulary",
+]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'topoloc' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+if TYPE_CHECKING:  # static checkers and IDEs see the real names
+    from topoloc.datasets.groundtruth import (
+        GroundTruth,
+        ground_truth_from_file,
+        ground_truth_from_places,
+        ground_truth_from_xy,
+    )
+    from topoloc.datasets.traverse import Traverse, load_traverse, read_image
+    from topoloc.evaluation.metrics import Scores, compute_metrics
+    from topoloc.evaluation.pipeline import EvaluateOptions, evaluate
+    from topoloc.features.local import FeatureConfig, FeatureExtractor, FeatureSet, extract_features
+    from topoloc.methods import available_methods, get_method
+    from topoloc.methods.bag_of_words import BagOfWords
+    from topoloc.methods.base import PlaceRecognizer
+    from topoloc.methods.cooc_map import CoocMap
+    from topoloc.methods.fab_map import FabMap, FabMap2
+    from topoloc.methods.image_voting import ImageVoting
+    from topoloc.methods.landmark_map import LandmarkMap
+    from topoloc.methods.resources import CachedResources, InMemoryResources, Resources
+    from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM
+    from topoloc.sequence.search import sequence_similarity
+    from topoloc.vocabulary.vocab import Vocabulary, train_vocabulary

@@ -102,7 +102,11 @@ def check_recognizer(
     S = clone.score(items)
     assert S.shape == (len(expected_rows), len(query)), f"S has shape {S.shape}"
     assert np.isfinite(S).all(), "S must be finite"
+    # Orientation: rows are map places, columns queries, whatever the number of queries.
+    part = clone.score(items[:3])
+    assert part.shape == (len(expected_rows), min(3, len(items))), f"S of 3 queries has shape {part.shape}"
     if not clone.scores_whole_sequence:
+        np.testing.assert_allclose(part, S[:, : part.shape[1]], rtol=1e-5, atol=1e-5)
         cols = np.concatenate([clone.score([it]) for it in items], axis=1)
         np.testing.assert_allclose(cols, S, rtol=1e-5, atol=1e-5, err_msg="queries must be scored independently")
     np.testing.assert_allclose(clone.similarity(query), S, rtol=1e-5, atol=1e-5,

@@ -11,37 +11,18 @@ import pytest
 from topoloc.errors import TopolocError
 from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.slam import FabMapSlam, motion_prior, write_slam_outputs
-from topoloc.synth.words import zipf_occurrence
+from topoloc.synth.words import loop_sequence as make_loop
 
 V = 400
 
 
 @pytest.fixture(scope="module")
-def model() -> FabMapModel:
-    x = zipf_occurrence(300, n_words=V, words_per_image=40, seed=21, permutation_seed=0)
-    return FabMapModel.train(x, n_words=V)
-
-
-def _noisy(words: np.ndarray, rng: np.random.Generator, fresh: np.ndarray) -> np.ndarray:
-    kept = words[rng.random(words.size) < 0.75]
-    return np.union1d(kept, rng.choice(fresh, size=min(8, fresh.size), replace=False))
+def model(fabmap_loop_model: FabMapModel) -> FabMapModel:
+    return fabmap_loop_model
 
 
 def loop_sequence(n_places: int = 20, seed: int = 3) -> tuple[list[np.ndarray], np.ndarray]:
-    """Two passes over ``n_places`` distinct places: images 0..n-1, then n..2n-1 revisit them."""
-    rng = np.random.default_rng(seed)
-    places = zipf_occurrence(n_places, n_words=V, words_per_image=40, seed=seed,
-                             permutation_seed=0)
-    fresh = zipf_occurrence(2 * n_places, n_words=V, words_per_image=40, seed=seed + 1,
-                            permutation_seed=0)
-    seq, truth = [], []
-    for k in range(2 * n_places):
-        p = k % n_places
-        w = places.indices[places.indptr[p]:places.indptr[p + 1]]
-        f = fresh.indices[fresh.indptr[k]:fresh.indptr[k + 1]]
-        seq.append(_noisy(w, rng, f))
-        truth.append(p)
-    return seq, np.array(truth)
+    return make_loop(n_places, n_words=V, seed=seed)
 
 
 def test_motion_prior_by_hand() -> None:

@@ -1,20 +1,7 @@
-"""Synthetic bag-of-words streams and FAB-MAP timings (``topoloc bench fabmap2``).
+"""FAB-MAP timings on synthetic bag-of-words streams (``topoloc bench fabmap2``).
 
-Synthetic data
---------------
-:func:`zipf_occurrence` draws images whose words follow Zipf's law: the word of
-frequency rank ``r`` has weight ``r^-s`` (``s = 1``: the classic law of word
-frequencies), and an image holds ~``words_per_image`` distinct words.  Word
-``q`` occurs in an image independently with probability
-``pi_q = 1 - exp(-lambda w_q)``, ``lambda`` set so that ``sum pi_q`` equals the
-words per image: the inclusion probabilities of drawing features from the
-Zipf distribution until that many distinct words are seen (Poisson
-approximation).  At ``s = 1``, 10,000 words and 300 words per image the most
-common words are in every image, the 50th in ~65 % and the 1,000th in ~5 %.
-Rank-to-id assignment is a seeded permutation.  Queries are revisits of
-random map places: each word of the place is re-detected with probability
-``keep`` and fresh words drawn from the same law are added so that the query
-again has ~``words_per_image`` words.
+The streams are those of :mod:`topoloc.synth.words` (Zipf-distributed words,
+noisy revisits of random map places).
 
 Timings
 -------

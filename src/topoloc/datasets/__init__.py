@@ -1,4 +1,4 @@
-"""Traverses, ground truth and synthetic routes."""
+"""Traverses (image folders, or frames held in memory) and ground truth."""
 
 from topoloc.datasets.groundtruth import (
     GroundTruth,

@@ -27,7 +27,7 @@ from topoloc.synth.camera import Pose, render_view
 from topoloc.synth.config import RouteConfig
 from topoloc.synth.lighting import Lighting, sun_position, tour_lighting
 from topoloc.synth.route import DEFAULT_TOURS, TourPlan, generate_route, plan_tour, speed_profile
-from topoloc.synth.words import revisit_queries, zipf_inclusion, zipf_occurrence
+from topoloc.synth.words import loop_sequence, revisit_queries, zipf_inclusion, zipf_occurrence
 from topoloc.synth.world import World, build_world
 
 __all__ = [
@@ -39,6 +39,7 @@ __all__ = [
     "World",
     "build_world",
     "generate_route",
+    "loop_sequence",
     "plan_tour",
     "render_view",
     "revisit_queries",

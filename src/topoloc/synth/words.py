@@ -25,7 +25,7 @@ from scipy.optimize import brentq
 
 from topoloc.errors import TopolocError
 
-__all__ = ["revisit_queries", "zipf_inclusion", "zipf_occurrence"]
+__all__ = ["loop_sequence", "revisit_queries", "zipf_inclusion", "zipf_occurrence"]
 
 
 def zipf_inclusion(n_words: int, words_per_image: float, exponent: float = 1.0) -> np.ndarray:
@@ -182,3 +182,35 @@ def revisit_queries(
         add = rng.choice(new, size=min(n_add, new.size), replace=False) if n_add else new[:0]
         out.append(np.union1d(kept, add).astype(np.int64))
     return out, truth.astype(np.int64)
+
+
+def loop_sequence(
+    n_places: int = 20, *, n_words: int = 400, words_per_image: int = 40, seed: int = 3, keep: float = 0.75
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """A route driven twice: images ``0..n-1`` see ``n_places`` distinct places, ``n..2n-1`` revisit them.
+
+    Each image keeps a fraction ``keep`` of its place's words (Zipf-distributed,
+    :func:`zipf_occurrence`) and adds up to 8 words of its own, the noise of a
+    revisit; for online loop-closure (SLAM) tests.
+
+    Returns
+    -------
+    words : list of ndarray of int, length 2 * n_places
+        Sorted unique word ids of each image.
+    truth : ndarray of int, shape (2 * n_places,)
+        The place each image shows.
+    """
+    rng = np.random.default_rng(seed)
+    places = zipf_occurrence(n_places, n_words=n_words, words_per_image=words_per_image, seed=seed,
+                             permutation_seed=0)
+    fresh = zipf_occurrence(2 * n_places, n_words=n_words, words_per_image=words_per_image, seed=seed + 1,
+                            permutation_seed=0)
+    seq, truth = [], []
+    for k in range(2 * n_places):
+        p = k % n_places
+        w = places.indices[places.indptr[p]:places.indptr[p + 1]]
+        f = fresh.indices[fresh.indptr[k]:fresh.indptr[k + 1]]
+        kept = w[rng.random(w.size) < keep]
+        seq.append(np.union1d(kept, rng.choice(f, size=min(8, f.size), replace=False)))
+        truth.append(p)
+    return seq, np.array(truth)

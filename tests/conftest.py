@@ -1,0 +1,47 @@
+"""Shared fixtures: one tiny generated route (three tours of a synthetic street), read once per session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pytest
+
+if TYPE_CHECKING:
+    from topoloc.fabmap.model import FabMapModel
+
+
+@pytest.fixture(scope="session")
+def tiny_route(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """A 10-place street at noon (map), at dusk (queries) and in the morning (vocabulary training).
+
+    Returns a dict with the three file traverses (``map``, ``query``,
+    ``training``), the query frames as BGR arrays (``query_frames``) and a
+    300-word SIFT vocabulary trained on the morning tour (``vocabulary``).
+    """
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.features import FeatureExtractor
+    from topoloc.synth import RouteConfig, generate_route
+    from topoloc.vocabulary import Vocabulary
+
+    root = tmp_path_factory.mktemp("tiny_route")
+    dirs = generate_route(root, config=RouteConfig(n_places=10, width=192, height=144, seed=3),
+                          tours=[("noon", 12.0), ("dusk", 18.0), ("morning", 9.0)])
+    noon, dusk, morning = (load_traverse(d) for d in dirs)
+    ex = FeatureExtractor(use_cache=False)
+    desc = np.vstack([ex.extract_path(p).descriptors for p in morning.images])
+    voc = Vocabulary(n_words=300, seed=0).fit(desc, descriptor_kind=ex.config.descriptor_kind,
+                                              provenance={"folders": [str(Path(dirs[2]))]})
+    frames = [dusk.read(i, gray=False) for i in range(len(dusk))]
+    return {"map": noon, "query": dusk, "training": morning, "query_frames": frames, "vocabulary": voc}
+
+
+@pytest.fixture(scope="session")
+def fabmap_loop_model() -> FabMapModel:
+    """A FAB-MAP model trained on 300 Zipf-distributed images of a 400-word vocabulary (online SLAM tests)."""
+    from topoloc.fabmap.model import FabMapModel
+    from topoloc.synth.words import zipf_occurrence
+
+    x = zipf_occurrence(300, n_words=400, words_per_image=40, seed=21, permutation_seed=0)
+    return FabMapModel.train(x, n_words=400)
