@@ -18,6 +18,7 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 PUBLIC = {
     "BagOfWords", "CachedResources", "CoocMap", "EvaluateOptions", "FabMap", "FabMap2", "FeatureConfig",
     "FeatureExtractor", "FeatureSet", "GroundTruth", "ImageVoting", "InMemoryResources", "LandmarkMap",
+    "Localizer", "Map",
     "NotFittedError", "PlaceRecognizer", "Resources", "Scores", "SeqSLAM", "SingleImageSeqSLAM", "TopolocError",
     "Traverse", "Vocabulary", "__version__", "available_methods", "compute_metrics", "evaluate",
     "extract_features", "get_method", "ground_truth_from_file", "ground_truth_from_places",

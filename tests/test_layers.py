@@ -24,8 +24,8 @@ LAYERS: dict[str, int] = {
     "bow": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2, "voting": 2,
     # 3 recognisers (adapters to the Resources protocol), their registry and test helpers
     "methods": 3, "testing": 3,
-    # 4 pipelines: evaluation, benchmarks, demo
-    "evaluation": 4, "bench": 4, "demo": 4,
+    # 4 pipelines: evaluation, saved maps and localisation, benchmarks, demo
+    "evaluation": 4, "bench": 4, "demo": 4, "maps": 4,
     # 5 the command line
     "cli": 5,
 }

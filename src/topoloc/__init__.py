@@ -58,6 +58,9 @@ _LAZY: dict[str, str] = {
     "extract_features": "topoloc.features.local",
     "Vocabulary": "topoloc.vocabulary.vocab",
     "train_vocabulary": "topoloc.vocabulary.vocab",
+    # saved maps and localisation
+    "Map": "topoloc.maps.map",
+    "Localizer": "topoloc.maps.map",
     # evaluation
     "evaluate": "topoloc.evaluation.pipeline",
     "EvaluateOptions": "topoloc.evaluation.pipeline",
@@ -80,6 +83,8 @@ __all__ = [
     "ImageVoting",
     "InMemoryResources",
     "LandmarkMap",
+    "Localizer",
+    "Map",
     "NotFittedError",
     "PlaceRecognizer",
     "Resources",
@@ -129,6 +134,7 @@ if TYPE_CHECKING:  # static checkers and IDEs see the real names
     from topoloc.evaluation.metrics import Scores, compute_metrics
     from topoloc.evaluation.pipeline import EvaluateOptions, evaluate
     from topoloc.features.local import FeatureConfig, FeatureExtractor, FeatureSet, extract_features
+    from topoloc.maps.map import Localizer, Map
     from topoloc.methods import available_methods, get_method
     from topoloc.methods.bag_of_words import BagOfWords
     from topoloc.methods.base import PlaceRecognizer

@@ -197,3 +197,235 @@ def bench_coocmap(*, locations: int = 2200, tours: int = 5, features: int = 500,
         "features_stored": model.n_features,
         "build_s": build_s,
     }
+
+
+# -- real images --------------------------------------------------------------------------------
+#: Version of the image variants below; part of the feature cache key.
+_VARIANT_VERSION = 1
+
+
+def real_locations(images: list[Any], shapes: list[tuple[int, int]], n_locations: int) -> list[tuple[int, tuple[int, int, int, int]]]:
+    """One ``(image index, crop box x, y, w, h)`` per location.
+
+    With at least as many images as locations, one whole image per location
+    (evenly spread over the images).  Otherwise every image gives ``c =
+    ceil(locations / images)`` distinct crops of half its width and height on
+    a regular grid (2 rows when ``c > 2``, columns evenly spaced; neighbouring
+    crops of one image overlap by at most half a crop), and the first
+    ``locations`` crops in image order are used.
+    """
+    n = len(images)
+    if n == 0 or n_locations <= 0:
+        return []
+    if n >= n_locations:
+        pick = np.linspace(0, n - 1, n_locations).round().astype(int)
+        return [(int(i), (0, 0, shapes[i][1], shapes[i][0])) for i in pick]
+    c = -(-n_locations // n)
+    rows = 1 if c <= 2 else 2
+    cols = -(-c // rows)
+    out: list[tuple[int, tuple[int, int, int, int]]] = []
+    for i in range(n):
+        h, w = shapes[i]
+        cw, ch = w // 2, h // 2 if rows == 2 else h
+        xs = np.linspace(0, w - cw, cols).round().astype(int) if cols > 1 else np.array([(w - cw) // 2])
+        ys = np.linspace(0, h - ch, rows).round().astype(int) if rows > 1 else np.array([(h - ch) // 2])
+        boxes = [(int(x), int(y), cw, ch) for y in ys for x in xs][:c]
+        out.extend((i, b) for b in boxes)
+    return out[:n_locations]
+
+
+def image_variant(image: np.ndarray, box: tuple[int, int, int, int], rng: np.random.Generator) -> np.ndarray:
+    """A seeded re-observation of the crop ``box`` of ``image`` (grey uint8).
+
+    Viewpoint: scale 0.9-1.1, rotation +-3 deg and a shift of +-5 % of the
+    crop about its centre (taken from the whole image, reflected at its
+    borders); appearance: brightness x0.7-1.3, gamma 0.7-1.4, Gaussian blur
+    sigma 0-1.5 px, Gaussian noise sigma 0-6 grey levels.
+    """
+    import cv2
+
+    x, y, w, h = box
+    s = rng.uniform(0.9, 1.1)
+    th = np.deg2rad(rng.uniform(-3, 3))
+    shift = rng.uniform(-0.05, 0.05, 2) * (w, h)
+    c, si = np.cos(th) / s, np.sin(th) / s
+    cx, cy = x + w / 2 + shift[0], y + h / 2 + shift[1]
+    # Output pixel (u, v) samples the source at centre + R (u - w/2, v - h/2) / s.
+    M = np.array([[c, -si, cx - c * w / 2 + si * h / 2], [si, c, cy - si * w / 2 - c * h / 2]])
+    out = cv2.warpAffine(image, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REFLECT).astype(np.float32)
+    out = 255.0 * np.clip(out * rng.uniform(0.7, 1.3) / 255.0, 0, 1) ** rng.uniform(0.7, 1.4)
+    sigma = rng.uniform(0, 1.5)
+    if sigma > 0.3:
+        out = cv2.GaussianBlur(out, (0, 0), sigma)
+    out = out + rng.normal(0, rng.uniform(0, 6), out.shape)
+    return np.clip(out, 0, 255).round().astype(np.uint8)
+
+
+def real_features(dirs: list[Any], *, locations: int, tours: int, n_queries: int, vocab_train: list[Any],
+                  n_words: int = 10000, seed: int = 0, cache_dir: Any = None,
+                  progress: Any = None) -> dict[str, Any]:
+    """Words and positions of every tour image and query of the real-image benchmark.
+
+    Images are found recursively under ``dirs``; locations come from
+    :func:`real_locations`, tour ``t`` of location ``l`` is
+    :func:`image_variant` seeded with ``(seed, l, t)`` and a query is the
+    variant ``t = tours`` of a location (``n_queries`` locations drawn
+    without replacement).  Features are `topoloc evaluate`'s defaults (SIFT,
+    at most 1,000 per image, no resizing, no preprocessing), quantised with
+    a vocabulary of ``n_words`` trained on ``vocab_train``
+    (:func:`~topoloc.vocabulary.cached_vocabulary`).  The result is cached
+    under ``<cache>/bench/`` (extraction takes minutes).
+
+    Returns
+    -------
+    dict
+        ``tour_words``/``tour_xy``: lists (tours) of lists (locations) of
+        arrays; ``query_loc`` (Q,), ``query_words``, ``query_xy``;
+        ``n_images``, ``vocabulary`` (fingerprint), ``vocab_file``.
+    """
+    import functools
+    import hashlib
+    import json
+    from concurrent.futures import ThreadPoolExecutor
+    from pathlib import Path
+
+    from topoloc._parallel import n_workers
+    from topoloc.datasets.traverse import find_images, read_image
+    from topoloc.features import FeatureConfig, FeatureExtractor
+    from topoloc.features.cache import default_cache_dir
+    from topoloc.io.container import read_container, write_container
+    from topoloc.vocabulary import cached_vocabulary
+    from topoloc.vocabulary.vocab import vocabulary_fingerprint
+
+    extractor = FeatureExtractor(FeatureConfig(), cache_dir=cache_dir)
+    vocab, vocab_file = cached_vocabulary([Path(d) for d in vocab_train], extractor=extractor, n_words=n_words,
+                                          seed=0, cache_dir=cache_dir, progress=progress)
+    fp = vocabulary_fingerprint(vocab)
+    paths = find_images([Path(d) for d in dirs])
+    ident = [[str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns] for p in paths]
+    key = hashlib.sha1(json.dumps([ident, locations, tours, n_queries, seed, extractor.config.key(),
+                                   fp.get("sha1"), _VARIANT_VERSION]).encode()).hexdigest()[:20]
+    root = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    file = root / "bench" / f"coocmap_real_{key}.tlc"
+    rng = np.random.default_rng(seed)
+    query_loc = np.sort(rng.choice(locations, size=min(n_queries, locations), replace=False))
+    if file.is_file():
+        _, arrays = read_container(file, "coocmap_bench", 1)
+        words, xy, ptr = arrays["words"], arrays["xy"], arrays["ptr"]
+    else:
+        shapes = [read_image(p).shape[:2] for p in paths]
+        locs = real_locations(paths, shapes, locations)
+        if len(locs) < locations:
+            raise ValueError(f"found {len(paths)} images under {dirs}: not enough for {locations} locations")
+        jobs = [(lo, t) for t in range(tours) for lo in range(locations)] + [(int(q), tours) for q in query_loc]
+        read = functools.lru_cache(maxsize=16)(read_image)
+
+        def one(job: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+            lo, t = job
+            i, box = locs[lo]
+            var = image_variant(read(paths[i]), box, np.random.default_rng([seed, lo, t]))
+            fs = extractor.extract_image(var)
+            return vocab.quantize(fs.descriptors).astype(np.int32), normalise_xy(fs.xy, fs.image_shape)
+
+        tick = progress("coocmap bench: features of the variants", len(jobs)) if progress else None
+        results: list[tuple[np.ndarray, np.ndarray]] = []
+        with ThreadPoolExecutor(max_workers=n_workers()) as pool:
+            for r in pool.map(one, jobs):
+                results.append(r)
+                if tick is not None:
+                    tick(1)
+        ptr = np.r_[0, np.cumsum([len(w) for w, _ in results])].astype(np.int64)
+        words = np.concatenate([w for w, _ in results]) if results else np.zeros(0, np.int32)
+        xy = np.concatenate([x for _, x in results]) if results else np.zeros((0, 2), np.uint16)
+        file.parent.mkdir(parents=True, exist_ok=True)
+        write_container(file, "coocmap_bench", 1, {"words": words, "xy": xy, "ptr": ptr},
+                        meta={"dirs": [str(d) for d in dirs], "locations": locations, "tours": tours})
+    seg = [(words[ptr[k]:ptr[k + 1]].astype(np.int64), xy[ptr[k]:ptr[k + 1]]) for k in range(len(ptr) - 1)]
+    tw = [[seg[t * locations + lo][0] for lo in range(locations)] for t in range(tours)]
+    txy = [[seg[t * locations + lo][1] for lo in range(locations)] for t in range(tours)]
+    qs = seg[tours * locations:]
+    return {"tour_words": tw, "tour_xy": txy, "query_loc": query_loc,
+            "query_words": [q[0] for q in qs], "query_xy": [q[1] for q in qs],
+            "n_images": len(paths), "vocabulary": fp, "vocab_file": str(vocab_file)}
+
+
+def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5, n_queries: int = 500,
+                       vocab_train: list[Any], n_words: int = 10000, top_k: int = 1, compare: int = 20,
+                       spatial_tolerance: int = 1, position_bits: int = 6, seed: int = 0,
+                       cache_dir: Any = None, progress: Any = None) -> dict[str, Any]:
+    """Time localisation against a map of real images at the paper's size.
+
+    Locations, tours and queries are described in :func:`real_features`.  The
+    map and the matcher use the ``coocmap`` method's defaults (12 x 8 grid,
+    interpolation, ``spatial_tolerance`` 1, ``position_bits`` 6) with
+    ``top_k = 1`` (pure localisation, the paper's bound).  Headline (every
+    query): :func:`~topoloc.coocmap.compiled.match_compiled`, the method's
+    default matcher, from the query's words and positions to the scores of
+    all locations (feature extraction excluded, as in the paper).  On the
+    first ``compare`` queries the previous default,
+    :func:`~topoloc.coocmap.matching.match_lazy`, is timed too, and its best
+    location compared.
+
+    Returns
+    -------
+    dict
+        ``ms_per_query_median``, ``ms_per_query_p95``, ``recall_at_1`` (best
+        location == the query's), ``map_bytes``, ``bytes_per_location``,
+        ``n_features_median`` (per image, tours and queries),
+        ``ms_lazy_median``/``ms_lazy_p95``/``recall_at_1_lazy`` and
+        ``lazy_agree`` (same best location) on the ``compare`` queries,
+        ``locations_built_median`` (locations whose ``J`` was built),
+        ``peak_rss_mb``, ``build_s`` and the settings.
+    """
+    import resource
+
+    from topoloc.coocmap.compiled import match_compiled
+
+    data = real_features(dirs, locations=locations, tours=tours, n_queries=n_queries, vocab_train=vocab_train,
+                         n_words=n_words, seed=seed, cache_dir=cache_dir, progress=progress)
+    t0 = time.perf_counter()
+    obs = [[(lo, data["tour_words"][t][lo], data["tour_xy"][t][lo]) for lo in range(locations)]
+           for t in range(tours)]
+    hours = np.linspace(8, 22, tours) if tours > 1 else np.array([14.0])
+    model = CoocModel.build(obs, n_locations=locations, n_words=n_words, position_bits=position_bits,
+                            tour_names=[f"t{t}" for t in range(tours)], tour_hours=list(map(float, hours)))
+    build_s = time.perf_counter() - t0
+    kw: dict[str, Any] = {"top_k": top_k, "seed": seed, "spatial_tolerance": spatial_tolerance}
+    q_loc = data["query_loc"]
+    match_compiled(model, data["query_words"][0], data["query_xy"][0], **kw)  # compile / load the kernel
+    ms, built, best = [], [], []
+    for w, xy in zip(data["query_words"], data["query_xy"], strict=True):
+        t = time.perf_counter()
+        res, _ = match_compiled(model, w, xy, **kw)
+        ms.append(1e3 * (time.perf_counter() - t))
+        built.append(res.locations_built)  # type: ignore[attr-defined]
+        best.append(res.best)
+    lazy_ms, lazy_best = [], []
+    for w, xy in list(zip(data["query_words"], data["query_xy"], strict=True))[:compare]:
+        t = time.perf_counter()
+        lazy = match_lazy(model, w, xy, **kw)
+        lazy_ms.append(1e3 * (time.perf_counter() - t))
+        lazy_best.append(lazy.best)
+    n_feat = [len(w) for tw in data["tour_words"] for w in tw] + [len(w) for w in data["query_words"]]
+    nc = len(lazy_best)
+    return {
+        "benchmark": "real", "dirs": [str(d) for d in dirs], "n_images": data["n_images"],
+        "locations": locations, "tours": tours, "n_queries": len(q_loc), "n_words": n_words,
+        "vocab_train": [str(d) for d in vocab_train], "features": "sift, <= 1000 per image (evaluate defaults)",
+        "top_k": top_k, "spatial_tolerance": spatial_tolerance, "position_bits": position_bits,
+        "ms_per_query_median": float(np.median(ms)), "ms_per_query_p95": float(np.percentile(ms, 95)),
+        "ms_per_query_max": float(np.max(ms)),
+        "recall_at_1": float(np.mean(np.asarray(best) == q_loc)),
+        "map_bytes": model.nbytes, "bytes_per_location": model.bytes_per_location,
+        "features_stored": model.n_features, "n_features_median": float(np.median(n_feat)),
+        "locations_built_median": float(np.median(built)),
+        "compare": nc,
+        "ms_lazy_median": float(np.median(lazy_ms)) if nc else float("nan"),
+        "ms_lazy_p95": float(np.percentile(lazy_ms, 95)) if nc else float("nan"),
+        "recall_at_1_lazy": float(np.mean(np.asarray(lazy_best) == q_loc[:nc])) if nc else float("nan"),
+        "recall_at_1_compiled_same_queries": float(np.mean(np.asarray(best[:nc]) == q_loc[:nc])) if nc else float("nan"),
+        "lazy_agree": float(np.mean(np.asarray(lazy_best) == np.asarray(best[:nc]))) if nc else float("nan"),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "build_s": build_s,
+    }

@@ -86,10 +86,12 @@ def _parse_params(items: list[str]) -> dict[str, str]:
 @app.command()
 @handle_errors
 def evaluate(
-    method: Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")],
-    map: Annotated[list[Path], typer.Option("--map", help="Map traverse folder (repeatable).")],
     query: Annotated[Path, typer.Option(help="Query traverse folder.")],
     out: Annotated[Path, typer.Option(help="Output folder.")],
+    method: Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")] = "",
+    map: Annotated[list[Path] | None, typer.Option("--map", help="Map traverse folder (repeatable).")] = None,
+    map_file: Annotated[Path | None, typer.Option(
+        "--map-file", help="A saved map (topoloc map build) instead of --map tours and --method.")] = None,
     vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
     vocab_train: Annotated[
         list[Path] | None,
@@ -104,6 +106,9 @@ def evaluate(
         Path | None, typer.Option(help="VPR-Bench ground_truth_new.npy or .npz with GThard/GTsoft.")
     ] = None,
     sequence: Annotated[int, typer.Option(help="Sequence matching over each query and the N before it (0 = off).")] = 0,
+    recall_at: Annotated[
+        str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
+    ] = "1,5,10",
     param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
@@ -118,9 +123,9 @@ def evaluate(
     from topoloc.evaluation.report import TABLE_HEADER, table_row
 
     opts = EvaluateOptions(
-        method=method, maps=list(map), query=query, out=out, vocab=vocab,
+        method=method, maps=list(map or []), query=query, out=out, vocab=vocab, map_file=map_file,
         vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
-        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence,
+        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence, recall_at=recall_at,
         params=_parse_params(param or []), features=features, max_features=max_features,
         max_side=max_side, preprocess=preprocess, cache_dir=cache_dir,
     )
@@ -230,6 +235,36 @@ def demo(
         report_path = run_demo(out, n_places=places, progress=progress)
     typer.echo(report_path.read_text(), nl=False)
     typer.echo(f"\nPR curves: {report_path.parent / 'pr_curves.png'}")
+
+
+@app.command()
+@handle_errors
+def convert(
+    format: Annotated[str, typer.Argument(help="vpr-bench, utm-names, dbstruct, msls, kitti or latlon-csv.")],
+    src: Annotated[Path, typer.Argument(help="The dataset: folder, .mat or CSV file, as the format takes.")],
+    out: Annotated[Path, typer.Option(help="Output folder: OUT/map and OUT/query, or one traverse at OUT.")],
+    images: Annotated[
+        Path | None, typer.Option(help="Folder the image names are relative to (dbstruct, latlon-csv).")
+    ] = None,
+    poses: Annotated[Path | None, typer.Option(help="kitti: poses file (default ../../poses/XX.txt).")] = None,
+    column: Annotated[
+        list[str] | None, typer.Option(help="latlon-csv: KEY=NAME for image, lat, lon, time (repeatable).")
+    ] = None,
+    copy: Annotated[bool, typer.Option("--copy", help="Copy images instead of linking them.")] = False,
+) -> None:
+    """Write a public dataset (VPR-Bench, Pittsburgh/Tokyo .mat, MSLS, KITTI, ...) as traverses."""
+    from topoloc.datasets.formats import ConvertOptions
+    from topoloc.datasets.formats import convert as run
+
+    result = run(format, src, out, ConvertOptions(images=images, poses=poses,
+                                                  columns=_parse_params(column or []), copy=copy))
+    for key, folder in result.traverses.items():
+        typer.echo(f"{key or 'traverse'}: {folder} ({result.n_images[key]} images)")
+    if result.projection:
+        typer.echo(f"x, y: {result.projection}")
+    for note in result.notes:
+        typer.echo(f"note: {note}")
+    typer.echo(f"evaluate with: topoloc evaluate ... {result.evaluate}")
 
 
 @app.command("show-match")
@@ -352,6 +387,10 @@ def _print_bench(res: dict[str, Any], as_json: bool) -> None:
     else:
         for k, v in res.items():
             typer.echo(f"{k}: {v}")
+
+
+# The saved-map commands live in their own module; importing it registers them on `app`.
+from topoloc.cli import maps as _maps  # noqa: E402, F401
 
 
 def main() -> None:

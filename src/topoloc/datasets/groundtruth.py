@@ -13,32 +13,97 @@ Euclidean distances in metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from scipy import sparse
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError, input_error
 
 
-@dataclass(frozen=True)
 class GroundTruth:
-    """Boolean ground truth of shape (n_map_places, n_queries); ``soft`` contains ``hard``."""
+    """Boolean ground truth of shape (n_map_places, n_queries); ``soft`` contains ``hard``.
 
-    hard: np.ndarray
-    soft: np.ndarray
-    description: str = ""
+    Built from dense boolean arrays or from SciPy sparse matrices.  Ground truth from
+    positions (:func:`ground_truth_from_xy`) is built sparse, holding only the pairs
+    within the soft radius, so that it fits in memory for 100,000 places x 100,000
+    queries.  ``hard`` / ``soft`` are dense ``ndarray`` (made from the sparse form on
+    first use, for the metrics of a dense ``S``); ``hard_sparse`` / ``soft_sparse`` are
+    boolean CSC matrices (one column per query), made from the dense form where needed.
+    """
 
-    def __post_init__(self) -> None:
-        if self.hard.shape != self.soft.shape or self.hard.ndim != 2:
-            raise ValueError(f"GThard {self.hard.shape} and GTsoft {self.soft.shape} differ")
-        object.__setattr__(self, "hard", np.asarray(self.hard, dtype=bool))
-        object.__setattr__(self, "soft", np.asarray(self.soft, dtype=bool) | self.hard)
+    def __init__(self, hard: Any, soft: Any, description: str = "") -> None:
+        self.description = description
+        self._hard: np.ndarray | None = None
+        self._soft: np.ndarray | None = None
+        self._hard_sp: sparse.csc_array | None = None
+        self._soft_sp: sparse.csc_array | None = None
+        self._built_sparse = bool(sparse.issparse(hard) or sparse.issparse(soft))
+        if self._built_sparse:
+            h, so = _csc_bool(hard), _csc_bool(soft)
+            if h.shape != so.shape or len(h.shape) != 2:
+                raise ValueError(f"GThard {h.shape} and GTsoft {so.shape} differ")
+            self._hard_sp, self._soft_sp = h, _csc_bool(so.astype(np.int8) + h.astype(np.int8))
+            self._shape: tuple[int, int] = (int(h.shape[0]), int(h.shape[1]))
+        else:
+            hd, sd = np.asarray(hard, dtype=bool), np.asarray(soft, dtype=bool)
+            if hd.shape != sd.shape or hd.ndim != 2:
+                raise ValueError(f"GThard {hd.shape} and GTsoft {sd.shape} differ")
+            self._hard, self._soft = hd, sd | hd
+            self._shape = (int(hd.shape[0]), int(hd.shape[1]))
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.hard.shape
+        return self._shape
+
+    @property
+    def is_sparse(self) -> bool:
+        """Whether this ground truth was built sparse (dense arrays are then made on demand)."""
+        return self._built_sparse
+
+    @property
+    def hard(self) -> np.ndarray:
+        """Dense boolean ``GThard``, shape (n_places, n_queries)."""
+        if self._hard is None:
+            assert self._hard_sp is not None
+            self._hard = self._hard_sp.toarray()
+        return self._hard
+
+    @property
+    def soft(self) -> np.ndarray:
+        """Dense boolean ``GTsoft`` (contains ``hard``), shape (n_places, n_queries)."""
+        if self._soft is None:
+            assert self._soft_sp is not None
+            self._soft = self._soft_sp.toarray()
+        return self._soft
+
+    @property
+    def hard_sparse(self) -> sparse.csc_array:
+        """``GThard`` as a boolean CSC matrix (column ``j``: the correct places of query ``j``)."""
+        if self._hard_sp is None:
+            self._hard_sp = _csc_bool(sparse.csc_array(self.hard))
+        return self._hard_sp
+
+    @property
+    def soft_sparse(self) -> sparse.csc_array:
+        """``GTsoft`` as a boolean CSC matrix."""
+        if self._soft_sp is None:
+            self._soft_sp = _csc_bool(sparse.csc_array(self.soft))
+        return self._soft_sp
+
+    def __repr__(self) -> str:
+        kind = "sparse" if self.is_sparse else "dense"
+        return f"GroundTruth(shape={self.shape}, {kind}, {self.description!r})"
+
+
+def _csc_bool(m: Any) -> sparse.csc_array:
+    out = sparse.csc_array(m)
+    out.eliminate_zeros()
+    out = out.astype(bool)
+    out.sort_indices()
+    return out
 
 
 def parse_tolerance(text: str) -> tuple[float, float]:
@@ -93,9 +158,56 @@ def place_positions(maps: list[Traverse], place_ids: np.ndarray) -> np.ndarray:
 def ground_truth_from_xy(
     map_xy: np.ndarray, query_xy: np.ndarray, hard_m: float, soft_m: float
 ) -> GroundTruth:
-    """Ground truth from positions in metres, shapes (n_places, 2) and (n_queries, 2)."""
-    d = np.linalg.norm(map_xy[:, None, :] - query_xy[None, :, :], axis=-1)
-    return GroundTruth(d <= hard_m, d <= soft_m, f"positions, tolerance {hard_m:g}:{soft_m:g} m")
+    """Ground truth from positions in metres, shapes (n_places, 2) and (n_queries, 2).
+
+    Map place ``i`` is correct for query ``j`` when their Euclidean distance is at most
+    ``hard_m`` and ignored when it is in ``(hard_m, soft_m]``.  Only the pairs within
+    ``soft_m`` are found (KD-trees, :func:`xy_neighbours`), never a dense distance
+    matrix, and the result is sparse (:attr:`GroundTruth.is_sparse`).
+    """
+    rows, cols, d = xy_neighbours(map_xy, query_xy, soft_m)
+    shape = (len(map_xy), len(query_xy))
+    hard = d <= hard_m
+    ones_h = np.ones(int(hard.sum()), dtype=bool)
+    gt_hard = sparse.csc_array((ones_h, (rows[hard], cols[hard])), shape=shape)
+    gt_soft = sparse.csc_array((np.ones(len(rows), dtype=bool), (rows, cols)), shape=shape)
+    return GroundTruth(gt_hard, gt_soft, f"positions, tolerance {hard_m:g}:{soft_m:g} m")
+
+
+def xy_neighbours(
+    map_xy: np.ndarray, query_xy: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (map place, query) pair at most ``radius_m`` apart.
+
+    Two KD-trees (:class:`scipy.spatial.cKDTree`) find the candidate pairs with a
+    radius widened by a relative 1e-9; the distance of each is then computed as
+    ``numpy.linalg.norm`` of the difference and compared with ``radius_m`` exactly, so
+    that a pair on the boundary is decided as a dense computation would decide it.
+
+    Returns
+    -------
+    rows, cols : ndarray of int64, shape (n_pairs,)
+        Map place and query of each pair, sorted by query then place.
+    dist : ndarray of float64, shape (n_pairs,)
+        Distance in metres.
+    """
+    mxy = np.asarray(map_xy, dtype=np.float64).reshape(-1, 2)
+    qxy = np.asarray(query_xy, dtype=np.float64).reshape(-1, 2)
+    empty = np.zeros(0, dtype=np.int64)
+    if not len(mxy) or not len(qxy):
+        return empty, empty.copy(), np.zeros(0)
+    if not (np.isfinite(mxy).all() and np.isfinite(qxy).all()):
+        raise TopolocError("positions x,y must be finite numbers")
+    from scipy.spatial import cKDTree
+
+    widened = radius_m * (1 + 1e-9) + 1e-9
+    pairs = cKDTree(qxy).sparse_distance_matrix(cKDTree(mxy), widened, output_type="ndarray")
+    cols, rows = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    d = np.linalg.norm(mxy[rows] - qxy[cols], axis=-1)
+    keep = d <= radius_m
+    rows, cols, d = rows[keep], cols[keep], d[keep]
+    order = np.lexsort((rows, cols))
+    return rows[order], cols[order], d[order]
 
 
 def ground_truth_from_file(

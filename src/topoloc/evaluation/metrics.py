@@ -14,11 +14,14 @@ The curve starts at (recall 0, precision 1); AUC is trapezoidal over it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from topoloc.datasets.groundtruth import GroundTruth
+from topoloc.errors import TopolocError
+
+DEFAULT_RECALL_AT = (1, 5, 10)
 
 
 def check_shapes(S: np.ndarray, gt: GroundTruth) -> None:
@@ -123,21 +126,49 @@ class Scores:
     recall_at_10: float
     precision: np.ndarray
     recall: np.ndarray
+    recall_at_k: dict[int, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, float]:
-        return {
+        """The metrics of ``metrics.json``; R@N of ``recall_at_k`` beyond 1, 5, 10 as ``recall_at_N``."""
+        out = {
             "auc": self.auc,
             "recall_at_100_precision": self.recall_at_100_precision,
             "recall_at_1": self.recall_at_1,
             "recall_at_5": self.recall_at_5,
             "recall_at_10": self.recall_at_10,
         }
+        for k in sorted(self.recall_at_k):
+            out.setdefault(f"recall_at_{k}", self.recall_at_k[k])
+        return out
 
 
-def compute_metrics(S: np.ndarray, gt: GroundTruth) -> Scores:
-    """All accuracy metrics of ``PROTOCOL.md`` for ``S`` of shape (places, queries)."""
+def parse_recall_at(text: str | tuple[int, ...] | list[int]) -> tuple[int, ...]:
+    """``"1,5,10,20"`` -> ``(1, 5, 10, 20)``: the N of R@N, each a positive integer.
+
+    Raises
+    ------
+    TopolocError
+        For an empty list, a value that is not an integer, or N < 1.
+    """
+    items = [str(t).strip() for t in (text.split(",") if isinstance(text, str) else text)]
+    try:
+        ks = tuple(sorted({int(t) for t in items if t}))
+    except ValueError:
+        raise TopolocError(f"--recall-at {text!r} is not a comma-separated list of integers") from None
+    if not ks or ks[0] < 1:
+        raise TopolocError(f"--recall-at {text!r} needs one or more N >= 1")
+    return ks
+
+
+def compute_metrics(S: np.ndarray, gt: GroundTruth, recall_at: tuple[int, ...] = DEFAULT_RECALL_AT) -> Scores:
+    """All accuracy metrics of ``PROTOCOL.md`` for ``S`` of shape (places, queries).
+
+    ``recall_at`` lists the N of R@N to report (``Scores.recall_at_k``); R@1, R@5 and
+    R@10 are always computed.
+    """
     p, r = pr_curve(S, gt)
-    rk = recall_at_k(S, gt)
+    ks = tuple(sorted(set(recall_at) | set(DEFAULT_RECALL_AT)))
+    rk = recall_at_k(S, gt, ks)
     return Scores(
         auc=auc_pr(p, r),
         recall_at_100_precision=recall_at_100_precision(p, r),
@@ -146,4 +177,5 @@ def compute_metrics(S: np.ndarray, gt: GroundTruth) -> Scores:
         recall_at_10=rk[10],
         precision=p,
         recall=r,
+        recall_at_k={k: rk[k] for k in sorted(set(recall_at))},
     )

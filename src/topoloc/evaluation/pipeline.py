@@ -39,12 +39,14 @@ from topoloc.datasets.groundtruth import (
 )
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import TopolocError
-from topoloc.evaluation.metrics import Scores, compute_metrics
+from topoloc.evaluation.metrics import Scores, compute_metrics, parse_recall_at
 from topoloc.evaluation.plots import plot_pr_curves
 from topoloc.evaluation.prepare import build_method, make_resources, resolve_max_side
 from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.io.container import atomic_write_bytes
+from topoloc.methods.base import PlaceRecognizer
+from topoloc.methods.resources import CachedResources
 from topoloc.progress import ProgressFactory, no_progress
 
 log = logging.getLogger(__name__)
@@ -72,6 +74,8 @@ class EvaluateOptions:
     preprocess: str = "none"
     cache_dir: Path | None = None
     seed: int = 0
+    map_file: Path | None = None
+    recall_at: str = "1,5,10"
 
 
 def _save_npy(path: Path, arr: np.ndarray) -> None:
@@ -81,10 +85,17 @@ def _save_npy(path: Path, arr: np.ndarray) -> None:
 
 
 def make_ground_truth(
-    opts: EvaluateOptions, maps: list[Traverse], query: Traverse, place_ids: np.ndarray
+    opts: EvaluateOptions, maps: list[Traverse], query: Traverse, place_ids: np.ndarray,
+    map_xy: np.ndarray | None = None,
 ) -> GroundTruth:
-    """Ground truth from ``--ground-truth``, ``--tolerance-m`` or ``--tolerance``."""
+    """Ground truth from ``--ground-truth``, ``--tolerance-m`` or ``--tolerance``.
+
+    ``map_xy`` (shape (n_places, 2)) gives the places' positions when there are no
+    map traverses (a saved map); else they are the mean over the map images.
+    """
     if opts.ground_truth is not None:
+        if not maps:
+            raise TopolocError("--ground-truth files index the map's images: use --map tours, not --map-file")
         return ground_truth_from_file(
             opts.ground_truth, map_traverse=maps[0], place_ids=place_ids, n_queries=len(query)
         )
@@ -92,7 +103,8 @@ def make_ground_truth(
         hard, soft = parse_tolerance(opts.tolerance_m)
         if query.xy is None:
             raise TopolocError(f"--tolerance-m needs x,y columns in places.csv: {query.root}")
-        return ground_truth_from_xy(place_positions(maps, place_ids), query.xy, hard, soft)
+        positions = map_xy if map_xy is not None else place_positions(maps, place_ids)
+        return ground_truth_from_xy(positions, query.xy, hard, soft)
     hard, soft = parse_tolerance(opts.tolerance)
     return ground_truth_from_places(place_ids, query.places, hard, soft)
 
@@ -125,37 +137,48 @@ def evaluate(
     opts.maps = [Path(m) for m in opts.maps]
     opts.query, opts.out = Path(opts.query), Path(opts.out)
     prog: ProgressFactory = progress or no_progress
-    if not opts.maps:
-        raise TopolocError("evaluate needs at least one --map traverse")
+    if opts.map_file is not None and opts.maps:
+        raise TopolocError("pass either --map tours or --map-file, not both")
+    if not opts.maps and opts.map_file is None:
+        raise TopolocError("evaluate needs at least one --map traverse (or --map-file)")
+    if not opts.method and opts.map_file is None:
+        raise TopolocError("evaluate needs --method NAME (see `topoloc methods`), or --map-file")
     # Validate every cheap option before any expensive work starts.
     parse_tolerance(opts.tolerance)
+    recall_at = parse_recall_at(opts.recall_at)
     if opts.tolerance_m is not None:
         parse_tolerance(opts.tolerance_m)
     if opts.ground_truth is not None and not Path(opts.ground_truth).is_file():
         raise TopolocError(f"ground-truth file not found: {opts.ground_truth}")
     maps = [load_traverse(m) for m in opts.maps]
     query = load_traverse(opts.query)
-    method = build_method(opts.method, opts.params)
-    max_side = resolve_max_side(opts.max_side, [*maps, query])
-    resources, vocab_info = make_resources(
-        vocab=opts.vocab, vocab_train=opts.vocab_train, vocab_words=opts.vocab_words, features=opts.features,
-        max_features=opts.max_features, max_side=max_side, preprocess=opts.preprocess,
-        cache_dir=opts.cache_dir, seed=opts.seed,
-        needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
-    )
-
-    t0 = time.perf_counter()
-    method.fit(maps, resources=resources)
-    fit_s = time.perf_counter() - t0
+    map_xy = None
+    if opts.map_file is not None:
+        method, resources, vocab_info, map_xy = _saved_map(opts, progress)
+        max_side, fit_s = resources.extractor.config.max_side, 0.0
+        map_labels = [str(opts.map_file)]
+    else:
+        method = build_method(opts.method, opts.params)
+        max_side = resolve_max_side(opts.max_side, [*maps, query])
+        resources, vocab_info = make_resources(
+            vocab=opts.vocab, vocab_train=opts.vocab_train, vocab_words=opts.vocab_words, features=opts.features,
+            max_features=opts.max_features, max_side=max_side, preprocess=opts.preprocess,
+            cache_dir=opts.cache_dir, seed=opts.seed,
+            needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
+        )
+        t0 = time.perf_counter()
+        method.fit(maps, resources=resources)
+        fit_s = time.perf_counter() - t0
+        map_labels = [str(m) for m in opts.maps]
     place_ids = method.place_ids_
-    gt = make_ground_truth(opts, maps, query, place_ids)
+    gt = make_ground_truth(opts, maps, query, place_ids, map_xy)
     items = method.encode(query, resources=resources)
     S, ms_each = score_queries(method, items, prog)
     if opts.sequence and opts.sequence > 1:
         S, seq_ms = apply_sequence(S, opts.sequence)
         ms_each = ms_each + seq_ms
     S = np.asarray(S, dtype=np.float32)
-    scores = compute_metrics(S, gt)
+    scores = compute_metrics(S, gt, recall_at)
 
     metrics: dict[str, Any] = {
         "method": method.name,
@@ -167,12 +190,13 @@ def evaluate(
         "n_queries": int(S.shape[1]),
         "params": {**method.get_params(), "sequence": opts.sequence},
         "run": {
-            "map": [str(m) for m in opts.maps],
+            "map": map_labels,
             "query": str(opts.query),
             "ground_truth": gt.description,
             "features": {
-                "method": opts.features, "max_features": opts.max_features, "max_side": max_side,
-                "max_side_option": str(opts.max_side), "preprocess": resources.extractor.config.preprocess,
+                "method": resources.extractor.config.method, "max_features": resources.extractor.config.max_features,
+                "max_side": max_side, "max_side_option": "map file" if opts.map_file else str(opts.max_side),
+                "preprocess": resources.extractor.config.preprocess,
             },
             "vocabulary": vocab_info,
             "fit_seconds": fit_s,
@@ -183,6 +207,30 @@ def evaluate(
     }
     write_outputs(opts.out, S, place_ids, query.places, metrics, scores)
     return metrics
+
+
+def _saved_map(
+    opts: EvaluateOptions, progress: ProgressFactory | None
+) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray]:
+    """The recogniser, resources, vocabulary record and place positions of ``opts.map_file``.
+
+    A saved map fixes the method, its parameters, the features and the
+    vocabulary: options that would change them are refused, not ignored.
+    """
+    from topoloc.maps import Map
+
+    saved = Map.load(opts.map_file)  # type: ignore[arg-type]
+    rec = saved.recognizer
+    if opts.method and opts.method != rec.name:
+        raise TopolocError(f"--method {opts.method} but the map file holds a {rec.name} map: {opts.map_file}")
+    if opts.params or opts.vocab is not None or opts.vocab_train:
+        raise TopolocError("a saved map fixes its parameters and vocabulary: --param, --vocab and --vocab-train "
+                           f"cannot be used with --map-file {opts.map_file}")
+    res = saved._resources(cache_dir=opts.cache_dir, progress=progress)
+    voc: dict[str, Any] = {"used": saved.vocabulary is not None}
+    if saved.vocabulary is not None:
+        voc.update({"file": f"embedded in {opts.map_file}", **saved.vocabulary.provenance_})
+    return rec, res, voc, saved.place_xy
 
 
 def write_outputs(

@@ -276,8 +276,8 @@ class FabMapModel:
             )
 
     # -- persistence ------------------------------------------------------------------
-    def save(self, path: str | Path) -> None:
-        """Write the model atomically to ``path`` (versioned container, see module docstring)."""
+    def to_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The model as JSON metadata and named arrays (what :meth:`save` writes)."""
         meta: dict[str, Any] = {
             "n_words": self.n_words,
             "root": self.root,
@@ -296,6 +296,39 @@ class FabMapModel:
             "train_indptr": self.train_indptr.astype(np.int64),
             "train_indices": self.train_indices.astype(np.int32),
         }
+        return meta, arrays
+
+    @classmethod
+    def from_state(
+        cls, meta: dict[str, Any], arrays: dict[str, np.ndarray], *, path: str | Path | None = None
+    ) -> FabMapModel:
+        """The model from :meth:`to_state`'s output, validated (``path`` names the source in errors)."""
+        try:
+            v = int(meta["n_words"])
+            model = cls(
+                n_words=v,
+                parents=np.array(arrays["parents"], dtype=np.int64),
+                root=int(meta["root"]),
+                p_z=np.array(arrays["p_z"], dtype=np.float64),
+                p_z_given_parent=np.array(arrays["p_z_given_parent"], dtype=np.float64),
+                p_e=np.array(arrays["p_e"], dtype=np.float64),
+                p_fp=float(meta["p_fp"]),
+                p_fn=float(meta["p_fn"]),
+                edge_mi=np.array(arrays["edge_mi"], dtype=np.float64),
+                joint_p=np.array(arrays["joint_p"], dtype=np.float64),
+                train_indptr=np.array(arrays["train_indptr"], dtype=np.int64),
+                train_indices=np.array(arrays["train_indices"], dtype=np.int32),
+                vocabulary=dict(meta.get("vocabulary") or {}),
+                prior_strength=float(meta.get("prior_strength", 1.0)),
+            )
+        except (KeyError, TypeError, ValueError):
+            raise input_error("FAB-MAP model lacks required fields", path) from None
+        model._validate(path)
+        return model
+
+    def save(self, path: str | Path) -> None:
+        """Write the model atomically to ``path`` (versioned container, see module docstring)."""
+        meta, arrays = self.to_state()
         write_container(path, MODEL_KIND, MODEL_VERSION, arrays, meta)
 
     @classmethod
@@ -316,27 +349,7 @@ class FabMapModel:
             Missing, truncated, corrupted or inconsistent file, or another vocabulary.
         """
         meta, arrays = read_container(path, MODEL_KIND, MODEL_VERSION)
-        try:
-            v = int(meta["n_words"])
-            model = cls(
-                n_words=v,
-                parents=np.array(arrays["parents"], dtype=np.int64),
-                root=int(meta["root"]),
-                p_z=np.array(arrays["p_z"], dtype=np.float64),
-                p_z_given_parent=np.array(arrays["p_z_given_parent"], dtype=np.float64),
-                p_e=np.array(arrays["p_e"], dtype=np.float64),
-                p_fp=float(meta["p_fp"]),
-                p_fn=float(meta["p_fn"]),
-                edge_mi=np.array(arrays["edge_mi"], dtype=np.float64),
-                joint_p=np.array(arrays["joint_p"], dtype=np.float64),
-                train_indptr=np.array(arrays["train_indptr"], dtype=np.int64),
-                train_indices=np.array(arrays["train_indices"], dtype=np.int32),
-                vocabulary=dict(meta.get("vocabulary") or {}),
-                prior_strength=float(meta.get("prior_strength", 1.0)),
-            )
-        except (KeyError, TypeError, ValueError):
-            raise input_error("FAB-MAP model file lacks required fields", path) from None
-        model._validate(path)
+        model = cls.from_state(meta, arrays, path=path)
         if vocabulary is not None:
             model.check_vocabulary(vocabulary, path=path)
         return model

@@ -109,9 +109,19 @@ def write_container(
 
 
 def read_container(
-    path: str | Path, kind: str, kind_version: int | None = None
+    path: str | Path, kind: str, kind_version: int | None = None, *, mmap: bool = False
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Read and validate a container written by :func:`write_container`.
+
+    Parameters
+    ----------
+    path : path-like
+    kind, kind_version : str, int or None
+        What the file must hold (``kind_version=None``: any schema version).
+    mmap : bool
+        Memory-map the file instead of reading it into memory: the arrays are
+        read-only views on the mapping, paged in as they are used (the
+        checksum still reads every byte once).
 
     Returns
     -------
@@ -129,10 +139,14 @@ def read_container(
     path = Path(path)
     if not path.is_file():
         raise input_error(f"{kind} file not found", path)
-    data = path.read_bytes()
+    data: bytes | np.ndarray
+    if mmap and path.stat().st_size > 0:
+        data = np.memmap(path, dtype=np.uint8, mode="r")
+    else:
+        data = path.read_bytes()
     if len(data) < _PREFIX.size:
         raise input_error(f"{kind} file is truncated (only {len(data)} bytes)", path)
-    magic, version, hlen = _PREFIX.unpack_from(data)
+    magic, version, hlen = _PREFIX.unpack_from(bytes(data[: _PREFIX.size]))
     if magic != MAGIC:
         raise input_error(f"not a topoloc {kind} file (bad magic bytes)", path)
     if version != CONTAINER_VERSION:
@@ -141,9 +155,11 @@ def read_container(
     if len(data) < start:
         raise input_error(f"{kind} file is truncated inside its header", path)
     try:
-        header = json.loads(data[_PREFIX.size:start])
-    except ValueError:
+        header = json.loads(bytes(data[_PREFIX.size:start]))
+    except (ValueError, UnicodeDecodeError):
         raise input_error(f"{kind} file has a corrupt header", path) from None
+    if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
+        raise input_error(f"{kind} file has a corrupt header", path)
     if header.get("kind") != kind:
         raise input_error(f"expected a {kind} file but found a {header.get('kind')!r} file", path)
     if kind_version is not None and header.get("kind_version") != kind_version:
@@ -152,7 +168,7 @@ def read_container(
             f"this topoloc reads version {kind_version}",
             path,
         )
-    payload = memoryview(data)[start:]
+    payload = memoryview(data)[start:]  # type: ignore[arg-type]  # a memmap is a buffer
     if len(payload) != header["payload_nbytes"]:
         raise input_error(
             f"{kind} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",

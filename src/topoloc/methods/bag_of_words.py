@@ -30,7 +30,8 @@ import scipy.sparse as sp
 from topoloc._params import Constraint, Options
 from topoloc.bow.tfidf import cosine_scores, inverse_document_frequency, inverted_file, term_counts
 from topoloc.datasets.traverse import Traverse
-from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.io.state import object_state, restore_state
+from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
 
 
@@ -51,6 +52,10 @@ class BagOfWords(PlaceRecognizer):
         with their normalised tf-idf weights.
     doc_place_ : ndarray of int64, shape (n_documents,)
         Row of ``S`` of each document.
+    counts_ : scipy.sparse.csr_matrix, shape (n_documents, n_words)
+        Word counts of every map image (the documents), kept so that tours can be added.
+    doc_places_ : ndarray of int64, shape (n_documents,)
+        Place id of each document.
     """
 
     name: ClassVar[str] = "bow"
@@ -61,11 +66,35 @@ class BagOfWords(PlaceRecognizer):
         self.merge = merge
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
-        place_ids = map_place_ids(maps)
         words = [w for m in maps for w in resources.words(m)]
-        rows = np.searchsorted(place_ids, np.concatenate([m.places for m in maps]))
-        n_words = resources.vocabulary.n_words_
-        counts = term_counts(words, n_words)
+        self.n_words_ = int(resources.vocabulary.n_words_)
+        self.counts_ = term_counts(words, self.n_words_)
+        self.doc_places_ = np.concatenate([m.places for m in maps]).astype(np.int64)
+        self._index()
+
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        """A further tour's images become further documents; idf and the inverted file are recomputed.
+
+        The same documents as fitting on all tours at once, so the same map.
+        """
+        counts = term_counts(resources.words(tour), self.n_words_)
+        self.counts_ = sp.csr_matrix(sp.vstack([self.counts_, counts]))
+        self.doc_places_ = np.concatenate([self.doc_places_, tour.places]).astype(np.int64)
+        self._index()
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        # The documents are the state; idf and the inverted file follow from them.
+        return object_state(self, only=["n_words_", "counts_", "doc_places_"])
+
+    def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        restore_state(self, meta, arrays)
+        self._index()
+
+    def _index(self) -> None:
+        """idf, the inverted file and the document order from ``counts_`` and ``doc_places_``."""
+        place_ids = np.unique(self.doc_places_)
+        rows = np.searchsorted(place_ids, self.doc_places_)
+        counts = self.counts_
         if self.merge == "sum":
             pool = sp.csr_matrix(
                 (np.ones(len(rows), np.float32), (rows, np.arange(len(rows)))),
@@ -73,7 +102,6 @@ class BagOfWords(PlaceRecognizer):
             )
             counts = sp.csr_matrix(pool @ counts)
             rows = np.arange(len(place_ids))
-        self.n_words_ = n_words
         self.idf_ = inverse_document_frequency(counts)
         self.inverted_ = inverted_file(counts, self.idf_)
         order = np.argsort(rows, kind="stable")

@@ -35,6 +35,7 @@ import numpy as np
 from topoloc._params import Constraint, convert_param, keyword_defaults, validate_params
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
+from topoloc.io.state import object_state, restore_state
 from topoloc.methods.resources import InMemoryResources, Resources
 
 
@@ -99,6 +100,54 @@ class PlaceRecognizer(ABC):
     def similarity(self, query: Traverse, *, resources: Resources | None = None) -> np.ndarray:
         """``S`` of shape (n_map_places, len(query)) for a query traverse: ``score(encode(query))``."""
         return self.score(self.encode(query, resources=resources))
+
+    # -- saved maps and later tours ------------------------------------------------------------
+    def add_tour(self, tour: Traverse, *, resources: Resources | None = None) -> Self:
+        """Add a further tour to the fitted map without revisiting the earlier images.
+
+        Each method updates its model the way its paper does (see the
+        method's ``_add_tour``); places the map has not seen become new rows of
+        ``S`` (in sorted place-id order) where the method can add places.
+
+        Raises
+        ------
+        TopolocError
+            If the method cannot add this tour (e.g. new places to a landmark map).
+        """
+        self.check_fitted()
+        self._add_tour(tour, resources if resources is not None else self.resources_)
+        return self
+
+    def get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The learned state as JSON metadata and named arrays (what a map file stores; nothing pickled)."""
+        self.check_fitted()
+        return self._get_state()
+
+    @classmethod
+    def from_state(
+        cls, params: Mapping[str, Any], meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray], *,
+        resources: Resources | None = None,
+    ) -> Self:
+        """A fitted recogniser from ``get_state()``'s output and its parameters.
+
+        ``resources`` are those ``encode`` will use (default: in memory, default settings).
+        """
+        rec = cls(**params)
+        rec.validate_params()
+        rec._set_state(meta, arrays)
+        rec.resources_ = resources if resources is not None else InMemoryResources()
+        return rec
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """Default: every learned attribute (name ending in ``_``) that is JSON, an array or sparse."""
+        names = [k for k in vars(self) if k.endswith("_") and not k.startswith("_") and k != "resources_"]
+        return object_state(self, only=names)
+
+    def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        restore_state(self, meta, arrays)
+
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        raise TopolocError(f"method {self.name!r} cannot add tours to a fitted map: build it from all tours")
 
     @abstractmethod
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
@@ -173,6 +222,20 @@ def map_place_ids(maps: Sequence[Traverse]) -> np.ndarray:
     if not maps:
         raise TopolocError("at least one map traverse is needed")
     return np.unique(np.concatenate([m.places for m in maps]))
+
+
+def extend_place_ids(place_ids: np.ndarray, places: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Place ids after a tour visiting ``places`` is added, and the new row of each old row.
+
+    Returns
+    -------
+    ids : ndarray of int64, shape (n_new,)
+        Sorted union of ``place_ids`` and ``places``.
+    old_rows : ndarray of int64, shape (len(place_ids),)
+        Row of ``ids`` holding each old place (increasing: old rows keep their order).
+    """
+    ids = np.union1d(place_ids, np.asarray(places, np.int64))
+    return ids, np.searchsorted(ids, place_ids)
 
 
 def parse_param(cls: type[PlaceRecognizer], key: str, value: str) -> Any:

@@ -43,7 +43,8 @@ from topoloc.coocmap.model import CoocModel, Observation
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.io.state import new_object, object_state, restore_state
+from topoloc.methods.base import PlaceRecognizer, extend_place_ids, map_place_ids
 from topoloc.methods.resources import Resources
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
@@ -72,16 +73,18 @@ class CoocMap(PlaceRecognizer):
     simultaneous : bool
         Match all places at once with bounds (Sec. II-D); otherwise every
         place is matched to completion.
-    schedule : {"lazy", "best_first", "rounds"}
+    schedule : {"compiled", "lazy", "best_first", "rounds"}
         With ``simultaneous``, how the bounds of Sec. II-D are used; all give
-        the same best place and exact ranks ``1..top_k``.  ``"rounds"``: the
+        the same best place and exact ranks ``1..top_k``.  ``"compiled"`` (the
+        default): ``"lazy"``'s order with the per-place loops compiled and
+        tighter bounds, ~10x faster
+        (:func:`~topoloc.coocmap.compiled.match_compiled`);  ``"rounds"``: the
         paper's one elimination per place per round
         (:func:`~topoloc.coocmap.matching.match_simultaneous`);
         ``"best_first"``: places finished in decreasing order of bound
         (:func:`~topoloc.coocmap.matching.match_best_first`); ``"lazy"``:
         best-first by candidate count, building ``J_i`` only for places
-        that can still win (:func:`~topoloc.coocmap.matching.match_lazy`),
-        the fastest.
+        that can still win (:func:`~topoloc.coocmap.matching.match_lazy`).
     top_k : int
         With ``simultaneous``, ranks ``1..top_k`` of each column are exact
         (the paper's bound is ``top_k = 1``).
@@ -119,13 +122,13 @@ class CoocMap(PlaceRecognizer):
     uses_vocabulary: ClassVar[bool] = True
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "grid_x": Interval(int, 1), "grid_y": Interval(int, 1), "interpolate": OfType(bool),
-        "simultaneous": OfType(bool), "schedule": Options(("lazy", "best_first", "rounds")),
+        "simultaneous": OfType(bool), "schedule": Options(("compiled", "lazy", "best_first", "rounds")),
         "top_k": Interval(int, 1), "max_features": Interval(int, 0), "seed": Interval(int),
         "spatial_tolerance": Interval(int, 0), "position_bits": Interval(int, 1, 16), "model_path": OfType(str),
     }
 
     def __init__(self, *, grid_x: int = 12, grid_y: int = 8, interpolate: bool = True,
-                 simultaneous: bool = True, schedule: str = "lazy", top_k: int = 10, max_features: int = 0,
+                 simultaneous: bool = True, schedule: str = "compiled", top_k: int = 10, max_features: int = 0,
                  seed: int = 0, spatial_tolerance: int = 1, position_bits: int = 6,
                  model_path: str = "") -> None:
         self.grid_x = grid_x
@@ -177,6 +180,47 @@ class CoocMap(PlaceRecognizer):
         self.tour_order_ = [t.name for t in tours]
         self.place_ids_ = place_ids
 
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        """Every location model takes the tour's co-occurrences (Sec. II-B).
+
+        The tour is inserted at its place in time-of-day order when every tour
+        has capture times (else after the others), so the virtual images of
+        Sec. II-E are those of a map built from all tours at once; places the
+        map has not seen become new locations.  The resulting model equals the
+        one fitted on all tours together.
+        """
+        place_ids, old_rows = extend_place_ids(self.place_ids_, tour.places)
+        model = self.model_
+        if len(place_ids) != len(self.place_ids_):
+            # Old rows keep their order, so remapping keeps the features sorted by location.
+            model.n_locations = len(place_ids)
+            model._set_features(old_rows[model.loc.astype(np.int64)], model.word.astype(np.int64),
+                                np.asarray(model.xy), model.tours.astype(np.uint64))
+        hour = tour.median_time_of_day()
+        hours = model.tour_hours
+        position = None
+        if hour is not None and all(h is not None for h in hours):
+            position = int(sum(1 for h in hours if h is not None and h <= hour))
+        rows = np.searchsorted(place_ids, tour.places)
+        obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
+                                  in zip(rows, self._observations(tour, resources), strict=True)]
+        model.add_tour(obs, name=tour.name, hour=hour, position=position)
+        self.tour_order_.insert(len(self.tour_order_) if position is None else position, tour.name)
+        self.place_ids_ = place_ids
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        meta, arrays = object_state(self, only=["place_ids_", "tour_order_"])
+        model_meta, model_arrays = object_state(self.model_, prefix="model/",
+                                                skip=[k for k in vars(self.model_) if k.startswith("_")])
+        return {**meta, "model": model_meta}, {**arrays, **model_arrays}
+
+    def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        restore_state(self, meta, arrays)
+        model = restore_state(new_object(CoocModel), meta["model"], arrays, prefix="model/")
+        model._groups = {}  # a cache of group masks, filled on first use
+        model.interpolate = bool(self.interpolate)
+        self.model_ = model
+
     def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return list(self._observations(query, resources))
 
@@ -190,8 +234,9 @@ class CoocMap(PlaceRecognizer):
         words, xy = item
         kw: dict[str, Any] = {"interpolate": self.interpolate, "seed": self.seed,
               "spatial_tolerance": self.spatial_tolerance}
-        if self.simultaneous and self.schedule == "lazy":
-            res = match_lazy(self.model_, words, xy, top_k=self.top_k, **kw)
+        if self.simultaneous and self.schedule in ("lazy", "compiled"):
+            res = (match_lazy(self.model_, words, xy, top_k=self.top_k, **kw) if self.schedule == "lazy"
+                   else _compiled(self.model_, words, xy, top_k=self.top_k, **kw)[0])
             graphs = consistency_graphs(self.model_, words, xy, locations=np.array([res.best]), **kw)
             # Same deterministic tie-breaking: this reproduces the best place's group.
             res.kept = match_best_first(graphs, top_k=1).kept
@@ -204,6 +249,10 @@ class CoocMap(PlaceRecognizer):
         return graphs, match_simultaneous(graphs, top_k=self.top_k)
 
     def _scores(self, item: Item) -> np.ndarray:
+        if self.simultaneous and self.schedule == "compiled":
+            words, xy = item
+            return _compiled(self.model_, words, xy, top_k=self.top_k, interpolate=self.interpolate,
+                             seed=self.seed, spatial_tolerance=self.spatial_tolerance)[0].scores
         if self.simultaneous and self.schedule == "lazy":
             words, xy = item
             return match_lazy(self.model_, words, xy, top_k=self.top_k, interpolate=self.interpolate,
@@ -217,6 +266,13 @@ class CoocMap(PlaceRecognizer):
         for q, item in enumerate(items):
             S[:, q] = self._scores(item)
         return self._check_block(S, len(items))
+
+
+def _compiled(*args: Any, **kwargs: Any) -> tuple[MatchResult, np.ndarray]:
+    # Imported on first use: numba's import is not needed to list or construct methods.
+    from topoloc.coocmap.compiled import match_compiled
+
+    return match_compiled(*args, **kwargs)
 
 
 __all__ = ["CoocMap", "order_tours"]

@@ -42,7 +42,8 @@ from topoloc.fabmap.model import DEFAULT_P_FN, DEFAULT_P_FP, FabMapModel
 from topoloc.fabmap.observation import Observation, ObservationModel
 from topoloc.fabmap.place_map import DenseMap, IndexMap, make_map
 from topoloc.fabmap.posterior import location_posterior
-from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.io.state import object_state, restore_state
+from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
 from topoloc.methods.slam import load_or_train_model
 
@@ -125,15 +126,36 @@ class FabMap(PlaceRecognizer):
         model = load_or_train_model(self.model_path or None, resources)
         if (model.p_fp, model.p_fn) != (self.p_fp, self.p_fn):
             model = model.with_detector(p_fp=self.p_fp, p_fn=self.p_fn)
-        om = ObservationModel(model, naive_bayes=self.naive_bayes)
-        place_ids = map_place_ids(maps)
+        self.model_ = model
+        words = [np.asarray(w, np.int64) for tr in maps for w in resources.words(tr)]
+        self.obs_ptr_ = np.r_[0, np.cumsum([len(w) for w in words])].astype(np.int64)
+        self.obs_words_ = np.concatenate(words) if words else np.zeros(0, np.int64)
+        self.obs_places_ = np.concatenate([tr.places for tr in maps]).astype(np.int64)
+        self._build_places()
+
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        """The tour's images are further observations of their places (Eq. 11); unseen places become new places.
+
+        Observations are kept per image, in the order tours were given, so the
+        place models equal those of fitting on all tours at once.
+        """
+        words = [np.asarray(w, np.int64) for w in resources.words(tour)]
+        ends = self.obs_ptr_[-1] + np.cumsum([len(w) for w in words])
+        self.obs_ptr_ = np.r_[self.obs_ptr_, ends].astype(np.int64)
+        self.obs_words_ = np.concatenate([self.obs_words_, *words]).astype(np.int64)
+        self.obs_places_ = np.concatenate([self.obs_places_, tour.places]).astype(np.int64)
+        self._build_places()
+
+    def _build_places(self) -> None:
+        """Place appearance models from the stored observations: prior + Eq. 11 per observation."""
+        om = ObservationModel(self.model_, naive_bayes=self.naive_bayes)
+        place_ids = np.unique(self.obs_places_)
         # all observations of each place, in map order (traverse by traverse)
         per_place: list[list[Observation]] = [[] for _ in range(place_ids.size)]
-        for tr in maps:
-            words = resources.words(tr)
-            rows = np.searchsorted(place_ids, tr.places)
-            for r, w in zip(rows, words, strict=True):
-                per_place[int(r)].append(om.observe(w))
+        rows = np.searchsorted(place_ids, self.obs_places_)
+        for i, r in enumerate(rows):
+            w = self.obs_words_[self.obs_ptr_[i]:self.obs_ptr_[i + 1]]
+            per_place[int(r)].append(om.observe(w))
         pmap = make_map(om, variant=self.variant, normaliser=self.normaliser,
                         n_samples=self.n_samples, seed=self.seed, bailout=self.bailout,
                         p_bailout=self.p_bailout)
@@ -143,10 +165,21 @@ class FabMap(PlaceRecognizer):
             _build_dense(pmap, om, per_place)
         if self.output == "posterior":
             pmap.prepare_normaliser()  # not inside the timed queries
-        self.model_ = model
         self.obs_model_ = om
         self.map_ = pmap
         self.place_ids_ = place_ids
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        # The Chow-Liu model and every map observation; the place models follow from them (Eq. 11).
+        meta, arrays = object_state(self, only=["obs_ptr_", "obs_words_", "obs_places_"])
+        model_meta, model_arrays = self.model_.to_state()
+        return {**meta, "model": model_meta}, {**arrays, **{f"model/{k}": v for k, v in model_arrays.items()}}
+
+    def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        restore_state(self, meta, arrays)
+        model_arrays = {k.removeprefix("model/"): v for k, v in arrays.items() if k.startswith("model/")}
+        self.model_ = FabMapModel.from_state(dict(meta["model"]), model_arrays)
+        self._build_places()
 
     def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         """Visual-word ids of each query image (sorted, unique, int32)."""

@@ -15,12 +15,15 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
+import faiss
 import numpy as np
 
 from topoloc._params import Constraint, Interval
 from topoloc.datasets.traverse import Traverse
 from topoloc.features import FeatureSet
-from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.geometry import normalise_descriptors
+from topoloc.io.state import object_state, restore_state
+from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
 from topoloc.voting import DescriptorIndex, build_index, image_votes
 
@@ -56,6 +59,11 @@ class ImageVoting(PlaceRecognizer):
     """
 
     name: ClassVar[str] = "voting"
+    index_: faiss.IndexFlatL2
+    image_place_: np.ndarray
+    desc_image_: np.ndarray
+    desc_xy_: np.ndarray
+    n_images_: int
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "ratio": Interval(float, 0.0, 1.0, closed="right"), "n_neighbours": Interval(int, 2),
         "n_verify": Interval(int, 1), "ransac_px": Interval(float, 0.0, closed="neither"),
@@ -78,16 +86,52 @@ class ImageVoting(PlaceRecognizer):
         self.min_matches = min_matches
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
-        place_ids = map_place_ids(maps)
         feats = [f for m in maps for f in resources.features(m)]
         places = np.concatenate([m.places for m in maps])
-        index = build_index([f.descriptors for f in feats], [f.xy for f in feats])
+        self._set_index(build_index([f.descriptors for f in feats], [f.xy for f in feats]), places)
+
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        """Every image of the tour becomes a node: its descriptors join the index (as in fitting on all tours)."""
+        feats = resources.features(tour)
+        counts = np.array([len(f) for f in feats], np.int64)
+        rows = [normalise_descriptors(f.descriptors) for f in feats if len(f)]
+        if rows:
+            self.index_.add(np.ascontiguousarray(np.concatenate(rows)))
+        new_image = np.repeat(np.arange(self.n_images_, self.n_images_ + len(feats), dtype=np.int64), counts)
+        new_xy = np.concatenate([f.xy for f in feats]).astype(np.float32) if counts.sum() else np.zeros((0, 2))
+        places = np.concatenate([self.place_ids_[self.image_place_], tour.places])
+        self.desc_image_ = np.concatenate([self.desc_image_, new_image])
+        self.desc_xy_ = np.concatenate([self.desc_xy_, new_xy]).astype(np.float32)
+        self.n_images_ += len(feats)
+        self.place_ids_ = np.unique(places).astype(np.int64)
+        self.image_place_ = np.searchsorted(self.place_ids_, places)
+
+    def _set_index(self, index: DescriptorIndex, places: np.ndarray) -> None:
+        place_ids = np.unique(places).astype(np.int64)
         self.image_place_ = np.searchsorted(place_ids, places)
         self.desc_image_ = index.desc_image
         self.desc_xy_ = index.desc_xy
         self.n_images_ = index.n_images
         self.index_ = index.index
         self.place_ids_ = place_ids
+
+    def _descriptors(self) -> np.ndarray:
+        """The indexed (unit-normalised) descriptors, shape (n_descriptors, d)."""
+        n = self.index_.ntotal
+        return self.index_.reconstruct_n(0, n) if n else np.zeros((0, self.index_.d), np.float32)
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        meta, arrays = object_state(self, only=["image_place_", "desc_image_", "desc_xy_", "n_images_",
+                                                "place_ids_"])
+        arrays["descriptors"] = self._descriptors()
+        return meta, arrays
+
+    def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        restore_state(self, meta, arrays)
+        desc = np.ascontiguousarray(arrays["descriptors"], dtype=np.float32)
+        self.index_ = faiss.IndexFlatL2(desc.shape[1] if desc.ndim == 2 and desc.shape[1] else 128)
+        if len(desc):
+            self.index_.add(desc)
 
     def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return list(resources.features(query))

@@ -16,12 +16,15 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
+import faiss
 import numpy as np
 
 from topoloc._params import Constraint, Interval, OfType, Options
 from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
 from topoloc.geometry import epipolar_inliers, normalise_descriptors
+from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.landmarks.model import LandmarkModel
 from topoloc.landmarks.similarity import node_similarity
 from topoloc.landmarks.tracking import build_tracks
@@ -173,6 +176,36 @@ class LandmarkMap(PlaceRecognizer):
             nodes[i] = x
         self.weights_ = self.model_.weights()
         return nodes
+
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        """Online learning from the tour (Sec. V), exactly as a later ``--map`` tour in ``fit``.
+
+        The landmark map's nodes are the images of its first tour; a tour that
+        visits places the map has none of is refused (build the map from all tours).
+        """
+        unseen = np.setdiff1d(tour.places, self.place_ids_)
+        if len(unseen):
+            raise TopolocError(
+                f"landmarks: tour {tour.name!r} visits {len(unseen)} places the map has no node for "
+                f"(e.g. {int(unseen[0])}); a landmark map only learns online at its nodes: build it from all tours")
+        self.learn_tour(tour, resources=resources)
+
+    def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        meta, arrays = object_state(self, only=["place_ids_", "node_place_", "weights_", "splits_"])
+        model = self.model_
+        model_meta, model_arrays = object_state(model, prefix="model/", skip=[
+            k for k in vars(model) if k.startswith("_") or k == "index_"])
+        return {**meta, "model": model_meta}, {**arrays, **model_arrays}
+
+    def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        restore_state(self, meta, arrays, copy=True)
+        # Online learning updates the model's counts in place: writeable copies.
+        model = restore_state(new_object(LandmarkModel), meta["model"], arrays, prefix="model/", copy=True)
+        model._bg_index = faiss.IndexFlatL2(model.bg_desc_.shape[1] if model.bg_desc_.ndim == 2 else 128)
+        if len(model.bg_desc_):
+            model._bg_index.add(np.ascontiguousarray(model.bg_desc_))
+        model._build_index()
+        self.model_ = model
 
     def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return list(resources.features(query))

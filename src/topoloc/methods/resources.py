@@ -100,7 +100,9 @@ class _MemoisedResources:
         n_jobs: int,
         training: Sequence[Traverse] | Traverse | None,
         training_images: Sequence[Path],
+        memoise: bool = True,
     ) -> None:
+        self.memoise = memoise
         self._extractor = extractor
         self._vocabulary = vocabulary
         self.progress: ProgressFactory = progress or no_progress
@@ -151,7 +153,7 @@ class _MemoisedResources:
         def run(k: int) -> T:
             t0 = time.perf_counter()
             out = fn(k)
-            if timed:
+            if timed and self.memoise:
                 ms = getattr(out, "extract_ms", None)
                 self.image_ms[(f"{tkey}#{k}", key)] = (
                     float(ms) if ms is not None else 1e3 * (time.perf_counter() - t0))
@@ -164,7 +166,8 @@ class _MemoisedResources:
         else:
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 result = list(pool.map(run, range(len(traverse))))
-        self._memo[memo_key] = result
+        if self.memoise:
+            self._memo[memo_key] = result
         return result
 
     def per_image(
@@ -199,10 +202,13 @@ class _MemoisedResources:
         feats = self.features(traverse, timed=timed)
         # Quantised once per traverse and run: fit, encode and show-match may all ask.
         memo_key = (traverse_key(traverse), "words:" + self.extractor.config.key())
-        if memo_key not in self._memo:
-            voc = self.vocabulary
-            self._memo[memo_key] = [voc.quantize(f.descriptors) for f in feats]
-        return self._memo[memo_key]
+        if memo_key in self._memo:
+            return self._memo[memo_key]
+        voc = self.vocabulary
+        words = [voc.quantize(f.descriptors) for f in feats]
+        if self.memoise:
+            self._memo[memo_key] = words
+        return words
 
     def training_words(self) -> list[np.ndarray]:
         """Visual-word ids of every training image (the vocabulary's training set).
@@ -279,6 +285,8 @@ class InMemoryResources(_MemoisedResources):
     Parameters are those of :class:`CachedResources`; ``feature_config`` may be
     given instead of an ``extractor`` (the extractor is then created without a
     cache).  An ``extractor`` given with its cache on is used with the cache off.
+    ``memoise=False`` keeps nothing between calls (a localiser fed one camera
+    frame after another: memory must not grow with the frames).
     """
 
     def __init__(
@@ -291,6 +299,7 @@ class InMemoryResources(_MemoisedResources):
         n_jobs: int = -1,
         training: Sequence[Traverse] | Traverse | None = None,
         training_images: Sequence[Path] = (),
+        memoise: bool = True,
     ) -> None:
         if extractor is not None and feature_config is not None:
             raise TopolocError("pass either extractor or feature_config, not both")
@@ -303,7 +312,7 @@ class InMemoryResources(_MemoisedResources):
 
             extractor = FeatureExtractor(feature_config, use_cache=False)
         super().__init__(extractor=extractor, vocabulary=vocabulary, progress=progress, n_jobs=n_jobs,
-                         training=training, training_images=training_images)
+                         training=training, training_images=training_images, memoise=memoise)
 
     def _default_extractor(self) -> FeatureExtractor:
         from topoloc.features import FeatureExtractor

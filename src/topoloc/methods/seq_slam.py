@@ -76,7 +76,7 @@ import numpy as np
 from topoloc._params import Check, Constraint, Interval, Options
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.methods.base import PlaceRecognizer, map_place_ids
+from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
 from topoloc.seqslam import difference_matrix, preprocess_image
 from topoloc.sequence.search import contrast_enhance, sequence_search, uniqueness_margin
@@ -225,13 +225,21 @@ class SeqSLAM(PlaceRecognizer):
         resources : Resources
             Per-image work runs through ``resources.per_image`` (timed).
         """
-        place_ids = map_place_ids(maps)
         vecs = [self._vectors(m, resources) for m in maps]
-        rows = np.concatenate([np.searchsorted(place_ids, m.places) for m in maps])
+        self._set_images(np.concatenate(vecs), np.concatenate([m.places for m in maps]))
+
+    def _add_tour(self, tour: Traverse, resources: Resources) -> None:
+        """The tour's preprocessed images join the map (a place's difference is the minimum over its images)."""
+        self._set_images(np.concatenate([self.map_vectors_, self._vectors(tour, resources)]),
+                         np.concatenate([self.place_ids_[self.map_rows_], tour.places]))
+
+    def _set_images(self, vectors: np.ndarray, places: np.ndarray) -> None:
+        place_ids = np.unique(places).astype(np.int64)
+        rows = np.searchsorted(place_ids, places)
         # Sort images by place so that the per-place minimum over several
         # images (traverses) is one np.minimum.reduceat.
         order = np.argsort(rows, kind="stable")
-        self.map_vectors_ = np.concatenate(vecs)[order]
+        self.map_vectors_ = vectors[order]
         self.map_rows_ = rows[order].astype(np.int64)
         self.place_ids_ = place_ids
 

@@ -1,0 +1,232 @@
+"""``topoloc map build|add|info|calibrate`` and ``topoloc localize``: saved maps on the command line."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from topoloc.cli.main import (
+    FeaturesOption,
+    MaxFeaturesOption,
+    PreprocessOption,
+    _parse_params,
+    app,
+    handle_errors,
+)
+from topoloc.cli.progress import rich_progress
+from topoloc.errors import TopolocError, input_error
+
+map_app = typer.Typer(help="Saved maps: build once from tours, add tours later, inspect, calibrate.",
+                      no_args_is_help=True)
+app.add_typer(map_app, name="map")
+
+TourOption = Annotated[list[Path], typer.Option("--map", help="Tour folder of the map (repeatable).")]
+CacheOption = Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")]
+
+
+def _check_out_file(path: Path) -> None:
+    from topoloc.maps.map import default_out_ok
+
+    default_out_ok(path)
+
+
+def _feature_config(features: str, max_features: int, max_side: str, preprocess: str,
+                    tours: list[Any]) -> Any:
+    from topoloc.features import FeatureConfig
+    from topoloc.maps.map import auto_max_side
+
+    text = str(max_side).strip().lower()
+    if text == "auto":
+        side = auto_max_side(tours)
+    else:
+        try:
+            side = int(text)
+        except ValueError:
+            raise TopolocError(f"--max-side must be 'auto' or a number of pixels, got {max_side!r}") from None
+    return FeatureConfig(method=features, max_features=max_features, max_side=side, preprocess=preprocess)
+
+
+@map_app.command("build")
+@handle_errors
+def map_build(
+    method: Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")],
+    map: TourOption,
+    out: Annotated[Path, typer.Option(help="Map file to write (.tlm).")],
+    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file (embedded in the map).")] = None,
+    vocab_train: Annotated[
+        list[Path] | None, typer.Option("--vocab-train", help="Folders to train the vocabulary on (repeatable).")
+    ] = None,
+    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
+    param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
+    features: FeaturesOption = "sift",
+    max_features: MaxFeaturesOption = 1000,
+    max_side: Annotated[str, typer.Option(
+        help="Downscale images to this longer side; 'auto' = the smallest among the map's tours "
+             "(queries are then described at the map's scale).")] = "auto",
+    preprocess: PreprocessOption = "none",
+    cache_dir: CacheOption = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+) -> None:
+    """Build a map from one or more tours and save it in one file."""
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.evaluation.prepare import build_method
+    from topoloc.maps import Map
+
+    _check_out_file(out)
+    if vocab is not None and vocab_train:
+        raise TopolocError("pass either --vocab or --vocab-train, not both")
+    tours = [load_traverse(m) for m in map]
+    params = build_method(method, _parse_params(param or [])).get_params()  # checks names and types first
+    config = _feature_config(features, max_features, max_side, preprocess, tours)
+    t0 = time.perf_counter()
+    with rich_progress(not quiet) as progress:
+        m = Map.build(method=method, tours=tours, params=params, vocabulary=vocab, vocab_train=list(vocab_train or []),
+                      vocab_words=vocab_words, features=config, cache_dir=cache_dir, progress=progress)
+    m.save(out)
+    info = m.info()
+    typer.echo(json.dumps({"out": str(out), "bytes": info["bytes"], "method": info["method"],
+                           "places": info["places"], "tours": [t["name"] for t in m.tours],
+                           "seconds": round(time.perf_counter() - t0, 2)}))
+
+
+@map_app.command("add")
+@handle_errors
+def map_add(
+    map_file: Annotated[Path, typer.Argument(help="Map file to extend (rewritten atomically).")],
+    tour: Annotated[Path, typer.Argument(help="Tour folder to add.")],
+    vocab: Annotated[Path | None, typer.Option(help="Must be the map's vocabulary when given.")] = None,
+    features: Annotated[str | None, typer.Option(help="Must be the map's when given.")] = None,
+    max_features: Annotated[int | None, typer.Option(help="Must be the map's when given.")] = None,
+    preprocess: Annotated[str | None, typer.Option(help="Must be the map's when given.")] = None,
+    cache_dir: CacheOption = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+) -> None:
+    """Add a tour to a saved map without rebuilding it from the earlier images."""
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.maps import Map
+    from topoloc.vocabulary import Vocabulary
+    from topoloc.vocabulary.vocab import vocabulary_fingerprint
+
+    m = Map.load(map_file)
+    _check_out_file(map_file)
+    given = {"features": features, "max_features": max_features, "preprocess": preprocess}
+    for key, value in given.items():
+        have = getattr(m.features, "method" if key == "features" else key)
+        if value is not None and str(value).lower() != str(have).lower():
+            raise input_error(f"--{key.replace('_', '-')} {value} differs from the map's {have}", map_file)
+    if vocab is not None:
+        other = vocabulary_fingerprint(Vocabulary.load(vocab))
+        if m.vocabulary is None or other != vocabulary_fingerprint(m.vocabulary):
+            raise input_error(f"vocabulary {vocab} is not the one this map was built with", map_file)
+    t = load_traverse(tour)
+    with rich_progress(not quiet) as progress:
+        m.add_tour(t, cache_dir=cache_dir, progress=progress)
+    m.save(map_file)
+    typer.echo(json.dumps({"out": str(map_file), "places": len(m.place_ids),
+                           "tours": [x["name"] for x in m.tours]}))
+
+
+@map_app.command("info")
+@handle_errors
+def map_info(
+    map_file: Annotated[Path, typer.Argument(help="Map file.")],
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object.")] = False,
+) -> None:
+    """Method, parameters, places, tours, vocabulary, feature settings, calibration and size of a map."""
+    from topoloc.maps import Map
+
+    info = Map.load(map_file).info()
+    if as_json:
+        typer.echo(json.dumps(info, default=str))
+        return
+    for key, value in info.items():
+        if key == "tours":
+            typer.echo(f"tours: {len(value)}")
+            for t in value:
+                when = f", {t['start']} .. {t['end']}" if t.get("start") else ""
+                typer.echo(f"  - {t['name']}: {t['n_images']} images, {t['n_places']} places{when} ({t['root']})")
+        else:
+            typer.echo(f"{key}: {json.dumps(value, default=str) if isinstance(value, dict | list) else value}")
+
+
+@map_app.command("calibrate")
+@handle_errors
+def map_calibrate(
+    map_file: Annotated[Path, typer.Argument(help="Map file (rewritten atomically with the threshold).")],
+    query: Annotated[Path, typer.Option(help="A labelled tour (places.csv or natural order) not in the map.")],
+    precision: Annotated[float, typer.Option(help="Precision the accepted localisations must reach.")] = 0.99,
+    tolerance: Annotated[str, typer.Option(help="Ground-truth tolerance HARD:SOFT in place ids.")] = "0:8",
+    tolerance_m: Annotated[
+        str | None, typer.Option("--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")] = None,
+    cache_dir: CacheOption = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+) -> None:
+    """Choose the score threshold that reaches --precision on a labelled tour and store it in the map."""
+    from topoloc.datasets.groundtruth import ground_truth_from_places, ground_truth_from_xy, parse_tolerance
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.maps import Map
+
+    if not 0 < precision <= 1:
+        raise TopolocError(f"--precision must be in (0, 1], got {precision}")
+    hard, soft = parse_tolerance(tolerance_m if tolerance_m is not None else tolerance)
+    m = Map.load(map_file)
+    _check_out_file(map_file)
+    q = load_traverse(query)
+    if tolerance_m is not None:
+        if q.xy is None:
+            raise input_error("--tolerance-m needs x,y columns in places.csv", q.root)
+        gt = ground_truth_from_xy(m.place_xy, q.xy, hard, soft)
+    else:
+        gt = ground_truth_from_places(m.place_ids, q.places, hard, soft)
+    if not gt.hard.any():
+        raise input_error("calibration tour has no ground truth in this map (no query place is a map place)",
+                          query)
+    with rich_progress(not quiet) as progress:
+        S = m.recognizer.similarity(q, resources=m._resources(cache_dir=cache_dir, progress=progress))
+    cal = m.calibrate(S, gt, precision=precision, query=str(query))
+    m.save(map_file)
+    typer.echo(json.dumps(cal))
+
+
+@app.command()
+@handle_errors
+def localize(
+    map_file: Annotated[Path, typer.Argument(help="Map file (topoloc map build).")],
+    inputs: Annotated[list[Path], typer.Argument(help="Image files or folders, in order.")],
+    out: Annotated[Path, typer.Option(help="JSON lines file, one line per frame, written as it goes.")],
+    top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
+    sequence: Annotated[int, typer.Option(help="Match each frame with the N before it, online (0 = off).")] = 0,
+    sequence_mode: Annotated[str, typer.Option(help="constant (SeqSLAM) or acceleration (Cooc-Map II-F).")]
+    = "constant",
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """Localise new images against a saved map: place, score, accepted, top places (and x, y) per frame."""
+    from topoloc.maps import Map
+    from topoloc.maps.map import iter_inputs, read_frame
+
+    m = Map.load(map_file)
+    files = list(iter_inputs(inputs))
+    _check_out_file(out)
+    loc = m.localizer(top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
+    t0 = time.perf_counter()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # Written line by line: a run that is stopped keeps every frame done so far.
+    with open(out, "w", encoding="utf-8") as fh, rich_progress(not quiet) as progress:
+        advance = progress(f"localize ({m.recognizer.name})", len(files))
+        for path in files:
+            fh.write(json.dumps(loc.step(read_frame(path), name=path.name)) + "\n")
+            fh.flush()
+            advance(1)
+    wall = time.perf_counter() - t0
+    n = max(loc.frames, 1)
+    match_s = sum(loc.ms_matching) / 1e3
+    summary = {"out": str(out), "frames": loc.frames, "fps": round(loc.frames / wall, 2) if wall else None,
+               "fps_without_features": round(loc.frames / match_s, 2) if match_s else None,
+               "ms_features_mean": round(sum(loc.ms_features) / n, 2),
+               "ms_matching_mean": round(sum(loc.ms_matching) / n, 2),
+               "calibrated": m.threshold is not None}
+    typer.echo(json.dumps(summary))

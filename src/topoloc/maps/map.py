@@ -1,0 +1,552 @@
+"""A saved map: built once from one or more tours, queried many times, extended with later tours.
+
+:class:`Map` binds a fitted recogniser to everything needed to use it again in
+another process: the feature settings, the vocabulary (embedded), the place
+ids with their positions, the tours it was built from, and the calibrated
+acceptance threshold.  ``Map.build`` fits, ``save``/``load`` go through one
+:mod:`map file <topoloc.maps.mapfile>`, ``localize`` takes a camera frame (a
+NumPy array) and returns the place it shows with a confidence, and
+``add_tour`` extends the map the way each method's paper updates its model.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import asdict
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc.datasets.groundtruth import GroundTruth
+from topoloc.datasets.traverse import Traverse, load_traverse, read_image
+from topoloc.errors import TopolocError, input_error
+from topoloc.features import FeatureConfig, FeatureExtractor
+from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
+from topoloc.methods import get_method
+from topoloc.methods.base import PlaceRecognizer
+from topoloc.methods.resources import CachedResources, InMemoryResources, Resources
+from topoloc.progress import ProgressFactory
+from topoloc.vocabulary import Vocabulary
+from topoloc.vocabulary.vocab import vocabulary_fingerprint
+
+log = logging.getLogger(__name__)
+
+SEQUENCE_MODES = ("constant", "acceleration")
+
+
+def tour_record(tour: Traverse) -> dict[str, Any]:
+    """What a map remembers of a tour: name, size, times and a fingerprint of its images and places."""
+    # Names, places, times and each image's size (or pixels, in memory): moving the folder keeps it,
+    # another tour with the same file names (a camera's 00000.jpg...) does not share it.
+    digest = hashlib.sha1()
+    for k, (name, place) in enumerate(zip(tour.images, tour.places, strict=True)):
+        when = str(tour.times[k]) if tour.times is not None else ""
+        if tour.kind == "files":
+            size = Path(name).stat().st_size if Path(name).is_file() else -1
+            digest.update(f"{Path(name).name}\t{int(place)}\t{when}\t{size}\n".encode())
+        else:
+            digest.update(f"{int(place)}\t{when}\n".encode())
+            frame = (tour.frames or ())[k]
+            data = frame if isinstance(frame, np.ndarray) else getattr(frame, "descriptors", np.zeros(0))
+            digest.update(np.ascontiguousarray(data).tobytes())
+    rec: dict[str, Any] = {
+        "name": tour.name, "root": str(tour.root) if tour.kind == "files" else f"<{tour.kind} in memory>",
+        "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": digest.hexdigest(),
+        "median_hour": tour.median_time_of_day(), "start": None, "end": None,
+    }
+    if tour.times is not None and len(tour.times):
+        rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
+    return rec
+
+
+def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
+    """Per place: sum of x, sum of y and number of the tours' images with a position, shape (n_places, 3)."""
+    sums = np.zeros((len(place_ids), 3))
+    for t in tours:
+        if t.xy is None:
+            continue
+        rows = np.searchsorted(place_ids, t.places)
+        np.add.at(sums, rows, np.c_[t.xy, np.ones(len(t))])
+    return sums
+
+
+def auto_max_side(tours: Sequence[Traverse]) -> int:
+    """The smallest longer image side among the tours (first, middle and last image of each).
+
+    A map records the scale its features were extracted at, so that later
+    queries from a larger camera are described at the same scale.
+    """
+    sides = []
+    for t in tours:
+        n = len(t)
+        for i in sorted({0, n // 2, n - 1}) if n else []:
+            sides.append(max(t.read(i).shape[:2]) if t.kind in ("files", "images") else 0)
+    sides = [s for s in sides if s]
+    return min(sides) if sides else 0
+
+
+class Map:
+    """A fitted recogniser with everything needed to localise against it later.
+
+    Build with :meth:`build`, reopen with :meth:`load`.
+
+    Attributes
+    ----------
+    recognizer : PlaceRecognizer
+        The fitted method.
+    features : FeatureConfig
+        Feature settings of every map image (queries use the same).
+    vocabulary : Vocabulary or None
+    tours : list of dict
+        What the map was built from (:func:`tour_record`), in the order added.
+    place_xy : ndarray of float64, shape (n_places, 2)
+        Mean position of each place in metres over the map images that have
+        one (NaN where none has).
+    calibration : dict or None
+        ``{"threshold", "precision", "recall", "query", "ground_truth", "date"}``
+        from :meth:`calibrate`; without it every localisation is accepted.
+    path : Path or None
+        The file it was loaded from or last saved to.
+    """
+
+    def __init__(self, recognizer: PlaceRecognizer, *, features: FeatureConfig, vocabulary: Vocabulary | None,
+                 tours: list[dict[str, Any]], xy_sums: np.ndarray, calibration: dict[str, Any] | None = None,
+                 created: str | None = None, path: Path | None = None) -> None:
+        self.recognizer = recognizer
+        self.features = features
+        self.vocabulary = vocabulary
+        self.tours = tours
+        self.xy_sums = np.asarray(xy_sums, np.float64)
+        self.calibration = calibration
+        self.created = created or datetime.now(UTC).isoformat(timespec="seconds")
+        self.path = path
+        self._frame_resources: InMemoryResources | None = None
+
+    # -- building ---------------------------------------------------------------------------
+    @classmethod
+    def build(
+        cls,
+        *,
+        method: str,
+        tours: Sequence[Traverse | str | Path],
+        params: dict[str, Any] | None = None,
+        vocabulary: Vocabulary | str | Path | None = None,
+        vocab_train: Sequence[str | Path] = (),
+        vocab_words: int = 10000,
+        features: FeatureConfig | None = None,
+        cache_dir: str | Path | None = None,
+        progress: ProgressFactory | None = None,
+        seed: int = 0,
+    ) -> Map:
+        """Fit ``method`` on ``tours`` and return the map (not yet saved).
+
+        Parameters
+        ----------
+        method : str
+            A registered method name (``topoloc.available_methods()``).
+        tours : sequence of Traverse or folder
+            The map tours (image folders or in-memory traverses).
+        params : dict, optional
+            The method's parameters.
+        vocabulary : Vocabulary or path, optional
+            A vocabulary, or a vocabulary file (``topoloc vocab train``).
+        vocab_train : sequence of folders
+            Train a vocabulary on these images instead (cached); FAB-MAP also
+            learns its word statistics from them.
+        features : FeatureConfig, optional
+            Default: SIFT, 1000 per image, at the smallest longer image side
+            found among the tours (:func:`auto_max_side`).
+        """
+        maps = [t if isinstance(t, Traverse) else load_traverse(t) for t in tours]
+        if not maps:
+            raise TopolocError("a map needs at least one tour")
+        cls_ = get_method(method)
+        rec = cls_(**(params or {}))
+        rec.validate_params()  # before any feature is extracted
+        if vocabulary is not None and vocab_train:
+            raise TopolocError("pass either a vocabulary or folders to train one on, not both")
+        config = features if features is not None else FeatureConfig(max_side=auto_max_side(maps))
+        extractor = FeatureExtractor(config, cache_dir=cache_dir)
+        voc: Vocabulary | None = None
+        training_images: list[Path] = []
+        if isinstance(vocabulary, Vocabulary):
+            voc = vocabulary
+        elif vocabulary is not None:
+            voc = Vocabulary.load(vocabulary)
+        elif vocab_train:
+            from topoloc.datasets.traverse import find_images
+            from topoloc.vocabulary import cached_vocabulary
+
+            training_images = find_images([Path(f) for f in vocab_train])
+            voc, _ = cached_vocabulary(list(vocab_train), extractor=extractor, n_words=vocab_words, seed=seed,
+                                       cache_dir=cache_dir, progress=progress)
+        if voc is not None:
+            voc.check_compatible(config.descriptor_kind, source=vocabulary if isinstance(vocabulary, str | Path)
+                                 else None)
+        elif rec.uses_vocabulary:
+            raise TopolocError(f"method {method!r} needs a vocabulary: pass a vocabulary file or folders to "
+                               "train one on")
+        res = CachedResources(extractor=extractor, vocabulary=voc, progress=progress,
+                              training_images=training_images)
+        rec.fit(maps, resources=res)
+        return cls(rec, features=config, vocabulary=voc, tours=[tour_record(t) for t in maps],
+                   xy_sums=_xy_sums(maps, rec.place_ids_))
+
+    def add_tour(self, tour: Traverse | str | Path, *, cache_dir: str | Path | None = None,
+                 progress: ProgressFactory | None = None) -> Map:
+        """Add a tour without revisiting the earlier images (each method's own update; see its ``_add_tour``).
+
+        Raises
+        ------
+        TopolocError
+            If the tour was added before (same fingerprint), or the method cannot add it.
+        """
+        t = tour if isinstance(tour, Traverse) else load_traverse(tour)
+        rec = tour_record(t)
+        if any(old["fingerprint"] == rec["fingerprint"] for old in self.tours):
+            raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
+                              self.path or t.root)
+        old_ids = self.place_ids
+        self.recognizer.add_tour(t, resources=self._resources(cache_dir=cache_dir, progress=progress))
+        sums = _xy_sums([t], self.place_ids)
+        sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
+        self.xy_sums = sums
+        self.tours.append(rec)
+        return self
+
+    # -- persistence ------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the map to one file, atomically; returns the path."""
+        path = Path(path)
+        if path.is_dir():
+            raise input_error("map output is a folder, not a file", path)
+        meta, arrays = self.recognizer.get_state()
+        out: dict[str, np.ndarray] = {STATE_PREFIX + k: v for k, v in arrays.items()}
+        out["places/ids"] = np.asarray(self.place_ids, np.int64)
+        out["places/xy_sums"] = self.xy_sums
+        voc_meta = None
+        if self.vocabulary is not None:
+            out["vocabulary/words"] = self.vocabulary.words_
+            voc_meta = {"fingerprint": vocabulary_fingerprint(self.vocabulary),
+                        "descriptor_kind": self.vocabulary.descriptor_kind_,
+                        "provenance": self.vocabulary.provenance_,
+                        "index": self.vocabulary.index, "ef_search": self.vocabulary.ef_search}
+        from topoloc import __version__
+
+        header = {
+            "method": self.recognizer.name, "params": self.recognizer.get_params(),
+            "features": asdict(self.features), "vocabulary": voc_meta, "tours": self.tours,
+            "state": meta, "calibration": self.calibration, "created": self.created,
+            "modified": datetime.now(UTC).isoformat(timespec="seconds"), "topoloc_version": __version__,
+        }
+        write_map_file(path, header, out)
+        self.path = path
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, *, mmap: bool = True) -> Map:
+        """Open a map file; large arrays are memory-mapped (``mmap``), so this costs what it reads.
+
+        Raises
+        ------
+        TopolocError
+            One line naming the file: missing, not a map, another schema version,
+            truncated, corrupted, or inconsistent (vocabulary fingerprint, state).
+        """
+        path = Path(path)
+        meta, arrays = read_map_file(path, mmap=mmap)
+        try:
+            cls_ = get_method(str(meta["method"]))
+            features = FeatureConfig(**meta["features"])
+            voc = None
+            if meta["vocabulary"] is not None:
+                v = meta["vocabulary"]
+                voc = Vocabulary.from_words(np.asarray(arrays["vocabulary/words"]),
+                                            descriptor_kind=str(v["descriptor_kind"]),
+                                            provenance=dict(v.get("provenance") or {}),
+                                            index=str(v.get("index", "hnsw")), ef_search=int(v.get("ef_search", 16)))
+                if vocabulary_fingerprint(voc) != v["fingerprint"]:
+                    raise input_error("map file's vocabulary does not match its fingerprint", path)
+            state = {k.removeprefix(STATE_PREFIX): a for k, a in arrays.items() if k.startswith(STATE_PREFIX)}
+            frame_res = InMemoryResources(feature_config=features, vocabulary=voc, memoise=False)
+            rec = cls_.from_state(dict(meta["params"]), meta["state"], state, resources=frame_res)
+            place_ids = np.asarray(arrays["places/ids"])
+            if not np.array_equal(place_ids, rec.place_ids_):
+                raise input_error("map file is inconsistent (place ids differ from the method's)", path)
+            return cls(rec, features=features, vocabulary=voc, tours=list(meta["tours"]),
+                       xy_sums=np.array(arrays["places/xy_sums"]), calibration=meta.get("calibration"),
+                       created=meta.get("created"), path=path)
+        except TopolocError as exc:
+            msg = str(exc)
+            raise TopolocError(msg if str(path) in msg else f"{msg}: {path}") from None
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise input_error(f"map file is malformed ({type(exc).__name__}: {exc})", path) from None
+
+    # -- what it holds ----------------------------------------------------------------------
+    @property
+    def place_ids(self) -> np.ndarray:
+        """Sorted place ids: the rows of ``S``, shape (n_places,)."""
+        return self.recognizer.place_ids_
+
+    @property
+    def place_xy(self) -> np.ndarray:
+        """Mean position of each place, shape (n_places, 2); NaN where no map image had one."""
+        n = self.xy_sums[:, 2:3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n > 0, self.xy_sums[:, :2] / np.maximum(n, 1), np.nan)
+
+    @property
+    def threshold(self) -> float | None:
+        """Score above which a localisation is accepted, or None before :meth:`calibrate`."""
+        return None if self.calibration is None else float(self.calibration["threshold"])
+
+    def info(self) -> dict[str, Any]:
+        """Method, parameters, places, tours, vocabulary, features, calibration and file size."""
+        voc = None
+        if self.vocabulary is not None:
+            fp = vocabulary_fingerprint(self.vocabulary)
+            voc = {**fp, "trained_on": self.vocabulary.provenance_.get("folders")}
+        xy_known = int((~np.isnan(self.place_xy[:, 0])).sum()) if len(self.place_xy) else 0
+        return {
+            "file": str(self.path) if self.path else None,
+            "bytes": self.path.stat().st_size if self.path and self.path.is_file() else None,
+            "method": self.recognizer.name, "params": self.recognizer.get_params(),
+            "places": len(self.place_ids), "places_with_position": xy_known,
+            "place_id_range": [int(self.place_ids.min()), int(self.place_ids.max())] if len(self.place_ids) else None,
+            "tours": self.tours, "vocabulary": voc, "features": asdict(self.features),
+            "calibration": self.calibration or "none: every localisation is accepted (run `topoloc map calibrate`)",
+            "created": self.created,
+        }
+
+    # -- querying ---------------------------------------------------------------------------
+    def _resources(self, *, cache_dir: str | Path | None = None,
+                   progress: ProgressFactory | None = None) -> CachedResources:
+        """Resources for whole traverses: the map's features (disk-cached) and vocabulary."""
+        return CachedResources(extractor=FeatureExtractor(self.features, cache_dir=cache_dir),
+                               vocabulary=self.vocabulary, progress=progress)
+
+    def similarity(self, query: Traverse | str | Path, *, resources: Resources | None = None,
+                   cache_dir: str | Path | None = None) -> np.ndarray:
+        """``S`` of shape (n_places, len(query)) for a whole query traverse."""
+        q = query if isinstance(query, Traverse) else load_traverse(query)
+        return self.recognizer.similarity(q, resources=resources or self._resources(cache_dir=cache_dir))
+
+    def localizer(self, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> Localizer:
+        """An online localiser: feed it frames one at a time (:meth:`Localizer.step`)."""
+        return Localizer(self, top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
+
+    def localize(self, image: np.ndarray, *, top_k: int = 5) -> dict[str, Any]:
+        """The place one camera frame shows.
+
+        Parameters
+        ----------
+        image : ndarray of uint8, shape (H, W) grey or (H, W, 3) BGR
+
+        Returns
+        -------
+        dict
+            ``place`` (best place id), ``score``, ``accepted`` (score above the
+            calibrated threshold; always True before calibration), ``top``
+            (``[[place, score], ...]``, best first) and ``x``, ``y`` when the
+            map has positions.
+        """
+        return self.localizer(top_k=top_k).step(image)
+
+    def localize_many(self, images: Iterable[np.ndarray], *, top_k: int = 5, sequence: int = 0,
+                      sequence_mode: str = "constant") -> list[dict[str, Any]]:
+        """:meth:`localize` over a sequence of frames; ``sequence > 0`` matches the last frames online."""
+        loc = self.localizer(top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
+        return [loc.step(img) for img in images]
+
+    # -- confidence -------------------------------------------------------------------------
+    def calibrate(self, S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
+                  query: str = "", ground_truth: str = "") -> dict[str, Any]:
+        """Choose the acceptance threshold from a labelled tour's scores and store it in the map.
+
+        Each query's best place (the raw argmax of its column, as :meth:`localize`
+        reports it) is right when it lies in ``gt.hard``; queries whose best place
+        is only in ``gt.soft`` are neither right nor wrong (as in the PR curve of
+        the protocol).  The threshold is the lowest best-match score at which the
+        queries scoring at least that much reach ``precision``; the recall there
+        is recorded.  Where no threshold reaches it the map accepts nothing.
+
+        Parameters
+        ----------
+        S : ndarray, shape (n_places, n_queries)
+            This map's scores of the labelled tour (:meth:`similarity`).
+        gt : GroundTruth
+            Of the same shape.
+        precision : float
+            In (0, 1].
+
+        Returns
+        -------
+        dict
+            The calibration stored in the map.
+        """
+        if not 0 < precision <= 1:
+            raise TopolocError(f"--precision must be in (0, 1], got {precision}")
+        if S.shape != gt.shape:
+            raise TopolocError(f"scores of shape {S.shape} do not match the ground truth {gt.shape}")
+        has_pos = gt.hard.any(axis=0)
+        if not has_pos.any():
+            raise TopolocError("calibration needs a tour with ground truth: no query has a correct map place")
+        best = np.argmax(S, axis=0)
+        cols = np.arange(S.shape[1])
+        score = S[best, cols].astype(np.float64)
+        right = gt.hard[best, cols]
+        counted = right | ~gt.soft[best, cols]
+        order = np.argsort(-score, kind="stable")
+        s, r, c = score[order], right[order], counted[order]
+        tp = np.cumsum(r & c)
+        n_counted = np.cumsum(c)
+        last = np.r_[s[1:] != s[:-1], True]  # ties are accepted together
+        prec = np.where(n_counted > 0, tp / np.maximum(n_counted, 1), 1.0)
+        ok = last & (prec >= precision) & (n_counted > 0)
+        n_pos = int(has_pos.sum())
+        if ok.any():
+            k = int(np.flatnonzero(ok)[-1])
+            threshold, rec = float(s[k]), float(tp[k] / n_pos)
+            reached = float(prec[k])
+        else:
+            threshold, rec, reached = float("inf"), 0.0, 1.0
+        self.calibration = {
+            "threshold": threshold, "precision_asked": precision, "precision": reached, "recall": rec,
+            "query": query, "ground_truth": ground_truth or gt.description, "n_queries": int(S.shape[1]),
+            "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+        return self.calibration
+
+
+class Localizer:
+    """Online localisation against a :class:`Map`, one frame at a time, with bounded memory.
+
+    With ``sequence = N > 0`` each frame is matched together with the ``N``
+    frames before it (causal: frame ``i`` uses only frames ``<= i``), by the
+    same search as ``evaluate --sequence`` on the last ``N + 1`` score
+    columns, so its result equals the batch result for that frame.  Methods
+    that score whole sequences (SeqSLAM) keep their own last ``ds + 1`` frames.
+    """
+
+    def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> None:
+        if top_k < 1:
+            raise TopolocError(f"--top-k must be >= 1, got {top_k}")
+        if sequence < 0:
+            raise TopolocError(f"--sequence must be >= 0, got {sequence}")
+        if sequence_mode not in SEQUENCE_MODES:
+            raise TopolocError(f"--sequence-mode must be one of {', '.join(SEQUENCE_MODES)}, got {sequence_mode!r}")
+        self.map = m
+        self.top_k = top_k
+        self.sequence = sequence
+        self.sequence_mode = sequence_mode
+        self.frames = 0
+        rec = m.recognizer
+        self._items: deque[Any] = deque(maxlen=int(rec.get_params().get("ds", 0)) + 1)
+        self._columns: deque[np.ndarray] = deque(maxlen=sequence + 1)
+        self.ms_features: list[float] = []
+        self.ms_matching: list[float] = []
+        self._res = InMemoryResources(feature_config=m.features, vocabulary=m.vocabulary, memoise=False, n_jobs=1)
+
+    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]:
+        """Localise the next frame (a NumPy image) and return its result line (see :meth:`Map.localize`)."""
+        rec = self.map.recognizer
+        t0 = time.perf_counter()
+        items = rec.encode(Traverse.from_images([image], name=name or f"frame{self.frames}"), resources=self._res)
+        t1 = time.perf_counter()
+        if rec.scores_whole_sequence:
+            self._items.append(items[0])
+            col = rec.score(list(self._items))[:, -1]
+        else:
+            col = rec.score(items)[:, 0]
+        if self.sequence:
+            from topoloc.sequence import sequence_similarity
+
+            self._columns.append(np.asarray(col, np.float32))
+            window = np.stack(self._columns, axis=1)
+            col = sequence_similarity(window, ds=self.sequence, mode=self.sequence_mode)[:, -1]  # type: ignore[arg-type]
+        t2 = time.perf_counter()
+        self.ms_features.append(1e3 * (t1 - t0))
+        self.ms_matching.append(1e3 * (t2 - t1))
+        out = self._result(np.asarray(col, np.float64), name, time_s)
+        self.frames += 1
+        return out
+
+    def _result(self, col: np.ndarray, name: str, time_s: float | None) -> dict[str, Any]:
+        m = self.map
+        k = min(self.top_k, len(col))
+        top = np.argpartition(-col, k - 1)[:k] if k < len(col) else np.arange(len(col))
+        top = top[np.lexsort((top, -col[top]))]  # best first, ties by row as argmax
+        best = int(top[0])
+        score = float(col[best])
+        threshold = m.threshold
+        out: dict[str, Any] = {
+            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": score,
+            "accepted": bool(threshold is None or score >= threshold),
+            "top": [[int(m.place_ids[i]), float(col[i])] for i in top],
+        }
+        if time_s is not None:
+            out["time"] = time_s
+        x, y = m.place_xy[best] if len(m.place_xy) else (np.nan, np.nan)
+        if np.isfinite(x) and np.isfinite(y):
+            out["x"], out["y"] = float(x), float(y)
+        return out
+
+
+def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
+    """Image files named directly or found in folders (natural order), in the order given.
+
+    Raises
+    ------
+    TopolocError
+        For an input that does not exist or a folder without images (checked before any is yielded).
+    """
+    from topoloc.datasets.traverse import IMAGE_SUFFIXES, natural_key
+
+    files: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            found = sorted((p for p in item.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                           key=lambda p: natural_key(p.name))
+            if not found:
+                raise input_error("folder holds no images", item)
+            files.extend(found)
+        elif item.is_file():
+            files.append(item)
+        else:
+            raise input_error("input does not exist", item)
+    import cv2
+
+    # Before the first frame: an empty file or one no decoder recognises (its header) stops the run
+    # here, not after an hour of frames; a file damaged further in still fails when it is reached.
+    for f in files:
+        if f.stat().st_size == 0:
+            raise input_error("image file is empty", f)
+        if not cv2.haveImageReader(str(f)):
+            raise input_error("not an image OpenCV can read", f)
+    yield from files
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """A grey frame from a file, decoded as the map's own images were (one-line error if unreadable)."""
+    return read_image(path, gray=True)
+
+
+def default_out_ok(path: Path) -> None:
+    """Refuse an output path that cannot be written, before any work starts."""
+    if path.exists() and path.is_dir():
+        raise input_error("output is a folder, not a file", path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if parent.exists() and not parent.is_dir():
+        raise input_error("output folder is a file", parent)
+    if parent.exists() and not os.access(parent, os.W_OK):
+        raise input_error("output folder is not writable", parent)
+
+
+__all__ = ["Localizer", "Map", "auto_max_side", "iter_inputs", "read_frame", "tour_record"]

@@ -1,0 +1,163 @@
+"""Saved maps from Python: build, save, load, localise frames, add tours, calibrate; and bad map files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import topoloc
+from topoloc.datasets.groundtruth import ground_truth_from_places
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.io.container import write_container
+from topoloc.maps import MAP_KIND, MAP_VERSION, Map
+from topoloc.methods import available_methods
+
+FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20},
+                                   "seqslam": {"ds": 3}, "coocmap": {"top_k": 3}}
+
+
+def _build(route: dict[str, Any], method: str, tours: list[Traverse] | None = None) -> Map:
+    return Map.build(method=method, tours=tours or [route["map"]], params=FAST.get(method, {}),
+                     vocabulary=route["vocabulary"] if method in ("bow", "coocmap", "fabmap", "fabmap2") else None,
+                     vocab_train=(), cache_dir=route["map"].root.parent / "cache")
+
+
+@pytest.fixture(scope="module")
+def fabmap_route(tiny_route: dict[str, Any]) -> dict[str, Any]:
+    # FAB-MAP learns word statistics from the vocabulary's training folders (recorded in its provenance).
+    return tiny_route
+
+
+@pytest.mark.parametrize("method", available_methods())
+def test_saved_map_localises_frames_like_the_batch(method: str, tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    m = _build(tiny_route, method)
+    path = m.save(tmp_path / "route.tlm")
+    back = Map.load(path)
+    query = tiny_route["query"]
+    S = back.similarity(query)
+    np.testing.assert_array_equal(S, m.similarity(query))
+    # Frames as NumPy arrays, one at a time, give the batch's best places and scores.
+    lines = back.localize_many(tiny_route["query_frames"], top_k=3)
+    assert [r["place"] for r in lines] == back.place_ids[np.argmax(S, axis=0)].tolist()
+    np.testing.assert_allclose([r["score"] for r in lines], S.max(axis=0), rtol=1e-6)
+    assert all(r["accepted"] for r in lines)  # not calibrated: everything is accepted
+    first = lines[0]
+    assert set(first) >= {"frame", "image", "place", "score", "accepted", "top", "x", "y"}
+    assert len(first["top"]) == 3 and first["top"][0][0] == first["place"]
+    json.dumps(first)  # a JSON line as it stands
+
+
+def test_online_sequence_matching_equals_the_batch(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    from topoloc.sequence import sequence_similarity
+
+    m = _build(tiny_route, "bow")
+    S = m.similarity(tiny_route["query"])
+    for mode in ("constant", "acceleration"):
+        batch = sequence_similarity(S, ds=3, mode=mode)  # type: ignore[arg-type]
+        online = m.localize_many(tiny_route["query_frames"], sequence=3, sequence_mode=mode)
+        assert [r["place"] for r in online] == m.place_ids[np.argmax(batch, axis=0)].tolist()
+        np.testing.assert_allclose([r["score"] for r in online], batch.max(axis=0), rtol=1e-5, atol=1e-6)
+
+
+def test_memory_does_not_grow_with_frames(tiny_route: dict[str, Any]) -> None:
+    m = _build(tiny_route, "coocmap")
+    loc = m.localizer(sequence=2)
+    for _ in range(3):
+        for frame in tiny_route["query_frames"]:
+            loc.step(frame)
+    res = loc._res
+    assert not res._memo and not res.image_ms and len(loc._columns) == 3
+
+
+def test_add_tour_to_a_saved_map_equals_building_from_both(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    both = _build(tiny_route, "coocmap", [tiny_route["map"], tiny_route["training"]])
+    path = _build(tiny_route, "coocmap").save(tmp_path / "a.tlm")
+    later = Map.load(path).add_tour(tiny_route["training"])
+    later.save(path)
+    again = Map.load(path)
+    np.testing.assert_array_equal(again.similarity(tiny_route["query"]), both.similarity(tiny_route["query"]))
+    assert [t["name"] for t in again.tours] == ["noon", "morning"]
+    np.testing.assert_allclose(again.place_xy, both.place_xy, equal_nan=True)
+    with pytest.raises(TopolocError, match="already in the map"):
+        again.add_tour(tiny_route["training"])
+
+
+def test_calibration_sets_a_threshold_that_reaches_the_precision(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    m = _build(tiny_route, "bow")
+    S = m.similarity(tiny_route["query"])
+    gt = ground_truth_from_places(m.place_ids, tiny_route["query"].places, 0, 1)
+    cal = m.calibrate(S, gt, precision=0.9, query="dusk")
+    best = np.argmax(S, axis=0)
+    accepted = S.max(axis=0) >= cal["threshold"]
+    right = gt.hard[best, np.arange(S.shape[1])]
+    counted = right | ~gt.soft[best, np.arange(S.shape[1])]
+    if accepted.any():
+        assert right[accepted & counted].sum() / max((accepted & counted).sum(), 1) >= 0.9
+    back = Map.load(m.save(tmp_path / "c.tlm"))
+    assert back.threshold == cal["threshold"]
+    lines = back.localize_many(tiny_route["query_frames"])
+    assert [r["accepted"] for r in lines] == accepted.tolist()
+    with pytest.raises(TopolocError, match="no query has a correct map place"):
+        m.calibrate(S, ground_truth_from_places(m.place_ids + 1000, tiny_route["query"].places, 0, 0))
+
+
+def test_map_info_and_python_api(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    m = topoloc.Map.build(method="seqslam", tours=[tiny_route["map"]])
+    info = topoloc.Map.load(m.save(tmp_path / "s.tlm")).info()
+    assert info["method"] == "seqslam" and info["places"] == len(m.place_ids) and info["bytes"] > 0
+    assert info["tours"][0]["name"] == "noon" and info["tours"][0]["start"]
+    assert "every localisation is accepted" in info["calibration"]
+    r = m.localize(tiny_route["query_frames"][0])
+    assert r["frame"] == 0 and r["place"] in m.place_ids
+
+
+def test_bad_map_files_are_one_line_errors(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    path = _build(tiny_route, "bow").save(tmp_path / "good.tlm")
+    data = path.read_bytes()
+    cases = {
+        "truncated": data[: len(data) // 2],
+        "flipped": data[:-40] + bytes([data[-40] ^ 0xFF]) + data[-39:],
+        "garbage": b"not a map at all",
+        "empty": b"",
+    }
+    for name, blob in cases.items():
+        bad = tmp_path / f"{name}.tlm"
+        bad.write_bytes(blob)
+        with pytest.raises(TopolocError) as err:
+            Map.load(bad)
+        assert str(bad) in str(err.value) and "\n" not in str(err.value), name
+    other = tmp_path / "other.tlm"
+    write_container(other, "vocabulary", 1, {"a": np.zeros(2)})
+    with pytest.raises(TopolocError, match="expected a map file"):
+        Map.load(other)
+    newer = tmp_path / "newer.tlm"
+    write_container(newer, MAP_KIND, MAP_VERSION + 1, {"a": np.zeros(2)})
+    with pytest.raises(TopolocError, match="schema version"):
+        Map.load(newer)
+    with pytest.raises(TopolocError, match="not found"):
+        Map.load(tmp_path / "missing.tlm")
+    with pytest.raises(TopolocError, match="folder"):
+        _build(tiny_route, "bow").save(tmp_path)
+
+
+def test_a_failed_save_leaves_the_old_map_whole(tiny_route: dict[str, Any], tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    import topoloc.io.container as container
+
+    m = _build(tiny_route, "bow")
+    path = m.save(tmp_path / "m.tlm")
+    before = path.read_bytes()
+
+    def boom(*args: Any, **kwargs: Any) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(container.os, "fsync", boom)
+    with pytest.raises(OSError):
+        m.add_tour(tiny_route["training"]).save(path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m.tlm"]  # no temporary file left behind
