@@ -49,17 +49,23 @@ def test_import_is_lazy() -> None:
     assert out.strip() == "[]"
 
 
-def test_readme_example_runs(tmp_path: Path) -> None:
+@pytest.mark.parametrize("marker", ["python-example", "map-example"])
+def test_readme_example_runs(marker: str, tmp_path: Path) -> None:
     text = README.read_text()
-    match = re.search(r"<!-- python-example -->\n```python\n(.*?)```", text, re.S)
-    assert match, "README lost its Python example"
+    match = re.search(rf"<!-- {marker} -->\n```python\n(.*?)```", text, re.S)
+    assert match, f"README lost its {marker}"
     script = tmp_path / "example.py"
     script.write_text(match.group(1))
     env = {**os.environ, "TOPOLOC_CACHE_DIR": str(tmp_path / "cache")}
     run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, env=env,
                          timeout=300)
     assert run.returncode == 0, run.stderr
-    frames, share = re.search(r"(\d+) frames, (\d+)% within one place", run.stdout).groups()  # type: ignore[union-attr]
-    assert int(frames) >= 30 and int(share) >= 80
-    # In memory means in memory: the example never wrote a feature cache.
-    assert not (tmp_path / "cache").exists()
+    if marker == "python-example":
+        frames, share = re.search(r"(\d+) frames, (\d+)% within one place", run.stdout).groups()  # type: ignore[union-attr]
+        assert int(frames) >= 30 and int(share) >= 80
+        # In memory means in memory: the example never wrote a feature cache.
+        assert not (tmp_path / "cache").exists()
+    else:
+        place, _, accepted = run.stdout.split()[:3]
+        assert int(place) == 2 and accepted == "True"  # frame 7 of the dusk tour shows place 2
+        assert (tmp_path / "route.tlm").is_file()

@@ -136,7 +136,7 @@ def test_bad_input_is_one_line_and_leaves_the_map_untouched(setup: dict[str, Pat
     # A calibration tour without ground truth in the map.
     far = tmp_path / "far"
     far.mkdir()
-    for i, p in enumerate(sorted(setup["query"].glob("*.jpg"))[:3]):
+    for p in sorted(setup["query"].glob("*.jpg"))[:3]:
         shutil.copy(p, far / p.name)
     (far / "places.csv").write_text("image,place\n" + "".join(
         f"{p.name},{1000 + i}\n" for i, p in enumerate(sorted(far.glob("*.jpg")))))

@@ -26,7 +26,9 @@ def test_place_tolerance() -> None:
 
 def test_parse_tolerance() -> None:
     assert parse_tolerance("0:8") == (0, 8)
-    assert parse_tolerance("2") == (2, 2)
+    assert parse_tolerance("2:2") == (2, 2)
+    with pytest.raises(TopolocError, match="ambiguous"):
+        parse_tolerance("3")  # 3:3 or 0:3? refused rather than guessed
     for bad in ["a:b", "3:1", "1:2:3", "-1:2"]:
         with pytest.raises(TopolocError):
             parse_tolerance(bad)

@@ -38,10 +38,11 @@ def test_run_slam_writes_outputs(model: FabMapModel, tmp_path: Path) -> None:
     assert post.shape == (len(seq), res.n_places + 1)
     with (out / "loop_closures.csv").open() as fh:
         rows = list(csv.reader(fh))
-    assert rows[0] == ["image", "matched_image", "probability"]
+    assert rows[0] == ["image", "image_name", "matched_image", "matched_image_name", "probability"]
     assert len(rows) - 1 == len(res.loop_closures()) > 0
-    for img, matched, p in rows[1:]:
+    for img, img_name, matched, matched_name, p in rows[1:]:
         assert int(img) >= 12 and int(matched) < 12 and float(p) >= 0.98
+        assert (img_name, matched_name) == (f"{img}.jpg", f"{matched}.jpg")
         assert truth[int(img)] == truth[int(matched)]
     assert (out / "loop_closures.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "assignments.csv").is_file() and (out / "slam.json").is_file()

@@ -51,9 +51,22 @@ def handle_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            typer.echo(f"topoloc {version('topoloc')}")
+        except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+            typer.echo("topoloc (not installed)")
+        raise typer.Exit()
+
+
 @app.callback()
 def _setup(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
+    version: Annotated[bool, typer.Option(
+        "--version", help="Print the version and exit.", callback=_print_version, is_eager=True)] = False,
 ) -> None:
     from rich.logging import RichHandler
 
@@ -106,6 +119,9 @@ def evaluate(
         Path | None, typer.Option(help="VPR-Bench ground_truth_new.npy or .npz with GThard/GTsoft.")
     ] = None,
     sequence: Annotated[int, typer.Option(help="Sequence matching over each query and the N before it (0 = off).")] = 0,
+    sequence_mode: Annotated[str, typer.Option(
+        help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
+    = "constant",
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
     ] = "1,5,10",
@@ -116,8 +132,10 @@ def evaluate(
     preprocess: PreprocessOption = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    html: Annotated[Path | None, typer.Option(
+        help="Also write a self-contained HTML page to browse the run (e.g. OUT/index.html).")] = None,
 ) -> None:
-    """Run one method on map and query traverses and score it (PROTOCOL.md)."""
+    """Run one method on map and query traverses and score it (docs/protocol.md)."""
     from topoloc.evaluation.pipeline import EvaluateOptions
     from topoloc.evaluation.pipeline import evaluate as run
     from topoloc.evaluation.report import TABLE_HEADER, table_row
@@ -125,14 +143,15 @@ def evaluate(
     opts = EvaluateOptions(
         method=method, maps=list(map or []), query=query, out=out, vocab=vocab, map_file=map_file,
         vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
-        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence, recall_at=recall_at,
+        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence, sequence_mode=sequence_mode,
+        recall_at=recall_at,
         params=_parse_params(param or []), features=features, max_features=max_features,
-        max_side=max_side, preprocess=preprocess, cache_dir=cache_dir,
+        max_side=max_side, preprocess=preprocess, cache_dir=cache_dir, html=html,
     )
     with rich_progress(not quiet) as progress:
         metrics = run(opts, progress=progress)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
-    typer.echo(f"wrote {out}/S.npy, metrics.json, pr.png, report.md")
+    typer.echo(f"wrote {out}/S.npy, metrics.json, pr.png, report.md" + (f"; {html}" if html else ""))
 
 
 @app.command()
@@ -141,23 +160,46 @@ def report(
     runs: Annotated[list[Path], typer.Argument(help="Output folders of `topoloc evaluate`.")],
     out: Annotated[Path, typer.Option(help="Folder for report.md and pr_curves.png.")],
     title: Annotated[str, typer.Option(help="Title of the report.")] = "Results",
+    html: Annotated[Path | None, typer.Option(
+        help="Also write one self-contained HTML page to browse every query (e.g. OUT/index.html).")] = None,
 ) -> None:
-    """Put several evaluate runs side by side: one table and one PNG of PR curves."""
+    """Put several evaluate runs side by side: one table and one PNG of PR curves (and an HTML page)."""
     from topoloc.evaluation.report import build_report
+    from topoloc.io.dirs import check_output_dir
 
+    check_output_dir(out)
     path = build_report(list(runs), out, title=title)
     typer.echo(path.read_text(), nl=False)
+    if html is not None:
+        from topoloc.evaluation.html import build_html_report
+
+        with rich_progress() as progress:
+            page = build_html_report(list(runs), html, title=title, progress=progress)
+        typer.echo(f"wrote {page}")
 
 
 @app.command()
-def methods() -> None:
-    """List the methods `evaluate` accepts, with their parameters."""
+@handle_errors
+def methods(
+    name: Annotated[str | None, typer.Argument(help="A method: explain each of its parameters.")] = None,
+) -> None:
+    """List the methods `evaluate` accepts with their parameters; `methods NAME` explains each parameter."""
     from topoloc.methods import available_methods, get_method
 
-    for name in available_methods():
-        cls = get_method(name)
+    if name is not None:
+        from topoloc.methods.describe import describe_method
+
+        summary, params = describe_method(name)
+        typer.echo(f"{name}: {summary}\n\nParameters (evaluate --param KEY=VALUE):")
+        for p in params:
+            typer.echo(f"  {p.name} = {p.default!r}" + (f"  ({p.type})" if p.type else ""))
+            typer.echo(f"      {p.text or '(not documented)'}")
+        return
+    for method in available_methods():
+        cls = get_method(method)
         params = ", ".join(f"{k}={v!r}" for k, v in _defaults(cls).items())
-        typer.echo(f"{name}: {params}")
+        typer.echo(f"{method}: {params}")
+    typer.echo("\n`topoloc methods NAME` explains each parameter of method NAME.")
 
 
 def _defaults(cls: type) -> dict[str, Any]:
@@ -182,8 +224,10 @@ def vocab_train_cmd(
 ) -> None:
     """Train a visual vocabulary (k-means) on the images under FOLDERS."""
     from topoloc.features import FeatureConfig, FeatureExtractor
+    from topoloc.io.dirs import check_output_file
     from topoloc.vocabulary import train_vocabulary
 
+    check_output_file(out)
     config = FeatureConfig(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     extractor = FeatureExtractor(config, cache_dir=cache_dir)
     with rich_progress() as progress:
@@ -246,6 +290,9 @@ def convert(
     images: Annotated[
         Path | None, typer.Option(help="Folder the image names are relative to (dbstruct, latlon-csv).")
     ] = None,
+    query_images: Annotated[
+        Path | None, typer.Option(help="dbstruct: folder the query names are relative to (default: --images).")
+    ] = None,
     poses: Annotated[Path | None, typer.Option(help="kitti: poses file (default ../../poses/XX.txt).")] = None,
     column: Annotated[
         list[str] | None, typer.Option(help="latlon-csv: KEY=NAME for image, lat, lon, time (repeatable).")
@@ -256,7 +303,7 @@ def convert(
     from topoloc.datasets.formats import ConvertOptions
     from topoloc.datasets.formats import convert as run
 
-    result = run(format, src, out, ConvertOptions(images=images, poses=poses,
+    result = run(format, src, out, ConvertOptions(images=images, query_images=query_images, poses=poses,
                                                   columns=_parse_params(column or []), copy=copy))
     for key, folder in result.traverses.items():
         typer.echo(f"{key or 'traverse'}: {folder} ({result.n_images[key]} images)")
@@ -278,30 +325,47 @@ def show_match_cmd(
         list[Path] | None, typer.Option("--vocab-train", help="Folders to train a vocabulary on.")
     ] = None,
     vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
-    param: Annotated[list[str] | None, typer.Option(help="Cooc-Map parameter KEY=VALUE (repeatable).")] = None,
+    param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
+    method: Annotated[str, typer.Option(help="Method to localise with (see `topoloc methods`).")] = "coocmap",
+    place: Annotated[int | None, typer.Option(
+        help="Draw this map place (e.g. the right one) instead of the best match; its score and rank are shown.")
+    ] = None,
+    tolerance: Annotated[int, typer.Option(
+        help="Places apart still counted right in the verdict (from the query folder's place ids).")] = 0,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
 ) -> None:
-    """Localise one image with Cooc-Map and draw it beside its best location with the consistent correspondences."""
+    """Localise one image and draw it beside the map place it matched, labelled, correspondences coloured.
+
+    The header names the query (file, time, true place from its folder) and the map place (id, tour,
+    file, time); the footer the score, the rank among all places, the number of consistent
+    correspondences (green; inconsistent ones red) and whether the match is right.
+    """
     from topoloc.datasets.traverse import load_traverse
     from topoloc.evaluation.prepare import build_method, make_resources, resolve_max_side
-    from topoloc.methods.show_match import show_match
+    from topoloc.io.dirs import check_output_file
+    from topoloc.methods.match_figure import labelled_match, write_png
 
-    method = build_method("coocmap", _parse_params(param or []))
+    check_output_file(out)
+    if not query_image.is_file():
+        raise TopolocError(f"query image not found: {query_image}")
+    rec = build_method(method, _parse_params(param or []))
     maps = [load_traverse(m) for m in map]
     side = resolve_max_side(max_side, maps, images=[query_image])
     with rich_progress() as progress:
         resources, _ = make_resources(
             vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words, features=features,
             max_features=max_features, max_side=side, preprocess=preprocess, cache_dir=cache_dir,
-            needs_vocabulary="show-match", progress=progress,
+            needs_vocabulary=f"show-match with {rec.name}" if rec.uses_vocabulary else "", progress=progress,
         )
-        method.fit(maps, resources=resources)
-        info = show_match(query_image, list(map), out, resources=resources, method=method)  # type: ignore[arg-type]
-    typer.echo(json.dumps(info, default=str))
+        rec.fit(maps, resources=resources)
+        canvas, info = labelled_match(rec, query_image, maps, resources=resources, place=place,
+                                      tolerance=tolerance)
+    write_png(canvas, out)
+    typer.echo(json.dumps({**info, "out": str(out)}, default=str))
 
 
 @app.command()
@@ -329,8 +393,16 @@ def slam(
     """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
     from topoloc.datasets.traverse import load_traverse
     from topoloc.evaluation.prepare import make_resources
+    from topoloc.io.dirs import check_output_dir
     from topoloc.methods.slam import run_slam
 
+    if min_gap < 0:
+        raise TopolocError(f"--min-gap must be >= 0, got {min_gap}")
+    if not 0.0 < threshold <= 1.0:
+        raise TopolocError(f"--threshold must be in (0, 1], got {threshold}")
+    if not 0.0 <= p_new < 1.0:
+        raise TopolocError(f"--p-new must be in [0, 1), got {p_new}")
+    check_output_dir(out)
     trav = load_traverse(traverse)
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(
@@ -369,15 +441,32 @@ def bench_coocmap_cmd(
     tours: Annotated[int, typer.Option(help="Training tours per location.")] = 5,
     features: Annotated[int, typer.Option(help="Features per image.")] = 500,
     words: Annotated[int, typer.Option(help="Vocabulary size.")] = 10000,
-    queries: Annotated[int, typer.Option(help="Timed queries.")] = 20,
+    queries: Annotated[int | None, typer.Option(help="Timed queries (default 20 synthetic, 500 real).")] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
+    real: Annotated[bool, typer.Option("--real", help="Locations from the images under DIRS (real features).")] = False,
+    dirs: Annotated[list[Path] | None, typer.Argument(help="With --real: folders of images (recursive).")] = None,
+    vocab_train: Annotated[
+        list[Path] | None, typer.Option("--vocab-train", help="With --real: folders to train the vocabulary on.")
+    ] = None,
+    compare: Annotated[int, typer.Option(help="With --real: queries also timed with the previous matcher.")] = 20,
+    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
 ) -> None:
-    """Cooc-Map ms per localisation and map memory on a synthetic map of the paper's size."""
-    from topoloc.bench.coocmap_speed import bench_coocmap
+    """Cooc-Map ms per localisation and map memory at the paper's size: synthetic, or real images with --real DIR..."""
+    from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
 
-    res = bench_coocmap(locations=locations, tours=tours, features=features, n_words=words, n_queries=queries,
-                        seed=seed)
+    if real or dirs:
+        if not (real and dirs):
+            raise TopolocError("bench coocmap: give --real and at least one folder of images")
+        if not vocab_train:
+            raise TopolocError("bench coocmap --real needs --vocab-train DIR (images other than the benchmark's)")
+        with rich_progress(not as_json) as progress:
+            res = bench_coocmap_real(list(dirs), locations=locations, tours=tours, n_queries=queries or 500,
+                                     vocab_train=list(vocab_train), n_words=words, compare=compare, seed=seed,
+                                     cache_dir=cache_dir, progress=progress)
+    else:
+        res = bench_coocmap(locations=locations, tours=tours, features=features, n_words=words,
+                            n_queries=queries or 20, seed=seed)
     _print_bench(res, as_json)
 
 

@@ -44,6 +44,11 @@ from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
 from topoloc.coocmap.spatial import NORM, NORM_BITS
 
+
+#: Locations (by candidate count) whose translation bound orders the start of the matching.
+SEED_FIRST = 8
+
+
 @njit(cache=True)
 def _prio(seed: np.uint64, loc: np.uint64, f: np.uint64) -> float:
     # tie_priority (matching.py), SplitMix64 finaliser with wrap-around uint64 arithmetic.
@@ -75,12 +80,138 @@ def _candidate_counts(wloc_ptr: np.ndarray, wloc: np.ndarray, qwords: np.ndarray
 
 
 @njit(cache=True)
+def _triples(s, e, word, xy, qword_sorted, qf_sorted, qx, qy, present, cand_of_f, gx, gy):
+    """Candidates and (query feature, stored feature) triples of the location stored in ``s:e``.
+
+    Merges the query's words (sorted) with the location's (sorted).  Sets
+    ``cand_of_f[f]`` to the candidate index of each query feature (ascending
+    ``f``; the caller resets it) and returns ``(n, cand_feat, t_f, t_a, t_b)``,
+    ``t_b`` the translation bucket ``bx * 2 gy + by`` of each triple.
+    """
+    F = len(qx)
+    FQ = len(qword_sorted)
+    BYg = 2 * gy
+    # Candidates and triples: merge the query's sorted words with the location's.
+    nt = 0
+    p = s
+    q = 0
+    while p < e and q < FQ:
+        wa = word[p]
+        wq = qword_sorted[q]
+        if wa < wq:
+            p += 1
+        elif wa > wq:
+            q += 1
+        else:
+            p2 = p
+            while p2 < e and word[p2] == wa:
+                p2 += 1
+            q2 = q
+            while q2 < FQ and qword_sorted[q2] == wq:
+                q2 += 1
+            nt += (p2 - p) * (q2 - q)
+            for qq in range(q, q2):
+                present[qf_sorted[qq]] = True
+            p = p2
+            q = q2
+    n = 0
+    for f in range(F):
+        if present[f]:
+            cand_of_f[f] = n
+            n += 1
+    if n == 0:
+        return 0, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cand_feat = np.empty(n, np.int64)
+    for f in range(F):
+        if present[f]:
+            cand_feat[cand_of_f[f]] = f
+            present[f] = False
+    t_f = np.empty(nt, np.int64)
+    t_a = np.empty(nt, np.int64)
+    t_b = np.empty(nt, np.int64)
+    k = 0
+    p = s
+    q = 0
+    while p < e and q < FQ:
+        wa = word[p]
+        wq = qword_sorted[q]
+        if wa < wq:
+            p += 1
+        elif wa > wq:
+            q += 1
+        else:
+            p2 = p
+            while p2 < e and word[p2] == wa:
+                p2 += 1
+            q2 = q
+            while q2 < FQ and qword_sorted[q2] == wq:
+                q2 += 1
+            for qq in range(q, q2):
+                f = qf_sorted[qq]
+                for pp in range(p, p2):
+                    t_f[k] = f
+                    t_a[k] = pp
+                    bx = ((qx[f] - np.int64(xy[pp, 0]) + NORM) * gx) >> NORM_BITS
+                    by = ((qy[f] - np.int64(xy[pp, 1]) + NORM) * gy) >> NORM_BITS
+                    t_b[k] = bx * BYg + by
+                    k += 1
+            p = p2
+            q = q2
+    return n, cand_feat, t_f, t_a, t_b
+
+
+@njit(cache=True)
+def _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r):
+    """Upper bound on the final group of a location from its triples' translations alone.
+
+    If candidates ``f`` and ``g`` are consistent through stored features ``a``
+    and ``b``, their translations ``pos(f) - pos(a)`` and ``pos(g) - pos(b)``
+    differ by less than ``r = tol + 1`` squares, so their buckets by at most
+    ``r`` (see matching.py).  Hence every other member of a group containing
+    ``f`` has a triple in the ``(2r + 1)^2`` buckets around one of ``f``'s
+    triples: ``|K| - 1 <= U(f) = sum over f's triples of (triples in that
+    window - 1)`` for every member ``f``, and ``|K| <= max k`` with at
+    least ``k`` candidates of ``U + 1 >= k`` (an h-index, at most ``n``).
+    """
+    BX = 2 * gx
+    BY = 2 * gy
+    P = np.zeros((BX + 1, BY + 1), np.int64)
+    for t in range(len(t_b)):
+        P[t_b[t] // BY + 1, t_b[t] % BY + 1] += 1
+    for x in range(1, BX + 1):
+        for y in range(1, BY + 1):
+            P[x, y] += P[x - 1, y] + P[x, y - 1] - P[x - 1, y - 1]
+    U = np.ones(n, np.int64)
+    for t in range(len(t_b)):
+        bx = t_b[t] // BY
+        by = t_b[t] % BY
+        x0 = max(bx - r, 0)
+        x1 = min(bx + r + 1, BX)
+        y0 = max(by - r, 0)
+        y1 = min(by + r + 1, BY)
+        U[cand_of_f[t_f[t]]] += P[x1, y1] - P[x0, y1] - P[x1, y0] + P[x0, y0] - 1
+    hist = np.zeros(n + 1, np.int64)
+    for c in range(n):
+        hist[min(U[c], n)] += 1
+    bound = 0
+    atleast = 0
+    for k in range(n, 0, -1):
+        atleast += hist[k]
+        if atleast >= k:
+            bound = k
+            break
+    return bound
+
+
+@njit(cache=True)
 def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy,
-                     top_k, tol, gx, gy, seed, scores, exact, stats, best_keep):
+                     top_k, tol, gx, gy, seed, seed_first, scores, exact, stats, best_keep):
     """The location loop of :func:`match_compiled` (see the module docstring).
 
-    ``stats`` (int64, 4): elimination steps, locations whose ``J`` was built,
-    pair tests, locations finished.  ``best_keep`` (bool, F): query features
+    ``stats`` (int64, 5): elimination steps, locations whose ``J`` was built,
+    pair tests, locations finished, locations dropped by the translation bound.
+    The first ``seed_first`` locations of ``order`` are re-ordered by their
+    translation bound (highest first) so that a good threshold comes early.  ``best_keep`` (bool, F): query features
     of the final group of the best finished location.
     """
     F = len(qx)
@@ -97,89 +228,40 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
     best_score = -1.0
     best_loc = -1
     lim = (tol + 1) * NORM
-    # Signed squares of every ordered query pair (i -> j), computed once.
-    qsx = np.zeros((F, F), np.int8)
-    qsy = np.zeros((F, F), np.int8)
-    for i in range(F):
-        for j in range(F):
-            c = _cells(qx[j] - qx[i], qy[j] - qy[i], gx, gy)
-            qsx[i, j] = c[0]
-            qsy[i, j] = c[1]
+    # Seed: the first locations by candidate count, taken in order of translation bound.
+    S = min(seed_first, L)
+    head = np.zeros(S, np.int64)
+    for oi in range(S):
+        loc = order[oi]
+        n, cand_feat, t_f, t_a, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
+                                               qx, qy, present, cand_of_f, gx, gy)
+        head[oi] = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r) if n else 0
+        for f in range(n):
+            cand_of_f[cand_feat[f]] = -1
+    order = order.copy()
+    order[:S] = order[:S][np.argsort(-head, kind="mergesort")]
     for oi in range(L):
         loc = order[oi]
         thr = top[0] if n_fin >= top_k else -1.0
         if n_cand[loc] < thr:
-            break  # every later location has at most this many candidates
-        s = loc_ptr[loc]
-        e = loc_ptr[loc + 1]
-        # Candidates and triples: merge the query's sorted words with the location's.
-        nt = 0
-        p = s
-        q = 0
-        while p < e and q < F:
-            wa = word[p]
-            wq = qword_sorted[q]
-            if wa < wq:
-                p += 1
-            elif wa > wq:
-                q += 1
-            else:
-                p2 = p
-                while p2 < e and word[p2] == wa:
-                    p2 += 1
-                q2 = q
-                while q2 < F and qword_sorted[q2] == wq:
-                    q2 += 1
-                nt += (p2 - p) * (q2 - q)
-                for qq in range(q, q2):
-                    present[qf_sorted[qq]] = True
-                p = p2
-                q = q2
-        n = 0
-        for f in range(F):
-            if present[f]:
-                cand_of_f[f] = n
-                n += 1
+            if oi >= S:
+                break  # every later location has at most this many candidates
+            continue
+        n, cand_feat, t_f, t_a, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
+                                               qx, qy, present, cand_of_f, gx, gy)
         if n == 0:
             exact[loc] = True
             scores[loc] = 0.0
             continue
-        cand_feat = np.empty(n, np.int64)
-        for f in range(F):
-            if present[f]:
-                cand_feat[cand_of_f[f]] = f
-                present[f] = False
-        t_f = np.empty(nt, np.int64)
-        t_a = np.empty(nt, np.int64)
-        t_b = np.empty(nt, np.int64)
-        k = 0
-        p = s
-        q = 0
-        while p < e and q < F:
-            wa = word[p]
-            wq = qword_sorted[q]
-            if wa < wq:
-                p += 1
-            elif wa > wq:
-                q += 1
-            else:
-                p2 = p
-                while p2 < e and word[p2] == wa:
-                    p2 += 1
-                q2 = q
-                while q2 < F and qword_sorted[q2] == wq:
-                    q2 += 1
-                for qq in range(q, q2):
-                    f = qf_sorted[qq]
-                    for pp in range(p, p2):
-                        t_f[k] = f
-                        t_a[k] = pp
-                        bx = ((qx[f] - np.int64(xy[pp, 0]) + NORM) * gx) >> NORM_BITS
-                        by = ((qy[f] - np.int64(xy[pp, 1]) + NORM) * gy) >> NORM_BITS
-                        t_b[k] = bx * BYg + by
-                        k += 1
-                p = p2
-                q = q2
+        nt = len(t_f)
+        # Bound from the translations alone (module docstring), before any J is built.
+        tb = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r)
+        if tb < thr:
+            for f in range(n):
+                cand_of_f[cand_feat[f]] = -1
+            scores[loc] = tb
+            stats[4] += 1
+            continue
         # Counting sort of the triples by translation bucket.
         bcount[:] = 0
         for i in range(nt):
@@ -215,7 +297,6 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
         J[:, :] = 0
         # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
         tests = 0
-        iters = 0
         for bxa in range(2 * gx):
             for bya in range(2 * gy):
                 ba = bxa * BYg + bya
@@ -242,7 +323,6 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
                             j0 = i + 1 if same else bcount[bb]
                             for j in range(j0, b1):
                                 cj = sc[j]
-                                iters += 1
                                 if ci == cj or J[ci, cj]:
                                     continue
                                 # Necessary: translations less than tol + 1 squares apart.
@@ -255,18 +335,15 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
                                 # Evaluate in the direction f < g, as the reference does.
                                 if fi < fj:
                                     ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
-                                    qcx = qsx[fi, fj]
-                                    qcy = qsy[fi, fj]
+                                    mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
                                 else:
                                     ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
-                                    qcx = qsx[fj, fi]
-                                    qcy = qsy[fj, fi]
-                                if abs(ms[0] - qcx) <= tol and abs(ms[1] - qcy) <= tol:
+                                    mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
+                                if abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol:
                                     J[ci, cj] = 1
                                     J[cj, ci] = 1
         stats[1] += 1
         stats[2] += tests
-        stats[4] += iters
         # Row sums and the h-index bound.
         deg = np.zeros(n, np.int64)
         for i in range(n):
@@ -411,9 +488,9 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     # out-of-vocabulary features never become candidates (absent from by_word).
     _match_locations(order, n_cand, model.loc_ptr, model.word, model.xy, groups,
                      words[by_word], by_word.astype(np.int64), qx, qy, int(top_k), int(spatial_tolerance),
-                     int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF, scores, exact, stats, keep)
+                     int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF, SEED_FIRST, scores, exact, stats, keep)
     res = MatchResult(scores, exact, np.zeros(0, bool), int(stats[0]), 0, time.perf_counter() - t0)
     res.locations_built = int(stats[1])  # type: ignore[attr-defined]
     res.pair_tests = int(stats[2])  # type: ignore[attr-defined]
-    res.iters = int(stats[4])  # type: ignore[attr-defined]
+    res.translation_pruned = int(stats[4])  # type: ignore[attr-defined]
     return res, np.flatnonzero(keep)

@@ -126,6 +126,8 @@ class CoocModel:
         self.tour_names: list[str] = []
         self.tour_hours: list[float | None] = []
         self.vocabulary: dict[str, Any] = {}
+        #: What the model was built from (tour fingerprints, feature settings), recorded by its user.
+        self.built_from: dict[str, Any] = {}
         self._set_features(np.zeros(0, np.int64), np.zeros(0, np.int64),
                            np.zeros((0, 2), np.uint16), np.zeros(0, np.uint64))
 
@@ -357,7 +359,7 @@ class CoocModel:
             "grid_x": self.grid_x, "grid_y": self.grid_y, "interpolate": self.interpolate,
             "position_bits": self.position_bits,
             "tour_names": self.tour_names, "tour_hours": self.tour_hours,
-            "vocabulary": self.vocabulary,
+            "vocabulary": self.vocabulary, "built_from": self.built_from,
         }
         write_container(path, KIND, KIND_VERSION,
                         {"loc": self.loc, "word": self.word, "xy": self.xy, "tours": self.tours},
@@ -388,6 +390,7 @@ class CoocModel:
             model.tour_names = [str(t) for t in meta["tour_names"]]
             model.tour_hours = [None if h is None else float(h) for h in meta["tour_hours"]]
             model.vocabulary = dict(meta.get("vocabulary") or {})
+            model.built_from = dict(meta.get("built_from") or {})
             loc, word, xy, tours = arrays["loc"], arrays["word"], arrays["xy"], arrays["tours"]
         except (KeyError, TypeError, ValueError, TopolocError) as exc:
             raise input_error(f"coocmap file has invalid metadata ({exc})", path) from None

@@ -13,8 +13,11 @@ Euclidean distances in metres.
 
 from __future__ import annotations
 
+import io
+import pickle
+import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy import sparse
@@ -107,12 +110,18 @@ def _csc_bool(m: Any) -> sparse.csc_array:
 
 
 def parse_tolerance(text: str) -> tuple[float, float]:
-    """Parse ``"HARD:SOFT"`` (or a single ``"HARD"`` meaning ``HARD:HARD``)."""
-    parts = text.split(":")
+    """Parse ``"HARD:SOFT"``.
+
+    A single number is refused: ``3`` could mean ``3:3`` or ``0:3`` (a window
+    of neighbours that are neither right nor wrong), and guessing wrong
+    changes every metric without a word.
+    """
+    parts = str(text).split(":")
+    if len(parts) == 1 and parts[0].strip():
+        raise TopolocError(f"tolerance {text!r} is ambiguous: write HARD:SOFT, e.g. 0:{parts[0].strip()} "
+                           f"or {parts[0].strip()}:{parts[0].strip()}")
     try:
-        if len(parts) == 1:
-            hard = soft = float(parts[0])
-        elif len(parts) == 2:
+        if len(parts) == 2:
             hard, soft = float(parts[0]), float(parts[1])
         else:
             raise ValueError
@@ -210,6 +219,63 @@ def xy_neighbours(
     return rows[order], cols[order], d[order]
 
 
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickles NumPy arrays and plain containers, nothing that could run code."""
+
+    _ALLOWED: ClassVar[set[tuple[str, str]]] = {
+        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+        ("numpy", "ndarray"), ("numpy", "dtype"), ("builtins", "list"), ("builtins", "tuple"),
+    }
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) not in self._ALLOWED:
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a ground-truth file")
+        return super().find_class(module, name)
+
+
+def _load_npy_safely(source: Path | bytes) -> np.ndarray:
+    """A ``.npy`` file (or its bytes): plain arrays directly; object arrays (VPR-Bench) through
+    :class:`_NumpyOnlyUnpickler`.
+
+    VPR-Bench stores its ground truth as a pickled object array; ``np.load(..., allow_pickle=True)``
+    would run any code a hostile file carries, so pickles are read with an unpickler that only
+    rebuilds NumPy arrays and lists.  A plain array's header must announce exactly the bytes that
+    follow it, so a damaged header cannot make the reader allocate more than the file holds.
+    """
+    data = source if isinstance(source, bytes) else source.read_bytes()
+    fh = io.BytesIO(data)
+    major, _ = np.lib.format.read_magic(fh)
+    read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+    shape, fortran, dtype = read_header(fh)
+    if dtype.hasobject:
+        arr = _NumpyOnlyUnpickler(fh).load()
+        if not isinstance(arr, np.ndarray):
+            raise ValueError("not an array")
+        return arr
+    needed = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if needed != len(data) - fh.tell():
+        raise ValueError(f"header announces {needed} bytes of data, the file holds {len(data) - fh.tell()}")
+    arr = np.frombuffer(data, dtype=dtype, count=int(np.prod(shape, dtype=np.int64)), offset=fh.tell())
+    return arr.reshape(shape, order="F" if fortran else "C")
+
+
+def _load_npz_safely(path: Path) -> dict[str, np.ndarray]:
+    """GThard and GTsoft of a ``.npz`` (a zip of ``.npy`` files), each read by :func:`_load_npy_safely`."""
+    out = {}
+    with zipfile.ZipFile(path) as z:
+        names = set(z.namelist())
+        for key in ("GThard", "GTsoft"):
+            if f"{key}.npy" not in names:
+                raise input_error("ground-truth .npz needs arrays GThard and GTsoft", path)
+            info = z.getinfo(f"{key}.npy")
+            if info.file_size > max(path.stat().st_size, 1) * 1100:
+                # Booleans compress about 8x; a far larger claim is a damaged or hostile archive.
+                raise ValueError(f"{key} claims {info.file_size} bytes")
+            out[key] = _load_npy_safely(z.read(info))
+    return out
+
+
 def ground_truth_from_file(
     path: str | Path, *, map_traverse: Traverse, place_ids: np.ndarray, n_queries: int
 ) -> GroundTruth:
@@ -230,20 +296,29 @@ def ground_truth_from_file(
     shape = (len(place_ids), n_queries)
     try:
         if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                if "GThard" not in z or "GTsoft" not in z:
-                    raise input_error("ground-truth .npz needs arrays GThard and GTsoft", path)
-                hard, soft = z["GThard"].astype(bool), z["GTsoft"].astype(bool)
+            z = _load_npz_safely(path)
+            hard, soft = z["GThard"].astype(bool), z["GTsoft"].astype(bool)
             if hard.shape != shape or soft.shape != shape:
                 raise input_error(
                     f"ground truth has shape {hard.shape}, expected (places, queries) = {shape}", path
                 )
             return GroundTruth(hard, soft, f"file {path.name}")
-        # The VPR-Bench format is a pickled object array; it is only ever read
-        # from a file the user names explicitly.
-        rows = np.load(path, allow_pickle=True)
-    except (OSError, ValueError, EOFError) as exc:
-        raise input_error(f"cannot read ground truth ({exc.__class__.__name__})", path) from None
+        rows = _load_npy_safely(path)
+    except TopolocError:
+        raise
+    except Exception as exc:
+        # A damaged or foreign file fails inside NumPy's, zip's or pickle's parsers in many ways; each is
+        # one line naming the file (tests/io/test_fuzz_loaders.py feeds them damaged files).
+        msg = " ".join(str(exc).split())[:120]
+        raise input_error(f"cannot read ground truth ({exc.__class__.__name__}: {msg})", path) from None
+    if rows.dtype != object:
+        # A plain matrix: hard and soft at once, and it must fit (places, queries) exactly.
+        if rows.shape != shape:
+            raise input_error(f"ground truth has shape {rows.shape}, expected (places, queries) = {shape}", path)
+        dense = rows.astype(bool)
+        return GroundTruth(dense, dense.copy(), f"file {path.name}")
+    if rows.ndim != 2 or rows.shape[1] != 2:
+        raise input_error(f"ground truth rows are not [query_index, [map indices]] (shape {rows.shape})", path)
     gt = np.zeros(shape, dtype=bool)
     n_map = len(map_traverse)
     try:

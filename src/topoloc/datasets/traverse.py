@@ -1,6 +1,6 @@
 """Traverses: folders of images taken along a route on one occasion.
 
-The format is the one of ``PROTOCOL.md``:
+The format is the one of ``docs/protocol.md``:
 
 * without a sidecar, images are ordered by natural sort of their file names and
   the image at position ``k`` shows place ``k``;
@@ -14,6 +14,7 @@ The format is the one of ``PROTOCOL.md``:
 from __future__ import annotations
 
 import csv
+import hashlib
 import re
 import uuid
 from collections.abc import Sequence
@@ -160,6 +161,26 @@ class Traverse:
                    places=ids.astype(np.int64), times=times, xy=None if xy is None else np.asarray(xy, float),
                    name=name, kind=kind, frames=frames)
 
+    def fingerprint(self) -> str:
+        """SHA-1 of what the traverse holds: image names, places, times and each file's size (or the frames).
+
+        Moving the folder keeps it; another tour with the same file names (a
+        camera's ``00000.jpg``...) does not share it.  Saved maps and models
+        record it to refuse being reused with other tours.
+        """
+        digest = hashlib.sha1()
+        for k, (name, place) in enumerate(zip(self.images, self.places, strict=True)):
+            when = str(self.times[k]) if self.times is not None else ""
+            if self.kind == "files":
+                size = Path(name).stat().st_size if Path(name).is_file() else -1
+                digest.update(f"{Path(name).name}\t{int(place)}\t{when}\t{size}\n".encode())
+            else:
+                digest.update(f"{int(place)}\t{when}\n".encode())
+                frame = (self.frames or ())[k]
+                data = frame if isinstance(frame, np.ndarray) else getattr(frame, "descriptors", np.zeros(0))
+                digest.update(np.ascontiguousarray(data).tobytes())
+        return digest.hexdigest()
+
     def read(self, index: int, *, gray: bool = True) -> np.ndarray:
         """Pixels of image ``index``: read from disk, or the in-memory frame.
 
@@ -228,15 +249,20 @@ def _parse_time(text: str, csv_path: Path, line: int) -> np.datetime64:
 
 def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
     try:
-        with csv_path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
-            fields = set(rows[0].keys()) if rows else set()
+        # utf-8-sig: spreadsheets save a byte-order mark before the header.
+        with csv_path.open(newline="", encoding="utf-8-sig") as fh:
+            reader = csv.DictReader(fh, skipinitialspace=True)
+            if reader.fieldnames:
+                reader.fieldnames = [f.strip().lower() for f in reader.fieldnames]
+            rows = [{k: v for k, v in r.items() if k is not None} for r in reader]
+            fields = set(reader.fieldnames or [])
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise input_error(f"cannot read places.csv ({exc})", csv_path) from None
+        raise input_error(f"cannot read places.csv ({type(exc).__name__}: {exc})", csv_path) from None
     if not rows:
         raise input_error("places.csv lists no images", csv_path)
     if not {"image", "place"} <= fields:
-        raise input_error("places.csv needs a header with columns image,place", csv_path)
+        raise input_error(f"places.csv needs a header with columns image,place (found: {','.join(sorted(fields))})",
+                          csv_path)
     has_time = "time" in fields
     has_xy = {"x", "y"} <= fields
     images: list[Path] = []
@@ -259,6 +285,8 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
             pid = int(raw)
         except ValueError:
             raise input_error(f"{csv_path}:{i}: place id {raw!r} is not an integer", None) from None
+        if pid < 0:
+            raise input_error(f"{csv_path}:{i}: place id {pid} is negative (place ids are >= 0)", None)
         images.append(img)
         places.append(pid)
         if has_time:

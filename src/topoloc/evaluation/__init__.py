@@ -1,4 +1,4 @@
-"""Evaluation: metrics of PROTOCOL.md, the evaluate pipeline, reports."""
+"""Evaluation: metrics of docs/protocol.md, the evaluate pipeline, reports."""
 
 from topoloc.evaluation.metrics import Scores, compute_metrics
 

@@ -1,4 +1,4 @@
-"""Precision-recall metrics of ``PROTOCOL.md`` (VPR_Tutorial conventions).
+"""Precision-recall metrics of ``docs/protocol.md`` (VPR_Tutorial conventions).
 
 Single best match per query:
 
@@ -161,7 +161,7 @@ def parse_recall_at(text: str | tuple[int, ...] | list[int]) -> tuple[int, ...]:
 
 
 def compute_metrics(S: np.ndarray, gt: GroundTruth, recall_at: tuple[int, ...] = DEFAULT_RECALL_AT) -> Scores:
-    """All accuracy metrics of ``PROTOCOL.md`` for ``S`` of shape (places, queries).
+    """All accuracy metrics of ``docs/protocol.md`` for ``S`` of shape (places, queries).
 
     ``recall_at`` lists the N of R@N to report (``Scores.recall_at_k``); R@1, R@5 and
     R@10 are always computed.

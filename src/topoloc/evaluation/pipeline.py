@@ -1,6 +1,6 @@
 """``topoloc evaluate``: run one method on map and query traverses and score it.
 
-This is the single door of ``PROTOCOL.md``.  Outputs under ``out``:
+This is the single door of ``docs/protocol.md``.  Outputs under ``out``:
 
 ``S.npy``
     float32 (n_places, n_queries), higher = more similar.
@@ -45,16 +45,18 @@ from topoloc.evaluation.prepare import build_method, make_resources, resolve_max
 from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.dirs import check_output_dir, staged_dir
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import CachedResources
 from topoloc.progress import ProgressFactory, no_progress
+from topoloc.progress import stage as progress_stage
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class EvaluateOptions:
-    """Everything ``topoloc evaluate`` takes (see ``PROTOCOL.md``)."""
+    """Everything ``topoloc evaluate`` takes (see ``docs/protocol.md``)."""
 
     method: str
     maps: list[Path]
@@ -67,6 +69,7 @@ class EvaluateOptions:
     tolerance_m: str | None = None
     ground_truth: Path | None = None
     sequence: int = 0
+    sequence_mode: str = "constant"
     params: dict[str, str] = field(default_factory=dict)
     features: str = "sift"
     max_features: int = 1000
@@ -76,6 +79,7 @@ class EvaluateOptions:
     seed: int = 0
     map_file: Path | None = None
     recall_at: str = "1,5,10"
+    html: Path | None = None  # also write the browsable HTML page of this run here
 
 
 def _save_npy(path: Path, arr: np.ndarray) -> None:
@@ -112,7 +116,7 @@ def make_ground_truth(
 def evaluate(
     opts: EvaluateOptions | None = None, *, progress: ProgressFactory | None = None, **options: Any
 ) -> dict[str, Any]:
-    """Run ``opts.method`` and write every output file of ``PROTOCOL.md`` under ``opts.out``.
+    """Run ``opts.method`` and write every output file of ``docs/protocol.md`` under ``opts.out``.
 
     Parameters
     ----------
@@ -144,6 +148,11 @@ def evaluate(
     if not opts.method and opts.map_file is None:
         raise TopolocError("evaluate needs --method NAME (see `topoloc methods`), or --map-file")
     # Validate every cheap option before any expensive work starts.
+    check_output_dir(opts.out)
+    if opts.sequence < 0:
+        raise TopolocError(f"--sequence must be >= 0 (0 = off), got {opts.sequence}")
+    if opts.sequence_mode not in ("constant", "acceleration"):
+        raise TopolocError(f"--sequence-mode must be constant or acceleration, got {opts.sequence_mode!r}")
     parse_tolerance(opts.tolerance)
     recall_at = parse_recall_at(opts.recall_at)
     if opts.tolerance_m is not None:
@@ -152,6 +161,9 @@ def evaluate(
         raise TopolocError(f"ground-truth file not found: {opts.ground_truth}")
     maps = [load_traverse(m) for m in opts.maps]
     query = load_traverse(opts.query)
+    if opts.sequence >= len(query):
+        raise TopolocError(f"--sequence {opts.sequence} needs more than {opts.sequence} queries; "
+                           f"{opts.query} has {len(query)}")
     map_xy = None
     if opts.map_file is not None:
         method, resources, vocab_info, map_xy = _saved_map(opts, progress)
@@ -159,6 +171,8 @@ def evaluate(
         map_labels = [str(opts.map_file)]
     else:
         method = build_method(opts.method, opts.params)
+        if not method.uses_vocabulary and (opts.vocab is not None or opts.vocab_train):
+            log.warning("method %s uses no visual vocabulary: --vocab/--vocab-train are ignored", method.name)
         max_side = resolve_max_side(opts.max_side, [*maps, query])
         resources, vocab_info = make_resources(
             vocab=opts.vocab, vocab_train=opts.vocab_train, vocab_words=opts.vocab_words, features=opts.features,
@@ -167,15 +181,18 @@ def evaluate(
             needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
         )
         t0 = time.perf_counter()
-        method.fit(maps, resources=resources)
-        fit_s = time.perf_counter() - t0
+        with progress_stage(prog, f"fit {method.name} on {sum(len(m) for m in maps)} map images"):
+            method.fit(maps, resources=resources)
+        # The vocabulary is loaded or trained lazily inside fit: its time is reported apart.
+        fit_s = time.perf_counter() - t0 - float(vocab_info.get("seconds_this_run", 0.0))
         map_labels = [str(m) for m in opts.maps]
     place_ids = method.place_ids_
     gt = make_ground_truth(opts, maps, query, place_ids, map_xy)
+    check_overlap(gt, query, place_ids)
     items = method.encode(query, resources=resources)
     S, ms_each = score_queries(method, items, prog)
-    if opts.sequence and opts.sequence > 1:
-        S, seq_ms = apply_sequence(S, opts.sequence)
+    if opts.sequence:
+        S, seq_ms = apply_sequence(S, opts.sequence, opts.sequence_mode)
         ms_each = ms_each + seq_ms
     S = np.asarray(S, dtype=np.float32)
     scores = compute_metrics(S, gt, recall_at)
@@ -188,7 +205,8 @@ def evaluate(
         "peak_rss_mb": peak_rss_mb(),
         "n_places": int(S.shape[0]),
         "n_queries": int(S.shape[1]),
-        "params": {**method.get_params(), "sequence": opts.sequence},
+        "params": {**method.get_params(), "sequence": opts.sequence,
+                   **({"sequence_mode": opts.sequence_mode} if opts.sequence else {})},
         "run": {
             "map": map_labels,
             "query": str(opts.query),
@@ -200,13 +218,38 @@ def evaluate(
             },
             "vocabulary": vocab_info,
             "fit_seconds": fit_s,
+            "vocabulary_seconds": float(vocab_info.get("seconds_this_run", 0.0)),
             "ms_per_query_p95": float(np.percentile(ms_each, 95)) if len(ms_each) else 0.0,
             "date": datetime.now(UTC).isoformat(timespec="seconds"),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
         },
     }
-    write_outputs(opts.out, S, place_ids, query.places, metrics, scores)
+    # All files of the run appear together, replacing an earlier run's whole (never a mixture).
+    with staged_dir(opts.out) as stage:
+        write_outputs(stage, S, place_ids, query.places, metrics, scores, gt)
+    if opts.html is not None:
+        from topoloc.evaluation.html import build_html_report
+
+        build_html_report([opts.out], Path(opts.html), progress=prog)
     return metrics
+
+
+def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> None:
+    """Refuse ground truth that gives no query a correct map place; warn (one line) when some have none.
+
+    Such queries count in no recall (they have nothing to find), so a run
+    where most queries show places the map lacks would report recall over a
+    handful of queries without a word.
+    """
+    has = gt.hard.any(axis=0)
+    if not has.any():
+        raise TopolocError(
+            f"no query of {query.root} has a correct place in the map (query places "
+            f"{int(query.places.min())}..{int(query.places.max())}, map places {int(place_ids.min())}.."
+            f"{int(place_ids.max())}): check places.csv and the tolerance")
+    if not has.all():
+        log.warning("%d of %d queries have no correct place in the map; recall is computed over the other %d",
+                    int((~has).sum()), len(has), int(has.sum()))
 
 
 def _saved_map(
@@ -235,10 +278,16 @@ def _saved_map(
 
 def write_outputs(
     out: Path, S: np.ndarray, place_ids: np.ndarray, query_places: np.ndarray,
-    metrics: dict[str, Any], scores: Scores,
+    metrics: dict[str, Any], scores: Scores, gt: GroundTruth | None = None,
 ) -> None:
-    """Write S, ids, metrics, PR curve and report under ``out`` (each file atomically)."""
+    """Write S, ids, metrics, PR curve and report under ``out`` (each file atomically).
+
+    With ``gt``, also ``gt_hard.npy`` / ``gt_soft.npy`` (boolean, the shape of S) for the HTML page.
+    """
     out.mkdir(parents=True, exist_ok=True)
+    if gt is not None:
+        _save_npy(out / "gt_hard.npy", np.asarray(gt.hard, dtype=bool))
+        _save_npy(out / "gt_soft.npy", np.asarray(gt.soft, dtype=bool))
     _save_npy(out / "S.npy", S.astype(np.float32))
     _save_npy(out / "places.npy", np.asarray(place_ids, dtype=np.int64))
     _save_npy(out / "queries.npy", np.asarray(query_places, dtype=np.int64))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,7 +28,8 @@ def plot_pr_curves(
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     if title:
-        ax.set_title(title, fontsize=9)
+        # Wrapped to the figure's width: a long run title is never cut at the right edge.
+        ax.set_title("\n".join(textwrap.wrap(title, width=90)) or title, fontsize=9)
     if curves:
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), frameon=False)
     fig.tight_layout()

@@ -6,6 +6,7 @@ here, before any feature is extracted.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,9 @@ def build_method(name: str, params: dict[str, str]) -> PlaceRecognizer:
     """Instantiate method ``name`` with ``--param`` strings converted to their types."""
     cls = get_method(name)
     kwargs = {k: parse_param(cls, k, v) for k, v in params.items()}
-    return cls(**kwargs)
+    method = cls(**kwargs)
+    method.validate_params()  # a bad value stops the run before any image is read
+    return method
 
 
 def resolve_max_side(
@@ -83,6 +86,8 @@ def make_resources(
     """
     from topoloc.features import FeatureConfig, FeatureExtractor
 
+    if vocab is not None and vocab_train:
+        raise TopolocError("pass either --vocab FILE or --vocab-train DIR, not both")
     config = FeatureConfig(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     extractor = FeatureExtractor(config, cache_dir=cache_dir)
     vocab_info: dict[str, Any] = {"used": False}
@@ -93,7 +98,7 @@ def make_resources(
 
         vocabulary = Vocabulary.load(vocab)
         vocabulary.check_compatible(extractor.config.descriptor_kind, source=vocab)
-        vocab_info = {"used": True, "file": str(vocab), **vocabulary.provenance_}
+        vocab_info = {"used": True, "file": str(vocab), "n_words": int(vocabulary.n_words_), **vocabulary.provenance_}
     elif vocab_train:
         from topoloc.vocabulary import cached_vocabulary
 
@@ -101,11 +106,15 @@ def make_resources(
         folders = list(vocab_train)
 
         def provide() -> Any:
+            # Called lazily by the first user of the vocabulary (inside ``fit``): its time is
+            # recorded here so that ``evaluate`` can report it apart from the fit time.
+            t0 = time.perf_counter()
             voc, path = cached_vocabulary(
                 folders, extractor=extractor, n_words=vocab_words, seed=seed, cache_dir=cache_dir,
                 progress=progress,
             )
-            vocab_info.update({"used": True, "file": str(path), **voc.provenance_})
+            vocab_info.update({"used": True, "file": str(path), "n_words": int(voc.n_words_), **voc.provenance_,
+                               "seconds_this_run": round(time.perf_counter() - t0, 3)})
             return voc
 
         vocabulary = provide

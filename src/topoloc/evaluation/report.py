@@ -52,8 +52,9 @@ def _method_label(m: dict[str, Any]) -> str:
     # Runs written before preprocessing existed had none.
     if feats.get("preprocess", "none") != DEFAULT_PREPROCESS:
         tags.append(f"preprocess={feats['preprocess']}")
-    if seq and seq > 1:
-        tags.append(f"seq {seq}")
+    mode = params.pop("sequence_mode", "constant")
+    if seq:
+        tags.append(f"seq {seq}" + (f" {mode}" if mode != "constant" else ""))
     return m["method"] + (f" ({', '.join(tags)})" if tags else "")
 
 
@@ -137,9 +138,15 @@ def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Pat
     """Side-by-side table (``README.md``-style markdown) and one PNG of all PR curves."""
     runs = [load_run(Path(d)) for d in run_dirs]
     out.mkdir(parents=True, exist_ok=True)
-    md = [f"# {title}\n\n", TABLE_HEADER, *(table_row(m) for m, _, _ in runs)]
+    from topoloc.evaluation.columns import distinct_labels, markdown_table
+
+    metrics = [m for m, _, _ in runs]
+    md = [f"# {title}\n\n", TABLE_HEADER, *(table_row(m) for m in metrics)]
+    md.append("\nHow each run was made (rows are comparable where these agree):\n\n" + markdown_table(metrics))
     md.append("\nRuns: " + ", ".join(f"`{d}`" for d in run_dirs) + "\n\n![PR curves](pr_curves.png)\n")
-    curves = [(f"{run_title(m)} (AUC {m['auc']:.2f})", p, r) for m, p, r in runs]
+    labels = distinct_labels(metrics, [run_title(m) for m in metrics])
+    curves = [(f"{i + 1}. {label} (AUC {m['auc']:.2f})", p, r)
+              for i, (label, (m, p, r)) in enumerate(zip(labels, runs, strict=True))]
     plot_pr_curves(curves, out / "pr_curves.png", title=title)
     path = out / "report.md"
     atomic_write_bytes(path, "".join(md).encode())

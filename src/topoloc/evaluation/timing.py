@@ -42,15 +42,17 @@ def score_queries(
     return S, ms_each
 
 
-def apply_sequence(S: np.ndarray, n: int) -> tuple[np.ndarray, float]:
-    """Sequence matching (SeqSLAM search, ``ds = n``: the query and the ``n`` before it).
+def apply_sequence(S: np.ndarray, n: int, mode: str = "constant") -> tuple[np.ndarray, float]:
+    """Sequence matching over the query and the ``n`` before it (``ds = n``).
 
-    Returns the sequence-matched S and the added milliseconds per query.
+    ``mode`` is ``"constant"`` (SeqSLAM's constant-velocity lines) or
+    ``"acceleration"`` (Cooc-Map's forward paths, Sec. II-F).  Returns the
+    sequence-matched S and the added milliseconds per query.
     """
     from topoloc.sequence import sequence_similarity
 
     t0 = time.perf_counter()
-    out = sequence_similarity(S, ds=n)
+    out = sequence_similarity(S, ds=n, mode=mode)  # type: ignore[arg-type]
     return out, 1e3 * (time.perf_counter() - t0) / max(S.shape[1], 1)
 
 

@@ -45,16 +45,17 @@ Outputs (:func:`write_slam_outputs`), under ``out_dir``:
     **last column**, the probability of a new place.  Each row sums to 1 over
     its non-NaN entries.
 ``loop_closures.csv``
-    header ``image,matched_image,probability``: 0-based image indices in
-    traverse order; ``matched_image`` is the image that founded the matched
-    place; one row per accepted loop closure (posterior >= ``threshold``,
-    default 0.98).
+    header ``image,image_name,matched_image,matched_image_name,probability``:
+    0-based image indices in traverse order (rows of ``posterior.npy``) and the
+    images' file names (``1.jpg`` is index 0 in a folder numbered from 1);
+    ``matched_image`` is the image that founded the matched place; one row per
+    accepted loop closure (posterior >= ``threshold``, default 0.98).
 ``loop_closures.png``
     the loop-closure matrix: entry (k, j) is the posterior, at image ``k``, of
     the place founded by image ``j``; accepted loop closures are circled.
 ``assignments.csv``
-    ``image,place,founder_image,new_place,loop_closure``: the place each image was
-    assigned to.
+    ``image,image_name,place,founder_image,founder_image_name,new_place,loop_closure``:
+    the place each image was assigned to.
 ``slam.json``
     parameters and counts.
 """
@@ -359,20 +360,26 @@ def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = 
     paths["posterior"] = out / "posterior.npy"
     atomic_write_bytes(paths["posterior"], buf.getvalue())
 
+    # Image indices are positions in the traverse, from 0 (rows of posterior.npy); the names are the files'.
+    names = list(result.params.get("images") or [])
+
+    def name(i: int) -> str:
+        return str(names[i]) if 0 <= i < len(names) else ""
+
     text = io.StringIO()
     w = csv.writer(text, lineterminator="\n")
-    w.writerow(["image", "matched_image", "probability"])
+    w.writerow(["image", "image_name", "matched_image", "matched_image_name", "probability"])
     for img, matched, p in result.loop_closures():
-        w.writerow([img, matched, f"{p:.6f}"])
+        w.writerow([img, name(img), matched, name(matched), f"{p:.6f}"])
     paths["loop_closures"] = out / "loop_closures.csv"
     atomic_write_bytes(paths["loop_closures"], text.getvalue().encode())
 
     text = io.StringIO()
     w = csv.writer(text, lineterminator="\n")
-    w.writerow(["image", "place", "founder_image", "new_place", "loop_closure"])
+    w.writerow(["image", "image_name", "place", "founder_image", "founder_image_name", "new_place", "loop_closure"])
     for s in result.steps:
-        w.writerow([s.image, s.place, result.founders[s.place], int(s.new_place),
-                    int(s.loop_closure)])
+        w.writerow([s.image, name(s.image), s.place, result.founders[s.place], name(result.founders[s.place]),
+                    int(s.new_place), int(s.loop_closure)])
     paths["assignments"] = out / "assignments.csv"
     atomic_write_bytes(paths["assignments"], text.getvalue().encode())
 

@@ -76,7 +76,8 @@ class FeatureConfig:
     max_side : int
         If > 0, images whose longer side exceeds it are downscaled (area
         interpolation) to that size before extraction; keypoints are still
-        reported in original-image pixels.  0 disables resizing.
+        reported in original-image pixels.  0 disables resizing, up to
+        :data:`MAX_EXTRACT_SIDE` (3,200 px), the cap that bounds memory per image.
     contrast_threshold : float
         SIFT/RootSIFT contrast threshold (OpenCV default 0.04); lower finds more
         keypoints in dark or low-contrast images.
@@ -279,10 +280,17 @@ def _to_gray(image: np.ndarray) -> np.ndarray:
     raise ValueError(f"expected a gray (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
 
 
+#: Longest image side features are extracted at, whatever ``max_side`` says: a 48-megapixel photo
+#: described at full size made SIFT's scale space take about 11 GB; at this cap it stays below 1 GB.
+#: Larger images are downscaled (keypoints are still reported in original pixels).
+MAX_EXTRACT_SIDE = 3200
+
+
 def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float, float]:
-    """Shrink so the longer side is ``max_side``; return image and x/y scale back to original."""
+    """Shrink so the longer side is ``max_side`` (at most :data:`MAX_EXTRACT_SIDE`); return image and x/y scale."""
     h, w = gray.shape
-    if max_side <= 0 or max(h, w) <= max_side:
+    max_side = min(max_side, MAX_EXTRACT_SIDE) if max_side > 0 else MAX_EXTRACT_SIDE
+    if max(h, w) <= max_side:
         return gray, 1.0, 1.0
     s = max_side / max(h, w)
     nw, nh = max(1, round(w * s)), max(1, round(h * s))
@@ -434,14 +442,22 @@ class FeatureExtractor:
         path = Path(path)
         if not self.use_cache:
             return self._extract_file(path)
-        entry = self.cache_path(path)
+        digest = file_sha1(path)
+        entry = self.feature_dir / f"{digest}.tlf"
         if entry.is_file():
-            cached = self._load_entry(entry)
+            cached = self._load_entry(entry, digest)
             if cached is not None:
                 return cached
         fs = self._extract_file(path)
-        self._store_entry(entry, fs)
+        self._store_entry(entry, fs, digest)
         return fs
+
+    def _warn_once(self, kind: str, message: str, *args: object) -> None:
+        # One line per kind of cache trouble and extractor, not one per image.
+        warned: set[str] = self.__dict__.setdefault("_warned", set())
+        if kind not in warned:
+            warned.add(kind)
+            log.warning(message + " (further cases are not reported)", *args)
 
     def extract_image(self, image: np.ndarray) -> FeatureSet:
         """Features of an image held in memory (never cached: it has no file to key the cache by).
@@ -504,13 +520,20 @@ class FeatureExtractor:
         # Decoding is part of the per-image cost a method pays, so it is included.
         return replace(fs, extract_ms=1e3 * (time.perf_counter() - t0))
 
-    def _load_entry(self, entry: Path) -> FeatureSet | None:
-        """The cached FeatureSet, or None (with a warning) if the entry is unusable."""
+    def _load_entry(self, entry: Path, digest: str) -> FeatureSet | None:
+        """The cached FeatureSet, or None (with one warning per kind of problem) if the entry is unusable.
+
+        The entry must say it describes the image of SHA-1 ``digest``: an entry
+        copied over another (or written before entries recorded their image) is
+        extracted again, never used.
+        """
         try:
             meta, arrays = read_container(entry, "features", FEATURES_SCHEMA)
             kp, desc = arrays["keypoints"], arrays["descriptors"]
             if meta.get("config_key") != self.config.key():
                 raise input_error("feature cache entry was written for other settings", entry)
+            if meta.get("image_sha1") != digest:
+                raise input_error("feature cache entry does not describe the image it is filed under", entry)
             if (
                 kp.dtype != np.float32
                 or desc.dtype != self.config.descriptor_dtype
@@ -525,10 +548,10 @@ class FeatureExtractor:
                 extract_ms=float(meta["extract_ms"]),
             )
         except (TopolocError, KeyError, TypeError, ValueError, IndexError) as exc:
-            log.warning("ignoring unusable feature cache entry, extracting again (%s)", exc)
+            self._warn_once("unusable", "ignoring unusable feature cache entries, extracting again (%s)", exc)
             return None
 
-    def _store_entry(self, entry: Path, fs: FeatureSet) -> None:
+    def _store_entry(self, entry: Path, fs: FeatureSet, digest: str) -> None:
         try:
             write_container(
                 entry,
@@ -540,8 +563,10 @@ class FeatureExtractor:
                     "descriptor_kind": self.config.descriptor_kind,
                     "image_shape": list(fs.image_shape),
                     "extract_ms": fs.extract_ms,
+                    "image_sha1": digest,
                 },
             )
         except OSError as exc:
             # A read-only or full cache disk must not stop the run; features are still returned.
-            log.warning("cannot write feature cache entry %s (%s)", entry, exc)
+            self._warn_once("unwritable", "cannot write to the feature cache %s, features are kept in memory (%s)",
+                            self.feature_dir, exc)

@@ -4,17 +4,19 @@ Layout (all integers little-endian)::
 
     offset  size  field
     0       8     magic  b"TOPOLOC\\x00"
-    8       4     container format version (uint32, currently 1)
+    8       4     container format version (uint32, currently 2)
     12      8     header length H in bytes (uint64)
-    20      H     header: UTF-8 JSON {"kind", "kind_version", "meta",
+    20      4     CRC-32 of the header (version 2; version 1 files have none)
+    24      H     header: UTF-8 JSON {"kind", "kind_version", "meta",
                   "arrays": [{"name", "dtype", "shape", "offset", "nbytes"}],
                   "payload_nbytes", "payload_crc32"}
-    20+H    ...   payload: the arrays' raw C-order bytes, each 64-byte aligned
+    24+H    ...   payload: the arrays' raw C-order bytes, each 64-byte aligned
 
 ``kind`` says what the file holds (``"vocabulary"``, ``"features"``...) and
 ``kind_version`` the version of that object's schema, so readers can refuse
-files they do not understand.  The CRC-32 of the payload and its length are
-checked on load, which turns a truncated or corrupted file into a clear error
+files they do not understand.  The CRC-32 of the header, the CRC-32 of the
+payload and its length are checked on load (version 1 files, written before the
+header had its own checksum, are still read), which turns a truncated or corrupted file into a clear error
 instead of silently wrong arrays.  Files are written to a temporary name in
 the same folder and renamed into place, so a crash never leaves half a file.
 """
@@ -35,19 +37,36 @@ import numpy as np
 from topoloc.errors import input_error
 
 MAGIC = b"TOPOLOC\x00"
-CONTAINER_VERSION = 1
+CONTAINER_VERSION = 2
 _ALIGN = 64
-_PREFIX = struct.Struct("<8sIQ")
+_PREFIX_V1 = struct.Struct("<8sIQ")
+_PREFIX = struct.Struct("<8sIQI")
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# Read once: os.umask can only be read by setting it, which is not thread-safe.
+_FILE_MODE = 0o666 & ~_umask()
 
 
 def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
-    """Write ``chunks`` to ``path`` atomically (temporary file, fsync, rename)."""
+    """Write ``chunks`` to ``path`` atomically (temporary file, fsync, rename).
+
+    The file gets the permissions of any file the user creates (``0666`` less
+    the umask), not the private ``0600`` of a temporary file, so that a shared
+    cache or map can be read by the others it is shared with.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(chunks, bytes):
         chunks = [chunks]
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, "wb") as fh:
             for chunk in chunks:
                 fh.write(chunk)
@@ -105,7 +124,8 @@ def write_container(
          "arrays": entries, "payload_nbytes": offset, "payload_crc32": crc},
         sort_keys=True,
     ).encode()
-    atomic_write_bytes(path, [_PREFIX.pack(MAGIC, CONTAINER_VERSION, len(header)), header, *blobs])
+    atomic_write_bytes(path, [_PREFIX.pack(MAGIC, CONTAINER_VERSION, len(header), zlib.crc32(header)), header,
+                              *blobs])
 
 
 def read_container(
@@ -140,22 +160,29 @@ def read_container(
     if not path.is_file():
         raise input_error(f"{kind} file not found", path)
     data: bytes | np.ndarray
-    if mmap and path.stat().st_size > 0:
-        data = np.memmap(path, dtype=np.uint8, mode="r")
-    else:
-        data = path.read_bytes()
-    if len(data) < _PREFIX.size:
+    try:
+        if mmap and path.stat().st_size > 0:
+            data = np.memmap(path, dtype=np.uint8, mode="r")
+        else:
+            data = path.read_bytes()
+    except OSError as exc:
+        raise input_error(f"cannot read {kind} file ({exc.strerror or type(exc).__name__})", path) from None
+    if len(data) < _PREFIX_V1.size:
         raise input_error(f"{kind} file is truncated (only {len(data)} bytes)", path)
-    magic, version, hlen = _PREFIX.unpack_from(bytes(data[: _PREFIX.size]))
+    magic, version, hlen = _PREFIX_V1.unpack_from(bytes(data[: _PREFIX_V1.size]))
     if magic != MAGIC:
         raise input_error(f"not a topoloc {kind} file (bad magic bytes)", path)
-    if version != CONTAINER_VERSION:
+    if version not in (1, CONTAINER_VERSION):
         raise input_error(f"unsupported topoloc container version {version}", path)
-    start = _PREFIX.size + hlen
+    prefix = _PREFIX_V1.size if version == 1 else _PREFIX.size
+    start = prefix + hlen
     if len(data) < start:
         raise input_error(f"{kind} file is truncated inside its header", path)
+    raw_header = bytes(data[prefix:start])
+    if version >= 2 and zlib.crc32(raw_header) != _PREFIX.unpack_from(bytes(data[:prefix]))[3]:
+        raise input_error(f"{kind} file has a corrupt header (checksum mismatch)", path)
     try:
-        header = json.loads(bytes(data[_PREFIX.size:start]))
+        header = json.loads(raw_header)
     except (ValueError, UnicodeDecodeError):
         raise input_error(f"{kind} file has a corrupt header", path) from None
     if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
@@ -169,6 +196,8 @@ def read_container(
             path,
         )
     payload = memoryview(data)[start:]  # type: ignore[arg-type]  # a memmap is a buffer
+    if not isinstance(header.get("payload_nbytes"), int) or not isinstance(header.get("payload_crc32"), int):
+        raise input_error(f"{kind} file has a corrupt header", path)
     if len(payload) != header["payload_nbytes"]:
         raise input_error(
             f"{kind} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",
@@ -177,9 +206,18 @@ def read_container(
     if zlib.crc32(payload) != header["payload_crc32"]:
         raise input_error(f"{kind} file is corrupted (checksum mismatch)", path)
     arrays = {}
-    for e in header["arrays"]:
-        n = int(np.prod(e["shape"], dtype=np.int64))
-        dt = np.dtype(e["dtype"])
-        arr = np.frombuffer(payload, dtype=dt, count=n, offset=e["offset"]) if n else np.empty(0, dt)
-        arrays[e["name"]] = arr.reshape(e["shape"])
-    return header["meta"], arrays
+    try:
+        for e in header["arrays"]:
+            n = int(np.prod(e["shape"], dtype=np.int64))
+            dt = np.dtype(e["dtype"])
+            if dt.hasobject or int(e["offset"]) < 0:
+                raise ValueError("bad array entry")
+            arr = np.frombuffer(payload, dtype=dt, count=n, offset=int(e["offset"])) if n else np.empty(0, dt)
+            arrays[str(e["name"])] = arr.reshape(e["shape"])
+        meta = header["meta"]
+        if not isinstance(meta, dict):
+            raise ValueError("meta is not an object")
+    except (KeyError, TypeError, ValueError) as exc:
+        # A header that passed the checksum can still be wrong if it was written wrong: say so.
+        raise input_error(f"{kind} file has an inconsistent header ({exc})", path) from None
+    return meta, arrays

@@ -11,7 +11,6 @@ NumPy array) and returns the place it shows with a confidence, and
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import time
@@ -43,22 +42,9 @@ SEQUENCE_MODES = ("constant", "acceleration")
 
 def tour_record(tour: Traverse) -> dict[str, Any]:
     """What a map remembers of a tour: name, size, times and a fingerprint of its images and places."""
-    # Names, places, times and each image's size (or pixels, in memory): moving the folder keeps it,
-    # another tour with the same file names (a camera's 00000.jpg...) does not share it.
-    digest = hashlib.sha1()
-    for k, (name, place) in enumerate(zip(tour.images, tour.places, strict=True)):
-        when = str(tour.times[k]) if tour.times is not None else ""
-        if tour.kind == "files":
-            size = Path(name).stat().st_size if Path(name).is_file() else -1
-            digest.update(f"{Path(name).name}\t{int(place)}\t{when}\t{size}\n".encode())
-        else:
-            digest.update(f"{int(place)}\t{when}\n".encode())
-            frame = (tour.frames or ())[k]
-            data = frame if isinstance(frame, np.ndarray) else getattr(frame, "descriptors", np.zeros(0))
-            digest.update(np.ascontiguousarray(data).tobytes())
     rec: dict[str, Any] = {
         "name": tour.name, "root": str(tour.root) if tour.kind == "files" else f"<{tour.kind} in memory>",
-        "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": digest.hexdigest(),
+        "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": tour.fingerprint(),
         "median_hour": tour.median_time_of_day(), "start": None, "end": None,
     }
     if tour.times is not None and len(tour.times):

@@ -143,6 +143,12 @@ class CoocMap(PlaceRecognizer):
         self.position_bits = position_bits
         self.model_path = model_path
 
+    def validate_params(self) -> None:
+        """The per-parameter constraints, and a ``model_path`` that is not a folder."""
+        super().validate_params()
+        if self.model_path and Path(self.model_path).is_dir():
+            raise TopolocError(f"coocmap: model_path is a folder, not a file: {self.model_path}")
+
     def _observations(self, traverse: Traverse, resources: Resources) -> list[Item]:
         feats = resources.features(traverse)
         words = resources.words(traverse)
@@ -157,8 +163,13 @@ class CoocMap(PlaceRecognizer):
         tours = order_tours(maps)
         model: CoocModel | None = None
         path = Path(self.model_path) if self.model_path else None
+        built_from = {"tours": [t.fingerprint() for t in tours], "features": resources.extractor.config.key()}
         if path is not None and path.is_file():
             model = CoocModel.load(path, vocabulary=fingerprint)
+            if model.built_from != built_from:
+                raise TopolocError(
+                    "coocmap file was built from other tours or feature settings than these maps "
+                    f"(delete it to rebuild, or use it with the maps it was built from): {path}")
             if (model.n_locations != len(place_ids) or model.grid_x != self.grid_x
                     or model.grid_y != self.grid_y or model.position_bits != self.position_bits):
                 raise TopolocError(f"coocmap file does not fit these maps or grid: {path}")
@@ -173,6 +184,7 @@ class CoocMap(PlaceRecognizer):
                                           in zip(rows, self._observations(tour, resources), strict=True)]
                 built.add_tour(obs, name=tour.name, hour=tour.median_time_of_day())
             built.vocabulary = fingerprint
+            built.built_from = built_from
             model = built
             if path is not None:
                 model.save(path)

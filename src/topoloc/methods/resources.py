@@ -183,12 +183,21 @@ class _MemoisedResources:
             raise TopolocError(f"traverse {traverse.name!r} holds visual words, not local features "
                                "(this method needs features or images)")
         ex = self.extractor
+        key = "features:" + ex.config.key()
+        fresh = (traverse_key(traverse), key) not in self._memo
         if traverse.kind == "images":
             frames = traverse.frames or ()
-            return self._map(traverse, "features:" + ex.config.key(), lambda k: ex.extract_image(frames[k]),
-                             f"features {traverse.name}", timed)
-        return self._map(traverse, "features:" + ex.config.key(), lambda k: ex.extract_path(traverse.images[k]),
-                         f"features {traverse.name}", timed)
+            feats = self._map(traverse, key, lambda k: ex.extract_image(frames[k]), f"features {traverse.name}",
+                              timed)
+        else:
+            feats = self._map(traverse, key, lambda k: ex.extract_path(traverse.images[k]),
+                              f"features {traverse.name}", timed)
+        empty = [k for k, f in enumerate(feats) if len(f) == 0]
+        if empty and fresh and self.memoise:
+            # One line per traverse: such images match nothing, and every method scores them as it can.
+            log.warning("%d of %d images of %s have no local features (blank, tiny or dark?), e.g. %s",
+                        len(empty), len(feats), traverse.name, traverse.images[empty[0]].name)
+        return feats
 
     def words(self, traverse: Traverse, *, timed: bool = True) -> list[np.ndarray]:
         if traverse.kind == "words":

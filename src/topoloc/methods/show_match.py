@@ -134,6 +134,50 @@ def match_drawing(
                     "map_image": str(best_ref[0].images[best_ref[1]]), "n_lines": len(pq)}
 
 
+def group_correspondences(
+    method: CoocMap, query: Traverse, maps: Sequence[Traverse], *, index: int = 0,
+    resources: Resources | None = None,
+) -> tuple[Traverse, int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The map image of the best place drawn by :func:`match_drawing` and its correspondences.
+
+    Returns
+    -------
+    traverse, image index : the map image (the best place's image with the most words of ``K``)
+    (pts_query, pts_map, in_group) : pixel positions of the same-word pairs of the query and that image
+        (each query feature to the same-word map feature nearest the median offset) and whether the
+        query feature is in the final consistent group ``K``.
+    """
+    method.check_fitted()
+    res = resources if resources is not None else method.resources_
+    fs = res.features(query)[index]
+    k = method.max_features or None
+    words = np.asarray(res.words(query)[index], np.int64)[:k]
+    kp = fs.keypoints[:k, :2].astype(np.float64)
+    graphs, result = method.match((words, normalise_xy(fs.keypoints[:k, :2], fs.image_shape)))
+    group = result.group(graphs, result.best)
+    place = int(method.place_ids_[result.best])
+    best_ref, best_hits, best_feats = None, -1, None
+    for t in maps:
+        feats = res.features(t)
+        tw = res.words(t)
+        for i in np.flatnonzero(t.places == place):
+            hits = int(np.isin(words[group], tw[i][:k]).sum())
+            if hits > best_hits:
+                best_ref, best_hits, best_feats = (t, int(i)), hits, (tw[i][:k], feats[i])
+    if best_ref is None or best_feats is None:
+        raise input_error("the best place has no image in the map traverses", str(place))
+    mw, mxy = np.asarray(best_feats[0]), best_feats[1].keypoints[:k, :2].astype(np.float64)
+    in_group = np.zeros(len(words), bool)
+    in_group[group] = True
+    # Pair every query feature whose word the image has; K's pairs as match_drawing pairs them.
+    pq_k, pm_k = _pair_up(words[group], kp[group], mw, mxy)
+    rest = ~in_group & np.isin(words, mw)
+    pq_o, pm_o = _pair_up(words[rest], kp[rest], mw, mxy)
+    pq, pm = np.vstack([pq_k, pq_o]), np.vstack([pm_k, pm_o])
+    consistent = np.r_[np.ones(len(pq_k), bool), np.zeros(len(pq_o), bool)]
+    return best_ref[0], best_ref[1], (pq, pm, consistent)
+
+
 def show_match(query_image: str | Path, map_dirs: Sequence[str | Path], out_png: str | Path, *,
                resources: Resources, method: CoocMap | None = None,
                **params: Any) -> dict[str, Any]:

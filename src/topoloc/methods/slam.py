@@ -24,6 +24,7 @@ from topoloc.errors import TopolocError
 from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.slam import FabMapSlam, SlamResult, write_slam_outputs
 from topoloc.methods.resources import Resources
+from topoloc.progress import stage
 
 
 def train_model_from_resources(resources: Resources, **kwargs: Any) -> FabMapModel:
@@ -40,7 +41,8 @@ def train_model_from_resources(resources: Resources, **kwargs: Any) -> FabMapMod
             "FAB-MAP needs at least 2 training images that are not the map: pass --vocab-train DIR"
         )
     voc = resources.vocabulary
-    return FabMapModel.train(list(words), n_words=int(voc.n_words_), vocabulary=voc, **kwargs)
+    with stage(resources.progress, f"FAB-MAP model: Chow-Liu tree on {len(words)} training images"):
+        return FabMapModel.train(list(words), n_words=int(voc.n_words_), vocabulary=voc, **kwargs)
 
 
 def load_or_train_model(
@@ -120,8 +122,23 @@ def run_slam(
         n_samples=n_samples, p_new=p_new, threshold=threshold, smoothing=smoothing,
         p_stay=p_stay, p_uniform=p_uniform, min_gap=min_gap, bailout=bailout, seed=seed,
     )
-    result = slam.run(words)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # Loop closures are appended as they are found, so an interrupted run keeps what it found;
+    # the complete outputs replace this file when the run ends.
+    progress_csv = out / "loop_closures.partial.csv"
+    with progress_csv.open("w", encoding="utf-8") as fh:
+        fh.write("image,image_name,matched_image,matched_image_name,probability\n")
+        for w in words:
+            step = slam.step(w)
+            if step.loop_closure:
+                matched = slam.result.founders[step.place]
+                fh.write(f"{step.image},{tr.images[step.image].name},{matched},{tr.images[matched].name},"
+                         f"{step.probability:.6f}\n")
+                fh.flush()
+    result = slam.result
     result.params["traverse"] = str(tr.root)
     result.params["images"] = [p.name for p in tr.images]
-    write_slam_outputs(result, out_dir, plot=plot)
+    write_slam_outputs(result, out, plot=plot)
+    progress_csv.unlink(missing_ok=True)
     return result

@@ -226,7 +226,7 @@ def generate_route(
     """Write a synthetic route: one traverse folder per tour.
 
     Each folder ``out_dir/<name>/`` holds JPEG images ``00000.jpg``, ... and a
-    ``places.csv`` with columns ``image,place,time,x,y`` (``PROTOCOL.md``):
+    ``places.csv`` with columns ``image,place,time,x,y`` (``docs/protocol.md``):
     the nearest place, the ISO 8601 time on a fixed date (the tour's hour plus
     the seconds elapsed along the route), the metres along the route ``x`` and
     the lateral offset ``y``.  For tests and demonstrations only.

@@ -35,6 +35,7 @@ from topoloc._parallel import n_workers
 from topoloc.datasets.traverse import find_images
 from topoloc.errors import NotFittedError, TopolocError, input_error
 from topoloc.io import read_container, write_container
+from topoloc.progress import stage
 
 if TYPE_CHECKING:
     from topoloc.features import FeatureExtractor
@@ -639,17 +640,18 @@ def train_vocabulary(
             f"found only {n_total} local features in {len(images)} images; cannot train a vocabulary",
             paths[0] if len(paths) == 1 else ", ".join(map(str, paths)),
         )
-    vocab.fit(
-        sample,
-        descriptor_kind=extractor.config.descriptor_kind,
-        provenance={
-            "folders": [str(p.resolve()) for p in paths],
-            "n_images": len(images),
-            "n_descriptors": n_total,
-            "feature_key": extractor.config.key(),
-            "feature_config": asdict(extractor.config),
-        },
-    )
+    with stage(progress, f"vocabulary k-means ({n_words} words, {len(sample)} descriptors)"):
+        vocab.fit(
+            sample,
+            descriptor_kind=extractor.config.descriptor_kind,
+            provenance={
+                "folders": [str(p.resolve()) for p in paths],
+                "n_images": len(images),
+                "n_descriptors": n_total,
+                "feature_key": extractor.config.key(),
+                "feature_config": asdict(extractor.config),
+            },
+        )
     vocab.provenance_["total_seconds"] = round(time.perf_counter() - t0, 3)
     return vocab
 

@@ -78,6 +78,17 @@ def test_images_option(tmp_path: Path, write_image: Callable[[Path], Path]) -> N
     assert len(load_traverse(tmp_path / "out" / "map")) == 4
 
 
+def test_query_images_option(tmp_path: Path, write_image: Callable[[Path], Path]) -> None:
+    mat = _pittsburgh(tmp_path / "pitts", write_image)
+    (tmp_path / "pitts" / "queries_real").rename(tmp_path / "tokyo_queries")
+    with pytest.raises(TopolocError, match=r"query images named in dbStruct are missing.*--query-images"):
+        convert("dbstruct", mat, tmp_path / "out")
+    from topoloc.datasets.formats import ConvertOptions
+
+    convert("dbstruct", mat, tmp_path / "out", ConvertOptions(query_images=tmp_path / "tokyo_queries"))
+    assert len(load_traverse(tmp_path / "out" / "query")) == 2
+
+
 def test_mat_without_dbstruct(tmp_path: Path) -> None:
     path = tmp_path / "other.mat"
     savemat(str(path), {"something": np.zeros(3)})

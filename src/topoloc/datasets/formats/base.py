@@ -96,6 +96,9 @@ class ConvertOptions:
     images : Path, optional
         Folder the image names of the source are relative to (``dbstruct``: default the
         ``.mat``'s folder; ``latlon-csv``: default the CSV's folder).
+    query_images : Path, optional
+        ``dbstruct``: folder the query names are relative to, when it is not ``images``
+        (default: ``images``, then ``images/queries_real``).
     poses : Path, optional
         ``kitti``: the poses file (default ``SEQUENCE/../../poses/XX.txt``, then ``SEQUENCE/poses.txt``).
     columns : dict of str to str
@@ -105,6 +108,7 @@ class ConvertOptions:
     """
 
     images: Path | None = None
+    query_images: Path | None = None
     poses: Path | None = None
     columns: dict[str, str] = field(default_factory=dict)
     copy: bool = False

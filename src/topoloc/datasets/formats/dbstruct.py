@@ -7,10 +7,11 @@ arrays of image paths relative to the dataset's image root), ``utmDb`` and ``utm
 ``nonTrivPosDistSqThr``; Tokyo 24/7 may add ``dbTimeStamp`` / ``qTimeStamp`` (Unix
 seconds).  Images are looked up under ``--images ROOT`` (default: the ``.mat``'s folder);
 a query image not found there is looked up under ``ROOT/queries_real`` (Pittsburgh's
-layout).  The map is the database, images at one position (Pittsburgh's 24 views of a
-place) sharing a place; a query shows the place of its nearest database image.  The
-suggested ``--tolerance-m`` is ``posDistThr:posDistThr``.  MATLAB v7.3 (HDF5) files are
-not read: re-save them with ``save -v7``.
+layout), or only under ``--query-images QROOT`` when given (Tokyo 24/7's queries).  The
+map is the database, images at one position (Pittsburgh's 24 views of a place) sharing a
+place; a query shows the place of its nearest database image.  The suggested
+``--tolerance-m`` is ``posDistThr:posDistThr``.  MATLAB v7.3 (HDF5) files are not read:
+re-save them with ``save -v7``.
 """
 
 from __future__ import annotations
@@ -86,8 +87,9 @@ def _resolve(names: list[str], roots: list[Path], src: Path, what: str) -> list[
         else:
             missing.append(name)
     if missing:
+        option = "--query-images" if what == "query" else "--images"
         raise input_error(f"{len(missing)} of {len(names)} {what} images named in dbStruct are missing under "
-                          f"{roots[0]} (first: {missing[0]}); pass --images ROOT", src)
+                          f"{roots[0]} (first: {missing[0]}); pass {option} FOLDER", src)
     return out
 
 
@@ -116,7 +118,13 @@ def read(src: Path, options: ConvertOptions) -> Dataset:
     if not root.is_dir():
         raise input_error("image root folder does not exist", root)
     db_images = _resolve(db_names, [root], src, "database")
-    q_images = _resolve(q_names, [root / sub for sub in QUERY_SUBFOLDERS], src, "query")
+    if options.query_images is not None:
+        if not Path(options.query_images).is_dir():
+            raise input_error("query image folder does not exist", options.query_images)
+        q_roots = [Path(options.query_images)]
+    else:
+        q_roots = [root / sub for sub in QUERY_SUBFOLDERS]
+    q_images = _resolve(q_names, q_roots, src, "query")
     notes = []
     which = _field(db, "whichSet", src, required=False)
     if which is not None:

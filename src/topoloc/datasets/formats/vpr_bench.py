@@ -22,7 +22,7 @@ from topoloc.datasets.traverse import IMAGE_SUFFIXES, Traverse, natural_key
 from topoloc.errors import input_error
 
 GROUND_TRUTH = "ground_truth_new.npy"
-NO_PLACE = -1_000_000_000
+NO_PLACE = 1_000_000_000  # place ids are >= 0; this one is far from every map place
 
 
 def _images(folder: Path, src: Path) -> list[Path]:

@@ -1,0 +1,122 @@
+"""What makes two ``evaluate`` runs comparable: one short text per aspect of how a run was made.
+
+``report`` (markdown) and the HTML page both show these columns beside the
+scores, so that two rows of the same method that were run differently (another
+tolerance, ground-truth file, vocabulary, preprocessing or feature setting) are
+told apart at a glance.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from topoloc._params import keyword_defaults
+from topoloc.errors import TopolocError
+from topoloc.methods import get_method
+
+#: (key, heading) of the columns of :func:`run_columns`, in table order.
+COLUMNS: tuple[tuple[str, str], ...] = (
+    ("method", "method and parameters"),
+    ("map", "map"),
+    ("query", "query"),
+    ("ground_truth", "ground truth"),
+    ("vocabulary", "vocabulary"),
+    ("preprocess", "preprocessing"),
+    ("features", "features"),
+    ("sequence", "sequence"),
+)
+
+
+def _short(path: str) -> str:
+    p = Path(path)
+    return f"{p.parent.name}/{p.name}" if p.parent.name else p.name
+
+
+def _params_text(m: dict[str, Any]) -> str:
+    """The method with the parameters that differ from its defaults (all of them for an unknown method)."""
+    params = {k: v for k, v in m.get("params", {}).items() if k != "sequence"}
+    try:
+        defaults = keyword_defaults(get_method(str(m.get("method"))))
+        params = {k: v for k, v in params.items() if k not in defaults or defaults[k] != v}
+    except TopolocError:
+        pass
+    body = ", ".join(f"{k}={json.dumps(v, default=str)}" for k, v in params.items())
+    return f"{m.get('method', '?')} ({body})" if body else str(m.get("method", "?"))
+
+
+def _vocabulary_text(voc: dict[str, Any]) -> str:
+    if not voc or not voc.get("used"):
+        return "none" if not voc.get("train_folders") else "not trained"
+    words = voc.get("n_words") or voc.get("words")
+    if words is None and isinstance(voc.get("centers_shape"), list):
+        words = voc["centers_shape"][0]
+    source = voc.get("folders") or voc.get("train_folders")
+    where = ", ".join(_short(str(f)) for f in source) if source else _short(str(voc.get("file", "?")))
+    n_img = f", {voc['n_images']} images" if voc.get("n_images") else ""
+    size = f"{words} words, " if words else ""
+    return f"{size}trained on {where}{n_img}"
+
+
+def _features_text(f: dict[str, Any]) -> str:
+    side = f.get("max_side", 0)
+    side_text = f"max side {side}" if side else "full size"
+    return f"{f.get('method', 'sift')}, <= {f.get('max_features', '?')} per image, {side_text}"
+
+
+def run_columns(m: dict[str, Any]) -> dict[str, str]:
+    """``{key: text}`` for each of :data:`COLUMNS` of one run's ``metrics.json``."""
+    run = m.get("run", {})
+    feats = run.get("features", {})
+    maps = [_short(str(x)) for x in run.get("map", [])]
+    seq = int(m.get("params", {}).get("sequence", 0) or 0)
+    return {
+        "method": _params_text(m),
+        "map": " + ".join(maps) if len(maps) <= 3 else f"{len(maps)} traverses {maps[0]} ... {maps[-1]}",
+        "query": _short(str(run.get("query", "?"))),
+        "ground_truth": str(run.get("ground_truth", "?")),
+        "vocabulary": _vocabulary_text(run.get("vocabulary", {})),
+        "preprocess": str(feats.get("preprocess", "none")),
+        "features": _features_text(feats),
+        "sequence": str(seq) if seq > 1 else "off",
+    }
+
+
+def differing_columns(runs: list[dict[str, Any]]) -> list[str]:
+    """Keys of :data:`COLUMNS` whose text differs between ``runs`` (the method column excluded)."""
+    cols = [run_columns(m) for m in runs]
+    return [k for k, _ in COLUMNS if k != "method" and len({c[k] for c in cols}) > 1]
+
+
+def distinct_labels(runs: list[dict[str, Any]], labels: list[str]) -> list[str]:
+    """``labels`` made unique: where two are equal, append the columns in which their runs differ."""
+    out = list(labels)
+    cols = [run_columns(m) for m in runs]
+    for label in set(labels):
+        idx = [i for i, x in enumerate(labels) if x == label]
+        if len(idx) < 2:
+            continue
+        diff = [k for k, _ in COLUMNS if len({cols[i][k] for i in idx}) > 1]
+        for i in idx:
+            extra = "; ".join(f"{k.replace('_', ' ')} {cols[i][k]}" for k in diff)
+            out[i] = f"{label} [{extra or f'run {i + 1}'}]"
+    return out
+
+
+def markdown_table(runs: list[dict[str, Any]], names: list[str] | None = None) -> str:
+    """A markdown table: run number (or ``names``) and every column of :data:`COLUMNS`, plus timings."""
+    head = "| run | " + " | ".join(h for _, h in COLUMNS) + " | fit s | vocabulary s |\n"
+    rule = "| --- " * (len(COLUMNS) + 3) + "|\n"
+    rows = []
+    for i, m in enumerate(runs):
+        c = run_columns(m)
+        name = names[i] if names else str(i + 1)
+        run = m.get("run", {})
+        fit = run.get("fit_seconds")
+        voc_s = run.get("vocabulary_seconds")
+        cells = [name, *(c[k].replace("|", "/") for k, _ in COLUMNS),
+                 f"{fit:.2f}" if isinstance(fit, int | float) else "?",
+                 f"{voc_s:.1f}" if isinstance(voc_s, int | float) else "-"]
+        rows.append("| " + " | ".join(cells) + " |\n")
+    return head + rule + "".join(rows)

@@ -1,0 +1,327 @@
+"""One self-contained HTML page to browse ``evaluate`` runs (``report --html``, ``evaluate --html``).
+
+The page needs no server and no network: styles, script, the similarity-matrix
+images and the thumbnails are inline (images as base64 JPEG / PNG, each image
+once).  It shows
+
+- the runs' table, with every column needed to know whether two rows are
+  comparable (:mod:`topoloc.evaluation.columns`) and the scores;
+- the PR curves of all runs;
+- for each run: a threshold slider that shows precision, recall and the
+  accepted, correct, wrong and rejected counts at that threshold; the
+  similarity matrix with the ground truth and the accepted best matches drawn
+  over it; and the list of queries (filter: correct / wrong / rejected /
+  no correct place) with the query, its best map image and its correct map
+  image as thumbnails, the score and the rank of the correct place.
+
+A query's best match, correctness and the PR curve follow the metrics of
+``docs/protocol.md`` exactly (soft-only cells are masked; a query is accepted
+when its best score is at least the threshold).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import logging
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from importlib import resources as importlib_resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc.datasets.groundtruth import GroundTruth, ground_truth_from_places, parse_tolerance
+from topoloc.datasets.traverse import Traverse, load_traverse
+from topoloc.errors import TopolocError
+from topoloc.evaluation.columns import COLUMNS, distinct_labels, run_columns
+from topoloc.evaluation.metrics import best_matches, pr_curve
+from topoloc.evaluation.report import load_run, run_title
+from topoloc.io.container import atomic_write_bytes
+from topoloc.progress import ProgressFactory, no_progress
+
+log = logging.getLogger(__name__)
+
+#: Width in pixels of the thumbnails (JPEG); 1,000 queries stay well under 20 MB.
+THUMB_WIDTH = 120
+#: JPEG quality of the thumbnails.
+THUMB_QUALITY = 70
+#: The similarity matrix image is at most this many pixels on a side (block means beyond).
+MATRIX_MAX_SIDE = 1000
+#: At most this many ground-truth cells are drawn over the matrix.
+MAX_GT_CELLS = 200_000
+#: At most this many points of each PR curve are embedded.
+MAX_PR_POINTS = 600
+
+
+def _asset(name: str) -> str:
+    return importlib_resources.files("topoloc.evaluation").joinpath("html_assets", name).read_text()
+
+
+@dataclass
+class _Thumbs:
+    """Thumbnails keyed by image path, each encoded once."""
+
+    width: int = THUMB_WIDTH
+    keys: dict[str, str] = field(default_factory=dict)
+    data: dict[str, str] = field(default_factory=dict)
+
+    def key(self, path: Path | None) -> str | None:
+        if path is None:
+            return None
+        p = str(path)
+        if p not in self.keys:
+            self.keys[p] = f"i{len(self.keys)}"
+        return self.keys[p]
+
+    def encode_all(self, progress: ProgressFactory) -> None:
+        import cv2
+
+        todo = [(p, k) for p, k in self.keys.items() if k not in self.data]
+        advance = progress("HTML thumbnails", len(todo))
+        for path, key in todo:
+            img = cv2.imread(path, cv2.IMREAD_COLOR)
+            if img is None:
+                log.warning("cannot read image for a thumbnail: %s", path)
+                advance(1)
+                continue
+            h, w = img.shape[:2]
+            if w > self.width:
+                img = cv2.resize(img, (self.width, max(1, round(h * self.width / w))), interpolation=cv2.INTER_AREA)
+            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, THUMB_QUALITY])
+            if ok:
+                self.data[key] = "data:image/jpeg;base64," + base64.b64encode(buf.tobytes()).decode()
+            advance(1)
+
+
+def _run_ground_truth(run_dir: Path, m: dict[str, Any], places: np.ndarray, queries: np.ndarray) -> GroundTruth:
+    """``gt_hard.npy``/``gt_soft.npy`` of the run, or rebuilt from a place-id tolerance."""
+    hard_p, soft_p = run_dir / "gt_hard.npy", run_dir / "gt_soft.npy"
+    if hard_p.is_file() and soft_p.is_file():
+        try:
+            hard, soft = np.load(hard_p, allow_pickle=False), np.load(soft_p, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise TopolocError(f"corrupt ground truth ({exc.__class__.__name__}): {hard_p}") from None
+        return GroundTruth(hard, soft, m.get("run", {}).get("ground_truth", ""))
+    desc = str(m.get("run", {}).get("ground_truth", ""))
+    if desc.startswith("place ids, tolerance "):
+        hard_t, soft_t = parse_tolerance(desc.removeprefix("place ids, tolerance ").split()[0])
+        return ground_truth_from_places(places, queries, hard_t, soft_t)
+    raise TopolocError(
+        f"the run has no gt_hard.npy/gt_soft.npy and its ground truth ({desc or 'unknown'}) cannot be rebuilt; "
+        f"run `topoloc evaluate` again to write them: {run_dir}"
+    )
+
+
+def _load_traverse_or_none(path: str) -> Traverse | None:
+    try:
+        p = Path(path)
+        return load_traverse(p) if p.is_dir() else None
+    except TopolocError as exc:
+        log.warning("no thumbnails from %s (%s)", path, exc)
+        return None
+
+
+def _place_images(maps: list[Traverse]) -> dict[int, tuple[Path, str]]:
+    """Place id -> (first image showing it, tour name), the first map tour first."""
+    out: dict[int, tuple[Path, str]] = {}
+    for trav in maps:
+        if trav.kind != "files":
+            continue
+        for path, place in zip(trav.images, trav.places, strict=True):
+            out.setdefault(int(place), (path, trav.name))
+    return out
+
+
+def _matrix_png(S: np.ndarray) -> tuple[str, int, int]:
+    """S as a viridis PNG data URI (block-averaged to at most ``MATRIX_MAX_SIDE``), and its size."""
+    import cv2
+
+    A = np.asarray(S, dtype=np.float64)
+    finite = np.isfinite(A)
+    if finite.any():
+        lo, hi = np.percentile(A[finite], [1, 99])
+        A = np.where(finite, A, np.where(A > 0, hi, lo))
+    else:
+        lo, hi = 0.0, 1.0
+        A = np.zeros_like(A)
+    norm = np.clip((A - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+    h, w = norm.shape
+    scale = min(1.0, MATRIX_MAX_SIDE / max(h, w, 1))
+    if scale < 1.0:
+        norm = cv2.resize(norm, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    img = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:  # pragma: no cover - encoding a uint8 image does not fail
+        raise TopolocError("cannot encode the similarity matrix image")
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode(), img.shape[1], img.shape[0]
+
+
+def _subsample(p: np.ndarray, r: np.ndarray) -> list[list[float]]:
+    idx = np.arange(len(p))
+    if len(idx) > MAX_PR_POINTS:
+        idx = np.unique(np.r_[np.linspace(0, len(p) - 1, MAX_PR_POINTS).round().astype(int), len(p) - 1])
+    return [[round(float(r[i]), 5), round(float(p[i]), 5)] for i in idx]
+
+
+def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> dict[str, Any]:
+    """Everything the page's script needs about one run (JSON-serialisable)."""
+    def need(name: str) -> np.ndarray:
+        path = run_dir / name
+        if not path.is_file():
+            raise TopolocError(f"the HTML page needs {name} of the run (written by `topoloc evaluate`): {run_dir}")
+        try:
+            return np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise TopolocError(f"corrupt {name} ({exc.__class__.__name__}): {run_dir}") from None
+
+    S = np.asarray(need("S.npy"), dtype=np.float64)
+    places = np.asarray(need("places.npy"), dtype=np.int64)
+    queries = np.asarray(need("queries.npy"), dtype=np.int64)
+    if S.shape != (len(places), len(queries)):
+        raise TopolocError(f"S.npy {S.shape} does not match places.npy and queries.npy: {run_dir}")
+    gt = _run_ground_truth(run_dir, m, places, queries)
+    if gt.shape != S.shape:
+        raise TopolocError(f"ground truth {gt.shape} does not match S.npy {S.shape}: {run_dir}")
+    idx, score, right = best_matches(S, gt)
+    precision, recall = pr_curve(S, gt)
+    hard = gt.hard
+    has_pos = hard.any(axis=0)
+    Sm = S.copy()
+    Sm[gt.soft & ~hard] = S.min()
+    # The correct place shown for each query: its best-scoring GThard row; its rank among all rows.
+    correct_row = np.where(has_pos, np.argmax(np.where(hard, Sm, -np.inf), axis=0), -1)
+    cols = np.arange(S.shape[1])
+    correct_score = np.where(has_pos, Sm[np.maximum(correct_row, 0), cols], np.nan)
+    rank = np.where(has_pos, (Sm > correct_score[None, :]).sum(axis=0) + 1, 0)
+
+    run = m.get("run", {})
+    maps = [t for t in (_load_traverse_or_none(p) for p in run.get("map", [])) if t is not None]
+    query_trav = _load_traverse_or_none(str(run.get("query", "")))
+    if query_trav is not None and len(query_trav) != S.shape[1]:
+        log.warning("query traverse %s has %d images but the run %d queries: no query thumbnails",
+                    query_trav.root, len(query_trav), S.shape[1])
+        query_trav = None
+    place_img = _place_images(maps)
+
+    def place_entry(row: int) -> dict[str, Any] | None:
+        if row < 0:
+            return None
+        pid = int(places[row])
+        found = place_img.get(pid)
+        return {"place": pid, "file": found[0].name if found else None, "tour": found[1] if found else None,
+                "img": thumbs.key(found[0]) if found else None}
+
+    items = []
+    for j in range(S.shape[1]):
+        q: dict[str, Any] = {"place": int(queries[j]), "file": None, "img": None, "time": None}
+        if query_trav is not None:
+            q["file"] = query_trav.images[j].name
+            q["img"] = thumbs.key(query_trav.images[j]) if query_trav.kind == "files" else None
+            if query_trav.times is not None:
+                q["time"] = str(query_trav.times[j])
+        items.append({
+            "q": q, "best": place_entry(int(idx[j])), "correct": place_entry(int(correct_row[j])),
+            "rank": int(rank[j]),
+        })
+    n_cells = int(hard.sum())
+    rows, qcols = np.nonzero(hard)
+    if n_cells > MAX_GT_CELLS:
+        keep = np.linspace(0, n_cells - 1, MAX_GT_CELLS).round().astype(int)
+        rows, qcols = rows[keep], qcols[keep]
+    matrix, mw, mh = _matrix_png(S)
+    return {
+        "label": label,
+        "title": run_title(m),
+        "dir": str(run_dir),
+        "n_places": int(S.shape[0]),
+        "n_queries": int(S.shape[1]),
+        "n_pos": int(has_pos.sum()),
+        "auc": float(m.get("auc", 0.0)),
+        "pr": _subsample(precision, recall),
+        "score": [float(x) for x in score],
+        "right": [bool(x) for x in right],
+        "has_pos": np.asarray(has_pos, dtype=bool).tolist(),
+        "best_row": [int(x) for x in idx],
+        "items": items,
+        "gt_rows": rows.tolist(),
+        "gt_cols": qcols.tolist(),
+        "gt_drawn_all": n_cells <= MAX_GT_CELLS,
+        "matrix": {"src": matrix, "width": mw, "height": mh},
+        "ground_truth": gt.description or str(run.get("ground_truth", "")),
+    }
+
+
+def _fmt(x: Any, spec: str) -> str:
+    return format(x, spec) if isinstance(x, int | float) else "?"
+
+
+def _table_html(runs: list[dict[str, Any]], labels: list[str]) -> str:
+    heads = ["#", *(h for _, h in COLUMNS), "places", "queries", "AUC", "R@100P", "R@1", "R@5", "R@10",
+             "fit s", "vocabulary s", "ms/query"]
+    out = ["<table class='runs'><thead><tr>", *(f"<th>{html.escape(h)}</th>" for h in heads), "</tr></thead><tbody>"]
+    for i, m in enumerate(runs):
+        c = run_columns(m)
+        run = m.get("run", {})
+        cells = [f"<a href='#run{i}' title='{html.escape(labels[i])}'>{i + 1}</a>",
+                 *(html.escape(c[k]) for k, _ in COLUMNS),
+                 str(m.get("n_places", "?")), str(m.get("n_queries", "?")),
+                 *(_fmt(m.get(k), ".3f") for k in ("auc", "recall_at_100_precision", "recall_at_1",
+                                                   "recall_at_5", "recall_at_10")),
+                 _fmt(run.get("fit_seconds"), ".2f"), _fmt(run.get("vocabulary_seconds"), ".1f"),
+                 _fmt(m.get("ms_per_query"), ".2f")]
+        out.append("<tr>" + "".join(f"<td>{x}</td>" for x in cells) + "</tr>")
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+def render_html(run_dirs: list[Path], title: str = "Results", progress: ProgressFactory | None = None) -> str:
+    """The page for the ``evaluate`` output folders ``run_dirs``, as one string."""
+    prog = progress or no_progress
+    if not run_dirs:
+        raise TopolocError("the HTML report needs at least one evaluate output folder")
+    metrics = [load_run(Path(d))[0] for d in run_dirs]
+    labels = distinct_labels(metrics, [run_title(m) for m in metrics])
+    thumbs = _Thumbs()
+    runs = []
+    advance = prog("HTML report runs", len(run_dirs))
+    for d, m, label in zip(run_dirs, metrics, labels, strict=True):
+        runs.append(_run_data(Path(d), m, thumbs, label))
+        advance(1)
+    thumbs.encode_all(prog)
+    payload = {"runs": runs, "thumbs": thumbs.data, "thumb_width": thumbs.width}
+    # "</" cannot end the script element early once escaped.
+    data = json.dumps(payload, separators=(",", ":")).replace("</", "<\\/")
+    generated = datetime.now(UTC).isoformat(timespec="seconds")
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        f"<title>{html.escape(title)}</title>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<style>{_asset('report.css')}</style></head><body>"
+        f"<h1>{html.escape(title)}</h1>"
+        f"<p class='meta'>topoloc report of {len(runs)} run(s), generated {generated}. "
+        "Rows are comparable only where the columns before the scores agree.</p>"
+        f"<h2>Runs</h2><div class='table-wrap'>{_table_html(metrics, labels)}</div>"
+        "<h2>Precision-recall</h2><div id='pr-wrap'><canvas id='pr' width='640' height='420'></canvas>"
+        "<div id='pr-legend'></div></div>"
+        "<div id='runs'></div>"
+        "<div id='errors' hidden></div>"
+        f"<script type='application/json' id='data'>{data}</script>"
+        f"<script>{_asset('report.js')}</script>"
+        "</body></html>\n"
+    )
+
+
+def build_html_report(
+    run_dirs: list[Path], out: Path, title: str = "Results", progress: ProgressFactory | None = None
+) -> Path:
+    """Write :func:`render_html` of ``run_dirs`` to ``out`` (an ``.html`` file) atomically; return ``out``."""
+    out = Path(out)
+    if out.exists() and out.is_dir():
+        out = out / "index.html"
+    page = render_html([Path(d) for d in run_dirs], title=title, progress=progress)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out, page.encode())
+    return out

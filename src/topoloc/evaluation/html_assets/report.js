@@ -1,0 +1,208 @@
+// topoloc HTML report: PR curves, threshold control, similarity matrix and query browser.
+// Self-contained: every number and image comes from the JSON in #data.
+(function () {
+  "use strict";
+  const errors = document.getElementById("errors");
+  window.addEventListener("error", function (ev) {
+    errors.hidden = false;
+    errors.textContent += "script error: " + ev.message + "\n";
+  });
+  const D = JSON.parse(document.getElementById("data").textContent);
+  const COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
+                  "#7f7f7f", "#bcbd22"];
+  const PAGE = 60;
+
+  function el(tag, attrs, children) {
+    const e = document.createElement(tag);
+    for (const k in attrs || {}) {
+      if (k === "text") e.textContent = attrs[k];
+      else if (k === "cls") e.className = attrs[k];
+      else e.setAttribute(k, attrs[k]);
+    }
+    (children || []).forEach(function (c) { if (c) e.appendChild(c); });
+    return e;
+  }
+  function fmt(x, d) { return (x === null || x === undefined || !isFinite(x)) ? String(x) : Number(x).toFixed(d); }
+
+  // ---- per-run statistics at a threshold (the metrics of docs/protocol.md) ----
+  function stats(run, thr) {
+    let tp = 0, fp = 0, rej = 0;
+    for (let j = 0; j < run.score.length; j++) {
+      if (run.score[j] >= thr) { if (run.right[j]) tp++; else fp++; } else rej++;
+    }
+    return {tp: tp, fp: fp, rejected: rej, accepted: tp + fp,
+            precision: tp + fp > 0 ? tp / (tp + fp) : 1, recall: tp / Math.max(run.n_pos, 1)};
+  }
+  function status(run, j, thr) {
+    if (run.score[j] < thr) return "rejected";
+    return run.right[j] ? "correct" : "wrong";
+  }
+
+  // ---- PR curves of every run, with each run's current operating point ----
+  const pr = document.getElementById("pr");
+  const legend = document.getElementById("pr-legend");
+  const states = D.runs.map(function (run) {
+    const t = Array.from(new Set(run.score)).sort(function (a, b) { return a - b; });
+    let best = 0, bestF = -1;
+    t.forEach(function (thr, i) {
+      const s = stats(run, thr);
+      const f = s.precision + s.recall > 0 ? 2 * s.precision * s.recall / (s.precision + s.recall) : 0;
+      if (f > bestF) { bestF = f; best = i; }
+    });
+    return {thresholds: t, index: best, filter: "all", shown: PAGE};
+  });
+  function thrOf(k) {
+    const st = states[k];
+    return st.index >= st.thresholds.length ? Infinity : st.thresholds[st.index];
+  }
+
+  function drawPR() {
+    const ctx = pr.getContext("2d");
+    const W = pr.width, H = pr.height, L = 48, B = 36, T = 10, R = 12;
+    const X = function (r) { return L + r * (W - L - R); };
+    const Y = function (p) { return H - B - p * (H - B - T); };
+    ctx.clearRect(0, 0, W, H);
+    ctx.strokeStyle = "#ddd"; ctx.fillStyle = "#444"; ctx.font = "11px sans-serif"; ctx.lineWidth = 1;
+    for (let i = 0; i <= 10; i++) {
+      const v = i / 10;
+      ctx.beginPath(); ctx.moveTo(X(v), Y(0)); ctx.lineTo(X(v), Y(1)); ctx.stroke();
+      ctx.beginPath(); ctx.moveTo(X(0), Y(v)); ctx.lineTo(X(1), Y(v)); ctx.stroke();
+      if (i % 2 === 0) {
+        ctx.textAlign = "center"; ctx.fillText(v.toFixed(1), X(v), H - B + 14);
+        ctx.textAlign = "right"; ctx.fillText(v.toFixed(1), L - 4, Y(v) + 4);
+      }
+    }
+    ctx.textAlign = "center"; ctx.fillText("recall", X(0.5), H - 6);
+    ctx.save(); ctx.translate(12, Y(0.5)); ctx.rotate(-Math.PI / 2); ctx.fillText("precision", 0, 0); ctx.restore();
+    D.runs.forEach(function (run, k) {
+      ctx.strokeStyle = COLORS[k % COLORS.length]; ctx.lineWidth = 1.8; ctx.beginPath();
+      run.pr.forEach(function (pt, i) { if (i === 0) ctx.moveTo(X(pt[0]), Y(pt[1])); else ctx.lineTo(X(pt[0]), Y(pt[1])); });
+      ctx.stroke();
+      const s = stats(run, thrOf(k));
+      ctx.fillStyle = COLORS[k % COLORS.length];
+      ctx.beginPath(); ctx.arc(X(s.recall), Y(s.precision), 5, 0, 2 * Math.PI); ctx.fill();
+    });
+  }
+  D.runs.forEach(function (run, k) {
+    legend.appendChild(el("div", {}, [el("span", {cls: "sw", style: "background:" + COLORS[k % COLORS.length]}),
+      el("a", {href: "#run" + k, text: (k + 1) + ". " + run.label + " (AUC " + fmt(run.auc, 3) + ")"})]));
+  });
+  legend.appendChild(el("div", {text: "Dots: each run's precision and recall at its threshold below."}));
+
+  // ---- similarity matrix with ground truth and the accepted best matches ----
+  function drawMatrix(k) {
+    const run = D.runs[k], c = document.getElementById("matrix" + k), img = c._img;
+    if (!img || !img.complete) return;
+    const ctx = c.getContext("2d"), W = c.width, H = c.height;
+    const cw = W / run.n_queries, ch = H / run.n_places;
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(img, 0, 0, W, H);
+    ctx.fillStyle = "rgba(255,255,255,0.55)";
+    for (let i = 0; i < run.gt_rows.length; i++) {
+      ctx.fillRect(run.gt_cols[i] * cw, run.gt_rows[i] * ch, Math.max(cw, 1), Math.max(ch, 1));
+    }
+    const thr = thrOf(k), r = Math.max(2, Math.min(4, cw));
+    for (let j = 0; j < run.n_queries; j++) {
+      const st = status(run, j, thr);
+      if (st === "rejected") continue;
+      ctx.fillStyle = st === "correct" ? "#2ca02c" : "#ff2020";
+      ctx.beginPath(); ctx.arc((j + 0.5) * cw, (run.best_row[j] + 0.5) * ch, r, 0, 2 * Math.PI); ctx.fill();
+    }
+  }
+
+  // ---- the query browser ----
+  function figure(thumb, lines) {
+    const src = thumb ? D.thumbs[thumb] : null;
+    const pic = src ? el("img", {src: src, alt: lines[0]}) : el("div", {cls: "noimg", text: "no image"});
+    return el("figure", {}, [pic, el("figcaption", {}, lines.map(function (t, i) {
+      return el(i === 0 ? "b" : "div", {text: t});
+    }))]);
+  }
+  function card(run, j, thr) {
+    const it = run.items[j], st = status(run, j, thr);
+    const q = it.q, b = it.best, c = it.correct;
+    const head = el("div", {}, [
+      el("span", {cls: "badge " + st, text: st}),
+      el("span", {text: "  query " + j + (q.file ? " · " + q.file : "") + (q.time ? " · " + q.time : "") +
+                        " · score " + fmt(run.score[j], 4) +
+                        (run.has_pos[j] ? " · correct place at rank " + it.rank : " · no correct place")})]);
+    const figs = [figure(q.img, ["query", (q.file || "#" + j), "place " + q.place])];
+    if (b) figs.push(figure(b.img, ["best: place " + b.place, (b.tour ? b.tour + "/" : "") + (b.file || ""),
+                                    "score " + fmt(run.score[j], 4)]));
+    if (c) figs.push(figure(c.img, ["correct: place " + c.place, (c.tour ? c.tour + "/" : "") + (c.file || ""),
+                                    "rank " + it.rank]));
+    return el("div", {cls: "card " + st, "data-query": String(j)}, [head, el("div", {cls: "imgs"}, figs)]);
+  }
+  function renderCards(k) {
+    const run = D.runs[k], st = states[k], thr = thrOf(k);
+    const box = document.getElementById("cards" + k), more = document.getElementById("more" + k);
+    box.textContent = "";
+    const sel = [];
+    for (let j = 0; j < run.n_queries; j++) {
+      const s = status(run, j, thr);
+      if (st.filter === "all" || st.filter === s || (st.filter === "nopos" && !run.has_pos[j])) sel.push(j);
+    }
+    sel.slice(0, st.shown).forEach(function (j) { box.appendChild(card(run, j, thr)); });
+    more.hidden = sel.length <= st.shown;
+    more.textContent = "show more (" + (sel.length - Math.min(st.shown, sel.length)) + " hidden)";
+    const counts = {all: run.n_queries, correct: 0, wrong: 0, rejected: 0, nopos: 0};
+    for (let j = 0; j < run.n_queries; j++) { counts[status(run, j, thr)]++; if (!run.has_pos[j]) counts.nopos++; }
+    document.querySelectorAll("#filters" + k + " button").forEach(function (btn) {
+      btn.textContent = btn.dataset.label + " (" + counts[btn.dataset.filter] + ")";
+      btn.className = btn.dataset.filter === st.filter ? "on" : "";
+    });
+  }
+  function update(k) {
+    const run = D.runs[k], thr = thrOf(k), s = stats(run, thr);
+    const set = function (name, v) { document.querySelector("#run" + k + " ." + name).textContent = v; };
+    set("v-thr", thr === Infinity ? "above every score" : fmt(thr, 4));
+    set("v-acc", s.accepted); set("v-tp", s.tp); set("v-fp", s.fp); set("v-rej", s.rejected);
+    set("v-p", fmt(s.precision, 3)); set("v-r", fmt(s.recall, 3));
+    drawMatrix(k); renderCards(k); drawPR();
+  }
+
+  const container = document.getElementById("runs");
+  D.runs.forEach(function (run, k) {
+    const st = states[k];
+    const slider = el("input", {type: "range", min: "0", max: String(st.thresholds.length), step: "1",
+                                value: String(st.index), cls: "thr", "aria-label": "threshold"});
+    slider.addEventListener("input", function () { st.index = Number(slider.value); st.shown = PAGE; update(k); });
+    const counts = el("div", {cls: "counts"}, [
+      el("span", {text: "threshold "}), el("b", {cls: "v-thr"}), el("span", {text: " · accepted "}), el("b", {cls: "v-acc"}),
+      el("span", {text: " (correct "}), el("b", {cls: "v-tp"}), el("span", {text: ", wrong "}), el("b", {cls: "v-fp"}),
+      el("span", {text: ") · rejected "}), el("b", {cls: "v-rej"}),
+      el("span", {text: " · precision "}), el("b", {cls: "v-p"}), el("span", {text: " · recall "}), el("b", {cls: "v-r"})]);
+    const dispW = Math.min(720, Math.max(320, run.n_queries * 4));
+    const dispH = Math.round(Math.min(720, Math.max(200, dispW * run.n_places / Math.max(run.n_queries, 1))));
+    const canvas = el("canvas", {id: "matrix" + k, cls: "matrix", width: String(dispW), height: String(dispH)});
+    const img = new Image();
+    img.onload = function () { drawMatrix(k); };
+    img.src = run.matrix.src;
+    canvas._img = img;
+    const filters = el("div", {cls: "filters", id: "filters" + k}, [
+      ["all", "all"], ["correct", "correct"], ["wrong", "wrong"], ["rejected", "rejected"], ["nopos", "no correct place"]
+    ].map(function (f) {
+      const b = el("button", {type: "button", "data-filter": f[0], "data-label": f[1], text: f[1]});
+      b.addEventListener("click", function () { st.filter = f[0]; st.shown = PAGE; renderCards(k); });
+      return b;
+    }));
+    const more = el("button", {type: "button", cls: "more", id: "more" + k, text: "show more"});
+    more.addEventListener("click", function () { st.shown += PAGE * 2; renderCards(k); });
+    const section = el("section", {cls: "run", id: "run" + k}, [
+      el("h2", {text: (k + 1) + ". " + run.label}),
+      el("p", {cls: "meta", text: run.n_places + " map places × " + run.n_queries + " queries (" + run.n_pos +
+                                  " with a correct place); ground truth: " + run.ground_truth + "; folder " + run.dir}),
+      el("div", {cls: "controls"}, [el("label", {text: "acceptance threshold "}), slider, counts]),
+      el("div", {cls: "two"}, [
+        el("div", {}, [el("h3", {text: "Similarity matrix"}), canvas,
+          el("p", {cls: "legend", text: "Rows: map places (top = first); columns: queries (left = first); " +
+            "colour: similarity (viridis, bright = similar). White cells: ground truth (correct places" +
+            (run.gt_drawn_all ? "" : ", a sample") + "). Dots: the best match of each query accepted at the " +
+            "threshold, green when correct, red when wrong."})])]),
+      el("h3", {text: "Queries"}), filters, el("div", {cls: "cards", id: "cards" + k}), more]);
+    container.appendChild(section);
+    update(k);
+  });
+  drawPR();
+  document.body.dataset.ready = "1";
+})();

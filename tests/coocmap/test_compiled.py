@@ -1,0 +1,79 @@
+"""The compiled matcher equals the reference matcher (Cooc-Map Sec. II-C, II-D)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from topoloc.coocmap.compiled import _prio, match_compiled
+from topoloc.coocmap.matching import consistency_graphs, match_lazy, match_sequential, tie_priority
+from topoloc.coocmap.model import CoocModel
+
+
+def _case(rng: np.random.Generator, *, n_loc: int = 30, n_tours: int = 3, nw: int = 25, n: int = 24,
+          position_bits: int = 16, interpolate: bool = True) -> tuple[CoocModel, np.ndarray, np.ndarray]:
+    scenes = [(rng.integers(0, nw, 2 * n), rng.integers(0, 65536, (2 * n, 2))) for _ in range(n_loc)]
+
+    def view(loc: int) -> tuple[np.ndarray, np.ndarray]:
+        w, xy = scenes[loc]
+        idx = rng.choice(2 * n, n, replace=False)
+        jitter = rng.integers(-300, 300, (n, 2))
+        return w[idx].copy(), np.clip(xy[idx] + jitter, 0, 65535).astype(np.uint16)
+
+    tours = [[(loc, *view(loc)) for loc in range(n_loc)] for _ in range(n_tours)]
+    model = CoocModel.build(tours, n_locations=n_loc, n_words=nw, grid_x=5, grid_y=4,
+                            interpolate=interpolate, position_bits=position_bits)
+    w, xy = view(int(rng.integers(0, n_loc)))
+    w[:5] = rng.integers(0, nw, 5)  # some noise
+    return model, w, xy
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_compiled_equals_sequential(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    model, w, xy = _case(rng, position_bits=6 if seed % 2 else 16, interpolate=seed % 3 != 0)
+    for tol in (0, 1, 2):
+        g = consistency_graphs(model, w, xy, seed=seed, spatial_tolerance=tol)
+        ref = match_sequential(g)
+        for k in (1, 3, 30):
+            res, group = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=tol)
+            assert res.best == ref.best
+            np.testing.assert_array_equal(res.scores[res.exact], ref.scores[res.exact])
+            assert (res.scores >= ref.scores).all()  # dropped ones report an upper bound
+            assert (res.scores[~res.exact] < np.sort(ref.scores)[-k]).all()
+            np.testing.assert_array_equal(np.sort(res.scores)[::-1][:k], np.sort(ref.scores)[::-1][:k])
+            np.testing.assert_array_equal(group, ref.group(g, ref.best))
+            if k == 30:  # nothing can be dropped: every score exact, same elimination steps
+                assert res.exact.all()
+        lazy = match_lazy(model, w, xy, top_k=1, seed=seed, spatial_tolerance=tol)
+        assert lazy.best == res.best
+
+
+def test_compiled_prunes_and_counts() -> None:
+    model, w, xy = _case(np.random.default_rng(3), n_loc=60)
+    res, _ = match_compiled(model, w, xy, top_k=1, spatial_tolerance=1)
+    full, _ = match_compiled(model, w, xy, top_k=60, spatial_tolerance=1)
+    assert res.best == full.best and res.steps < full.steps
+    assert res.locations_built <= full.locations_built  # type: ignore[attr-defined]
+    assert not res.exact.all()
+
+
+def test_tie_priority_is_the_same_hash() -> None:
+    loc = np.array([0, 1, 5, 2199, 70000])
+    f = np.array([0, 7, 999, 3, 123456])
+    for seed in (0, 1, 2**31 + 5):
+        want = tie_priority(seed, loc, f)
+        got = [_prio(np.uint64(seed & 0xFFFFFFFF), np.uint64(a), np.uint64(b)) for a, b in zip(loc, f, strict=True)]
+        np.testing.assert_array_equal(got, want)
+
+
+def test_compiled_empty_and_unknown_words() -> None:
+    model, _, _ = _case(np.random.default_rng(1), n_loc=4)
+    res, group = match_compiled(model, np.zeros(0, np.int64), np.zeros((0, 2), np.uint16))
+    assert res.scores.tolist() == [0.0] * 4 and len(group) == 0
+    # Out-of-vocabulary words are no candidates; a single known word scores 1 where stored.
+    words = np.array([-1, 10_000, int(model.word[0])])
+    res, group = match_compiled(model, words, np.zeros((3, 2), np.uint16), top_k=4)
+    ref = match_sequential(consistency_graphs(model, words, np.zeros((3, 2), np.uint16)))
+    np.testing.assert_array_equal(res.scores, ref.scores)
+    assert group.tolist() == [2]

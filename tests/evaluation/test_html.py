@@ -1,0 +1,309 @@
+"""The HTML report page: its content, and the page itself in headless Chromium.
+
+The browser test drives Debian's ``chromium`` through the DevTools protocol over
+a pipe (``--remote-debugging-pipe``: no websocket, no Selenium, nothing
+downloaded); it is skipped cleanly when no ``chromium`` is installed
+(``apt-get install chromium``; ``.ci/run`` installs it where apt is available).
+It loads the page, fails on any console error or uncaught exception, moves the
+threshold slider with a real ``input`` event and checks that the counts shown
+change, and saves a screenshot (also to ``$TOPOLOC_SCREENSHOT`` when set).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import re
+import shutil
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from topoloc.cli.main import app
+from topoloc.errors import TopolocError
+from topoloc.evaluation.columns import distinct_labels, markdown_table, run_columns
+from topoloc.evaluation.html import build_html_report, render_html
+from topoloc.evaluation.pipeline import evaluate
+from topoloc.synth import RouteConfig, generate_route
+
+BROWSERS = ("chromium", "chromium-browser", "google-chrome")
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """Two seqslam runs of one synthetic route (no vocabulary: fast), at tolerance 0:2 and 0:0."""
+    root = tmp_path_factory.mktemp("html")
+    noon, dusk = generate_route(root / "route", config=RouteConfig(n_places=24, width=160, height=120),
+                                tours=[("noon", 12), ("dusk", 18.5)])
+    a = root / "run_a"
+    b = root / "run_b"
+    evaluate(method="seqslam-single", maps=[noon], query=dusk, out=a, tolerance="0:2", cache_dir=root / "cache")
+    evaluate(method="seqslam-single", maps=[noon], query=dusk, out=b, tolerance="0:0", cache_dir=root / "cache")
+    return root, a, b
+
+
+def _payload(page: str) -> dict[str, Any]:
+    m = re.search(r"<script type='application/json' id='data'>(.*?)</script>", page, re.S)
+    assert m is not None
+    return json.loads(m.group(1).replace("<\\/", "</"))
+
+
+def test_page_is_self_contained_and_complete(runs: tuple[Path, Path, Path]) -> None:
+    _, a, b = runs
+    assert (a / "gt_hard.npy").is_file() and (a / "gt_soft.npy").is_file()
+    page = render_html([a, b], title="T")
+    # Nothing is fetched from elsewhere: no http(s) URL in any src or href.
+    assert not re.search(r"""(src|href)=['"]?https?:""", page)
+    data = _payload(page)
+    r0, r1 = data["runs"]
+    n = len(np.load(a / "queries.npy"))
+    assert r0["n_queries"] == n and len(r0["items"]) == n
+    # Identical titles are made distinct by the column in which the runs differ (the tolerance).
+    assert r0["label"] != r1["label"] and "0:2" in r0["label"] and "0:0" in r1["label"]
+    # Each image is encoded once: the map images are shared by both runs.
+    keys = {it["q"]["img"] for it in r0["items"]} | {it["q"]["img"] for it in r1["items"]}
+    assert len(keys) == n and keys <= set(data["thumbs"])
+    assert all(v.startswith("data:image/jpeg;base64,") for v in data["thumbs"].values())
+    # The scores agree with metrics.json: at the lowest threshold, correct / queries-with-a-place = R@1.
+    m = json.loads((a / "metrics.json").read_text())
+    assert sum(r0["right"]) / r0["n_pos"] == pytest.approx(m["recall_at_1"])
+    item = r0["items"][0]
+    assert item["correct"]["place"] in range(0, 3) and item["rank"] >= 1
+    assert item["q"]["file"].endswith(".jpg")
+    for k, _ in [("ground truth", 0), ("vocabulary", 0), ("preprocessing", 0), ("features", 0)]:
+        assert f"<th>{k}</th>" in page
+
+
+def test_rebuilds_tolerance_ground_truth_of_old_runs(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    _, a, _ = runs
+    old = tmp_path / "old"
+    shutil.copytree(a, old)
+    (old / "gt_hard.npy").unlink()
+    (old / "gt_soft.npy").unlink()
+    assert _payload(render_html([old]))["runs"][0]["right"] == _payload(render_html([a]))["runs"][0]["right"]
+    m = json.loads((old / "metrics.json").read_text())
+    m["run"]["ground_truth"] = "file x.npy"
+    (old / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(TopolocError, match=r"gt_hard\.npy"):
+        render_html([old])
+
+
+def test_missing_similarity_is_one_clear_error(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    _, a, _ = runs
+    broken = tmp_path / "broken"
+    shutil.copytree(a, broken)
+    (broken / "S.npy").unlink()
+    res = CliRunner().invoke(app, ["report", str(broken), "--out", str(tmp_path / "rep"),
+                                   "--html", str(tmp_path / "rep" / "index.html")])
+    assert res.exit_code == 2
+    assert "S.npy" in res.output and "Traceback" not in res.output
+
+
+def test_cli_report_html_and_columns(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    _, a, b = runs
+    out = tmp_path / "rep"
+    res = CliRunner().invoke(app, ["report", str(a), str(b), "--out", str(out), "--html", str(out / "index.html")])
+    assert res.exit_code == 0, res.output
+    assert (out / "index.html").stat().st_size < 2_000_000
+    md = (out / "report.md").read_text()
+    assert "tolerance 0:2" in md and "tolerance 0:0" in md
+    ma, mb = (json.loads((d / "metrics.json").read_text()) for d in (a, b))
+    assert run_columns(ma)["ground_truth"] != run_columns(mb)["ground_truth"]
+    assert len(set(distinct_labels([ma, mb], ["x", "x"]))) == 2
+    assert "| ground truth |" in markdown_table([ma, mb])
+
+
+def _find_browser() -> str | None:
+    for name in BROWSERS:
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+class _Pipe:
+    """The DevTools protocol over ``--remote-debugging-pipe`` (fd 3: commands in, fd 4: replies out)."""
+
+    def __init__(self, browser: str, profile: Path) -> None:
+        self.to_r, self.to_w = os.pipe()
+        self.from_r, self.from_w = os.pipe()
+        # The child reads fd 3 and writes fd 4.
+
+        def child_fds() -> None:
+            os.dup2(self.to_r, 3)
+            os.dup2(self.from_w, 4)
+
+        self.proc = subprocess.Popen(
+            [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+             "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-extensions",
+             "--remote-debugging-pipe", f"--user-data-dir={profile}", "about:blank"],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            # The pipes are close-on-exec; only their copies at fd 3 and 4 (dup2: inheritable) reach the browser.
+            close_fds=False, preexec_fn=child_fds,
+        )
+        os.close(self.to_r)
+        os.close(self.from_w)
+        self.buf = b""
+        self.next_id = 0
+        self.events: list[dict[str, Any]] = []
+
+    def _read_message(self, deadline: float) -> dict[str, Any]:
+        import select
+
+        while b"\0" not in self.buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError("no answer from the browser")
+            ready, _, _ = select.select([self.from_r], [], [], left)
+            if ready:
+                chunk = os.read(self.from_r, 1 << 20)
+                if not chunk:
+                    raise RuntimeError("the browser closed the pipe")
+                self.buf += chunk
+        msg, self.buf = self.buf.split(b"\0", 1)
+        return json.loads(msg)
+
+    def send(self, method: str, params: dict[str, Any] | None = None, session: str | None = None,
+             timeout: float = 30.0) -> dict[str, Any]:
+        self.next_id += 1
+        msg: dict[str, Any] = {"id": self.next_id, "method": method, "params": params or {}}
+        if session:
+            msg["sessionId"] = session
+        os.write(self.to_w, json.dumps(msg).encode() + b"\0")
+        deadline = time.monotonic() + timeout
+        while True:
+            reply = self._read_message(deadline)
+            if reply.get("id") == self.next_id:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                return reply.get("result", {})
+            self.events.append(reply)
+
+    def wait_event(self, method: str, timeout: float = 30.0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        for ev in self.events:
+            if ev.get("method") == method:
+                return ev
+        while True:
+            ev = self._read_message(deadline)
+            self.events.append(ev)
+            if ev.get("method") == method:
+                return ev
+
+    def close(self) -> None:
+        try:
+            self.send("Browser.close", timeout=5)
+        except (RuntimeError, TimeoutError, OSError):
+            pass
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        os.close(self.to_w)
+        os.close(self.from_r)
+
+
+def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str) -> dict[str, Any]:
+    """Load ``html_path``, move run 0's threshold slider, screenshot; return what was seen."""
+    cdp = _Pipe(browser, profile)
+    try:
+        target = cdp.send("Target.createTarget", {"url": "about:blank"})["targetId"]
+        session = cdp.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        for domain in ("Runtime.enable", "Log.enable", "Page.enable"):
+            cdp.send(domain, session=session)
+        cdp.send("Emulation.setDeviceMetricsOverride",
+                 {"width": 1400, "height": 1000, "deviceScaleFactor": 1, "mobile": False}, session=session)
+        cdp.send("Page.navigate", {"url": html_path.resolve().as_uri()}, session=session)
+        cdp.wait_event("Page.loadEventFired", timeout=60)
+
+        def js(expr: str) -> Any:
+            res = cdp.send("Runtime.evaluate", {"expression": expr, "returnByValue": True, "awaitPromise": True},
+                           session=session)
+            if "exceptionDetails" in res:
+                raise AssertionError(f"script error in the page: {res['exceptionDetails']}")
+            return res["result"].get("value")
+
+        counts = "document.querySelector('#run0 .counts').textContent"
+        seen: dict[str, Any] = {"ready": js("document.body.dataset.ready"), "before": js(counts)}
+        seen["slider_max"] = js("Number(document.querySelector('#run0 input.thr').max)")
+        seen["cards_before"] = js("document.querySelectorAll('#cards0 .card').length")
+        seen["images"] = js("Array.from(document.images).filter(i => i.naturalWidth > 0).length")
+        js("(() => { const s = document.querySelector('#run0 input.thr'); s.value = s.max;"
+           " s.dispatchEvent(new Event('input', {bubbles: true})); })()")
+        seen["at_max"] = js(counts)
+        js("(() => { const s = document.querySelector('#run0 input.thr'); s.value = 0;"
+           " s.dispatchEvent(new Event('input', {bubbles: true})); })()")
+        seen["at_min"] = js(counts)
+        js("document.querySelector('#filters0 button[data-filter=wrong]').click()")
+        seen["wrong_cards"] = js("document.querySelectorAll('#cards0 .card.wrong').length")
+        seen["other_cards"] = js("document.querySelectorAll('#cards0 .card:not(.wrong)').length")
+        seen["errors_box"] = js("document.getElementById('errors').textContent")
+        js("(() => { const s = document.querySelector('#run0 input.thr'); s.value = Math.floor(s.max / 2);"
+           " s.dispatchEvent(new Event('input', {bubbles: true}));"
+           " document.querySelector('#filters0 button[data-filter=all]').click(); })()")
+        shot = cdp.send("Page.captureScreenshot", {"format": "png", "captureBeyondViewport": False},
+                        session=session, timeout=60)
+        screenshot.write_bytes(base64.b64decode(shot["data"]))
+        seen["console_errors"] = [
+            json.dumps(ev["params"])[:300] for ev in cdp.events
+            if ev.get("method") == "Runtime.exceptionThrown"
+            or (ev.get("method") == "Runtime.consoleAPICalled" and ev["params"].get("type") in {"error", "assert"})
+            or (ev.get("method") == "Log.entryAdded" and ev["params"]["entry"].get("level") == "error")
+        ]
+        return seen
+    finally:
+        cdp.close()
+
+
+@pytest.mark.skipif(_find_browser() is None, reason="no chromium installed (apt-get install chromium)")
+def test_page_in_headless_chromium(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    _, a, b = runs
+    page = build_html_report([a, b], tmp_path / "index.html", title="browser test")
+    browser = _find_browser()
+    assert browser is not None
+    shot = tmp_path / "page.png"
+    seen = open_page(page, tmp_path / "profile", shot, browser)
+    assert seen["console_errors"] == [], seen["console_errors"]
+    assert seen["errors_box"] == ""
+    assert seen["ready"] == "1"
+    assert seen["images"] > 10  # thumbnails and the matrix decoded
+    assert seen["cards_before"] > 0
+    # Moving the threshold changes what is counted: nothing accepted at the top, everything at the bottom.
+    assert seen["at_max"] != seen["at_min"] != seen["before"] or seen["at_max"] != seen["at_min"]
+    n = len(np.load(a / "queries.npy"))
+    assert re.search(r"accepted 0 ", seen["at_max"]) and f"rejected {n}" in seen["at_max"]
+    assert "rejected 0" in seen["at_min"]
+    assert seen["other_cards"] == 0
+    assert shot.stat().st_size > 10_000
+    assert np.frombuffer(shot.read_bytes()[:8], np.uint8).tolist() == [137, 80, 78, 71, 13, 10, 26, 10]
+    if os.environ.get("TOPOLOC_SCREENSHOT"):
+        shutil.copy(shot, os.environ["TOPOLOC_SCREENSHOT"])
+
+
+def test_cli_evaluate_html_version_and_methods(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    root, _, _ = runs
+    out = tmp_path / "ev"
+    res = CliRunner().invoke(app, [
+        "evaluate", "--method", "seqslam-single", "--map", str(root / "route" / "noon"),
+        "--query", str(root / "route" / "dusk"), "--out", str(out), "--tolerance", "0:1", "-q",
+        "--cache-dir", str(root / "cache"), "--html", str(out / "index.html"),
+    ])
+    assert res.exit_code == 0, res.output
+    assert (out / "index.html").is_file() and (out / "gt_hard.npy").is_file()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["run"]["vocabulary_seconds"] == 0.0 and m["run"]["fit_seconds"] >= 0
+    res = CliRunner().invoke(app, ["--version"])
+    assert res.exit_code == 0 and res.output.startswith("topoloc ")
+    res = CliRunner().invoke(app, ["methods", "coocmap"])
+    assert res.exit_code == 0 and "spatial_tolerance = 1" in res.output and "not documented" not in res.output
+    res = CliRunner().invoke(app, ["methods", "fabmap2"])
+    assert res.exit_code == 0 and "not documented" not in res.output
+    res = CliRunner().invoke(app, ["methods", "nope"])
+    assert res.exit_code == 2 and "unknown method" in res.output
