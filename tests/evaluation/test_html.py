@@ -307,3 +307,37 @@ def test_cli_evaluate_html_version_and_methods(runs: tuple[Path, Path, Path], tm
     assert res.exit_code == 0 and "not documented" not in res.output
     res = CliRunner().invoke(app, ["methods", "nope"])
     assert res.exit_code == 2 and "unknown method" in res.output
+
+
+def test_slam_page(fabmap_loop_model: Any, tmp_path: Path) -> None:
+    from topoloc.datasets.traverse import Traverse
+    from topoloc.evaluation.slam_html import render_slam_html
+    from topoloc.methods.slam import run_slam
+    from topoloc.synth.words import loop_sequence
+
+    seq, _ = loop_sequence(12, n_words=400, seed=3)
+    # Images named from 1, as many cameras name them: the page shows the names beside the indices.
+    tr = Traverse(root=tmp_path, images=tuple(tmp_path / f"{k + 1}.jpg" for k in range(len(seq))),
+                  places=np.arange(len(seq)))
+    res = run_slam(tr, out_dir=tmp_path / "slam", model=fabmap_loop_model, words=seq, min_gap=5)
+    page = render_slam_html(tmp_path / "slam")
+    a, b, _ = res.loop_closures()[0]
+    assert f"{a + 1}.jpg → {b + 1}.jpg" in page
+    assert "Posterior over time" not in page  # drawn into the PNG, not as text
+    assert page.count("data:image/png;base64,") == 2 and "<script" not in page
+    with pytest.raises(TopolocError, match="not a slam output folder"):
+        render_slam_html(tmp_path)
+
+
+def test_infinite_scores_stay_valid_json(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    _, a, _ = runs
+    run = tmp_path / "inf"
+    shutil.copytree(a, run)
+    S = np.load(run / "S.npy")
+    S[:, 0] = -np.inf  # e.g. a query with no features
+    np.save(run / "S.npy", S)
+    page = render_html([run])
+    blob = re.search(r"id='data'>(.*?)</script>", page, re.S)
+    assert blob is not None and "Infinity" not in blob.group(1) and "NaN" not in blob.group(1)
+    r0 = _payload(page)["runs"][0]
+    assert r0["score"][0] < min(r0["score"][1:])

@@ -89,9 +89,12 @@ def _naive_metrics(S: np.ndarray, hard: np.ndarray, soft: np.ndarray) -> tuple[f
         for j in range(n_q):
             if soft[i, j] and not hard[i, j]:
                 S[i, j] = lo
-    best = [max(range(n_p), key=lambda i, j=j: (S[i, j], -i)) for j in range(n_q)]
-    score = [S[best[j], j] for j in range(n_q)]
-    right = [bool(hard[best[j], j]) for j in range(n_q)]
+    score = [max(S[i, j] for i in range(n_p)) for j in range(n_q)]
+    # Ties at the top are chance: the share of correct rows among the tied best rows.
+    right = []
+    for j in range(n_q):
+        tied = [i for i in range(n_p) if S[i, j] == score[j]]
+        right.append(sum(bool(hard[i, j]) for i in tied) / len(tied))
     n_pos = sum(hard[:, j].any() for j in range(n_q))
     pts = [(0.0, 1.0)]
     for th in sorted(set(score), reverse=True):
@@ -119,3 +122,27 @@ def test_matches_naive_reference(seed: int) -> None:
     assert m.auc == pytest.approx(auc)
     assert m.recall_at_100_precision == pytest.approx(r100)
     assert m.recall_at_1 == pytest.approx(r1)
+
+
+def test_recall_at_k_with_ties_is_chance_by_enumeration() -> None:
+    """R@K against every order of the tied rows, enumerated: a constant column is chance, not a hit."""
+    import itertools
+
+    from topoloc.evaluation.metrics import recall_at_k
+
+    rng = np.random.default_rng(3)
+    S = rng.integers(0, 3, size=(6, 5)).astype(float)
+    S[:, 4] = 0.0  # a query with no features: every place scores the same
+    queries = np.array([0, 2, 3, 5, 1])
+    gt = ground_truth_from_places(np.arange(6), queries, 0, 0)
+    for k in (1, 2, 4):
+        expected = []
+        for j in range(5):
+            hits = []
+            for order in itertools.permutations(range(6)):
+                rank = sorted(range(6), key=lambda i, j=j, order=order: (-S[i, j], order.index(i)))
+                hits.append(any(gt.hard[i, j] for i in rank[:k]))
+            expected.append(np.mean(hits))
+        assert recall_at_k(S, gt, (k,))[k] == pytest.approx(np.mean(expected))
+    assert recall_at_k(np.zeros((12, 12)), ground_truth_from_places(np.arange(12), np.arange(12), 0, 0),
+                       (1,))[1] == pytest.approx(1 / 12)

@@ -65,7 +65,9 @@ def test_report_side_by_side(route: Path, tmp_path: Path) -> None:
     r = runner.invoke(app, ["report", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
     md = (tmp_path / "rep" / "report.md").read_text()
-    assert md.count("| bow |") == 1 and md.count("| bow (merge=sum) |") == 1
+    scores, made = md.split("How each run was made")
+    assert scores.count("| bow |") == 1 and scores.count("| bow (merge=sum) |") == 1
+    assert made.count('| bow (merge="sum") |') == 1  # the table of how each run was made
     assert (tmp_path / "rep" / "pr_curves.png").stat().st_size > 1000
 
 

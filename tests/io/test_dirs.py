@@ -63,8 +63,8 @@ def test_output_checks_refuse_before_work(tmp_path: Path) -> None:
             check_output_dir(ro / "x")
     with pytest.raises(TopolocError, match="cannot"):
         check_output_dir(Path("/proc/topoloc-test-output"))
-    check_output_dir(tmp_path / "new" / "deep")  # creatable: fine, and created
-    assert (tmp_path / "new" / "deep").is_dir()
+    check_output_dir(tmp_path / "new" / "deep")  # creatable: fine, and nothing created yet
+    assert not (tmp_path / "new").exists()
 
 
 def test_files_get_the_users_umask_not_0600(tmp_path: Path) -> None:

@@ -189,9 +189,9 @@ def methods(
     if name is not None:
         from topoloc.methods.describe import describe_method
 
-        summary, params = describe_method(name)
+        summary, documented = describe_method(name)
         typer.echo(f"{name}: {summary}\n\nParameters (evaluate --param KEY=VALUE):")
-        for p in params:
+        for p in documented:
             typer.echo(f"  {p.name} = {p.default!r}" + (f"  ({p.type})" if p.type else ""))
             typer.echo(f"      {p.text or '(not documented)'}")
         return
@@ -389,6 +389,8 @@ def slam(
     preprocess: PreprocessOption = "none",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    html: Annotated[Path | None, typer.Option(
+        help="Also write a self-contained HTML page: closures along the route, posterior, image pairs.")] = None,
 ) -> None:
     """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
     from topoloc.datasets.traverse import load_traverse
@@ -412,6 +414,10 @@ def slam(
         )
         result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
                           threshold=threshold, p_new=p_new, min_gap=min_gap)
+        if html is not None:
+            from topoloc.evaluation.slam_html import build_slam_html
+
+            typer.echo(f"wrote {build_slam_html(out, html, progress=progress)}")
     typer.echo(f"{result.n_images} images, {result.n_places} places, {len(result.loop_closures())} loop closures; "
                f"wrote {out}/posterior.npy, loop_closures.csv, loop_closures.png")
 

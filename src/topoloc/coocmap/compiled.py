@@ -44,7 +44,6 @@ from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
 from topoloc.coocmap.spatial import NORM, NORM_BITS
 
-
 #: Locations (by candidate count) whose translation bound orders the start of the matching.
 SEED_FIRST = 8
 
@@ -204,240 +203,264 @@ def _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r):
 
 
 @njit(cache=True)
+def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, seed, keep):
+    """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
+
+    Returns ``(score, exact, elimination steps, pair tests, dropped by the
+    translation bound)``; when exact, ``keep`` (bool, F) marks the query
+    features of the final group.
+    """
+    F = len(qx)
+    r = tol + 1
+    NB = (2 * gx) * (2 * gy)
+    BYg = 2 * gy
+    lim = (tol + 1) * NORM
+    present = np.zeros(F, np.bool_)
+    cand_of_f = np.full(F, -1, np.int64)
+    n, cand_feat, t_f, t_a, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
+                                           qx, qy, present, cand_of_f, gx, gy)
+    if n == 0:
+        return 0.0, True, 0, 0, 0
+    nt = len(t_f)
+    # Bound from the translations alone (module docstring), before any J is built.
+    tb = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r)
+    if tb < thr:
+        return float(tb), False, 0, 0, 1
+    # Counting sort of the triples by translation bucket.
+    bcount = np.zeros(NB + 1, np.int64)
+    for i in range(nt):
+        bcount[t_b[i] + 1] += 1
+    for b in range(NB):
+        bcount[b + 1] += bcount[b]
+    fill = bcount[:NB].copy()
+    sf = np.empty(nt, np.int64)
+    sc = np.empty(nt, np.int64)
+    sa = np.empty(nt, np.int64)
+    sx = np.empty(nt, np.int64)
+    sy = np.empty(nt, np.int64)
+    tx = np.empty(nt, np.int64)
+    ty = np.empty(nt, np.int64)
+    sg = np.empty(nt, np.uint64)
+    for i in range(nt):
+        b = t_b[i]
+        d = fill[b]
+        fill[b] += 1
+        f = t_f[i]
+        a = t_a[i]
+        sf[d] = f
+        sc[d] = cand_of_f[f]
+        sa[d] = a
+        sx[d] = np.int64(xy[a, 0])
+        sy[d] = np.int64(xy[a, 1])
+        tx[d] = qx[f] - sx[d]
+        ty[d] = qy[f] - sy[d]
+        sg[d] = groups[a]
+    J = np.zeros((n, n), np.uint8)
+    deg = np.zeros(n, np.int64)
+    # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
+    tests = 0
+    for bxa in range(2 * gx):
+        for bya in range(2 * gy):
+            ba = bxa * BYg + bya
+            a0 = bcount[ba]
+            a1 = bcount[ba + 1]
+            if a0 == a1:
+                continue
+            for ox in range(0, r + 1):
+                bxb = bxa + ox
+                if bxb >= 2 * gx:
+                    break
+                for oy in range(-r, r + 1):
+                    if ox == 0 and oy < 0:
+                        continue
+                    byb = bya + oy
+                    if byb < 0 or byb >= 2 * gy:
+                        continue
+                    bb = bxb * BYg + byb
+                    same = ox == 0 and oy == 0
+                    b1 = bcount[bb + 1]
+                    for i in range(a0, a1):
+                        fi = sf[i]
+                        ci = sc[i]
+                        j0 = i + 1 if same else bcount[bb]
+                        for j in range(j0, b1):
+                            cj = sc[j]
+                            if ci == cj or J[ci, cj]:
+                                continue
+                            # Necessary: translations less than tol + 1 squares apart.
+                            if abs(tx[j] - tx[i]) * gx >= lim or abs(ty[j] - ty[i]) * gy >= lim:
+                                continue
+                            if sa[i] == sa[j] or (sg[i] & sg[j]) == 0:
+                                continue
+                            tests += 1
+                            fj = sf[j]
+                            # Evaluate in the direction f < g, as the reference does.
+                            if fi < fj:
+                                ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
+                                mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
+                            else:
+                                ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
+                                mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
+                            if abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol:
+                                J[ci, cj] = 1
+                                J[cj, ci] = 1
+                                deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
+                                deg[cj] += 1
+    # The h-index bound from the row sums.
+    hist = np.zeros(n + 1, np.int64)
+    for i in range(n):
+        hist[deg[i]] += 1
+    # bound = max k with #{deg >= k - 1} >= k
+    bound = 0
+    atleast = 0
+    for d in range(n, -1, -1):
+        atleast += hist[d]
+        kk = min(atleast, d + 1)
+        if kk > bound:
+            bound = kk
+    if bound < thr:
+        return float(bound), False, 0, tests, 0
+    # Elimination (matching.eliminate, step for step).  Candidates with no
+    # consistent partner have keys in [0, 1), below every other key, and
+    # removing one changes no other key: unless all are such, they go first
+    # (in some order, counted as steps) and the rest runs on the others.
+    key = np.empty(n, np.float64)
+    for i in range(n):
+        key[i] = float(deg[i]) + _prio(np.uint64(seed), np.uint64(loc), np.uint64(cand_feat[i]))
+    idx = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        if deg[i] > 0:
+            idx[m] = i
+            m += 1
+    steps = 0
+    if m > 0:
+        steps = n - m
+        for i in range(n):
+            if deg[i] == 0:
+                key[i] = np.inf
+    else:
+        for i in range(n):
+            idx[i] = i
+        m = n
+    size = m
+    while size > 0:
+        ei = 0
+        kmin = np.inf
+        kmax = -1.0
+        w = 0
+        for t in range(m):  # idx stays ascending: the first minimum is eliminate's
+            i = idx[t]
+            v = key[i]
+            if v == np.inf:
+                continue
+            idx[w] = i
+            w += 1
+            if v < kmin:
+                kmin = v
+                ei = i
+            if v > kmax:
+                kmax = v
+        m = w
+        if np.floor(kmin) >= size - 1:
+            break
+        b2 = min(size, int(np.floor(kmax)) + 1)
+        if b2 < thr:
+            return float(b2), False, steps, tests, 0
+        key[ei] = np.inf
+        size -= 1
+        steps += 1
+        for t in range(m):
+            j = idx[t]
+            if J[ei, j]:
+                key[j] -= 1.0
+    for i in range(n):
+        if key[i] != np.inf:
+            keep[cand_feat[i]] = True
+    return float(size), True, steps, tests, 0
+
+
+@njit(cache=True)
 def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy,
-                     top_k, tol, gx, gy, seed, seed_first, scores, exact, stats, best_keep):
+                     top_k, tol, gx, gy, seed, seed_first, max_batch, scores, exact, stats, best_keep):
     """The location loop of :func:`match_compiled` (see the module docstring).
 
-    ``stats`` (int64, 5): elimination steps, locations whose ``J`` was built,
-    pair tests, locations finished, locations dropped by the translation bound.
-    The first ``seed_first`` locations of ``order`` are re-ordered by their
-    translation bound (highest first) so that a good threshold comes early.  ``best_keep`` (bool, F): query features
-    of the final group of the best finished location.
+    The first ``seed_first`` locations of ``order`` (by candidate count) are
+    re-ordered by their translation bound, highest first, so that a good
+    threshold comes early.  Locations are then matched in batches of 1, 2,
+    4, ... ``max_batch``, those of a batch against the threshold known when
+    the batch starts (the ``top_k``-th best finished score: only an upper
+    bound below it drops a location, so the result does not depend on the
+    batches; batches are there for a parallel loop, which on two shared
+    cores did not pay, so ``max_batch`` is 1).  ``stats`` (int64, 5): elimination steps, locations whose ``J``
+    was built, pair tests, locations finished, locations dropped by the
+    translation bound.  ``best_keep`` (bool, F): query features of the final
+    group of the best location.  Returns the best location (-1 if none).
     """
     F = len(qx)
     L = len(order)
     r = tol + 1
-    NB = (2 * gx) * (2 * gy)
-    BYg = 2 * gy
     top = np.full(max(top_k, 1), -1.0)  # the top_k best finished scores, ascending
     n_fin = 0
-    present = np.zeros(F, np.bool_)
-    cand_of_f = np.full(F, -1, np.int64)
-    Jbuf = np.zeros(F * F, np.uint8)
-    bcount = np.zeros(NB + 1, np.int64)
     best_score = -1.0
     best_loc = -1
-    lim = (tol + 1) * NORM
-    # Seed: the first locations by candidate count, taken in order of translation bound.
+    present = np.zeros(F, np.bool_)
+    cand_of_f = np.full(F, -1, np.int64)
     S = min(seed_first, L)
     head = np.zeros(S, np.int64)
     for oi in range(S):
         loc = order[oi]
-        n, cand_feat, t_f, t_a, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
-                                               qx, qy, present, cand_of_f, gx, gy)
+        n, cand_feat, t_f, _, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
+                                             qx, qy, present, cand_of_f, gx, gy)
         head[oi] = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r) if n else 0
         for f in range(n):
             cand_of_f[cand_feat[f]] = -1
     order = order.copy()
     order[:S] = order[:S][np.argsort(-head, kind="mergesort")]
-    for oi in range(L):
-        loc = order[oi]
+    pos = 0
+    batch = 1
+    while pos < L:
         thr = top[0] if n_fin >= top_k else -1.0
-        if n_cand[loc] < thr:
-            if oi >= S:
-                break  # every later location has at most this many candidates
-            continue
-        n, cand_feat, t_f, t_a, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
-                                               qx, qy, present, cand_of_f, gx, gy)
-        if n == 0:
-            exact[loc] = True
-            scores[loc] = 0.0
-            continue
-        nt = len(t_f)
-        # Bound from the translations alone (module docstring), before any J is built.
-        tb = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r)
-        if tb < thr:
-            for f in range(n):
-                cand_of_f[cand_feat[f]] = -1
-            scores[loc] = tb
-            stats[4] += 1
-            continue
-        # Counting sort of the triples by translation bucket.
-        bcount[:] = 0
-        for i in range(nt):
-            bcount[t_b[i] + 1] += 1
-        for b in range(NB):
-            bcount[b + 1] += bcount[b]
-        fill = bcount[:NB].copy()
-        sf = np.empty(nt, np.int64)
-        sc = np.empty(nt, np.int64)
-        sa = np.empty(nt, np.int64)
-        sx = np.empty(nt, np.int64)
-        sy = np.empty(nt, np.int64)
-        tx = np.empty(nt, np.int64)
-        ty = np.empty(nt, np.int64)
-        sg = np.empty(nt, np.uint64)
-        for i in range(nt):
-            b = t_b[i]
-            d = fill[b]
-            fill[b] += 1
-            f = t_f[i]
-            a = t_a[i]
-            sf[d] = f
-            sc[d] = cand_of_f[f]
-            sa[d] = a
-            sx[d] = np.int64(xy[a, 0])
-            sy[d] = np.int64(xy[a, 1])
-            tx[d] = qx[f] - sx[d]
-            ty[d] = qy[f] - sy[d]
-            sg[d] = groups[a]
-        for f in range(n):
-            cand_of_f[cand_feat[f]] = -1
-        J = Jbuf[:n * n].reshape((n, n))
-        J[:, :] = 0
-        # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
-        tests = 0
-        for bxa in range(2 * gx):
-            for bya in range(2 * gy):
-                ba = bxa * BYg + bya
-                a0 = bcount[ba]
-                a1 = bcount[ba + 1]
-                if a0 == a1:
-                    continue
-                for ox in range(0, r + 1):
-                    bxb = bxa + ox
-                    if bxb >= 2 * gx:
-                        break
-                    for oy in range(-r, r + 1):
-                        if ox == 0 and oy < 0:
-                            continue
-                        byb = bya + oy
-                        if byb < 0 or byb >= 2 * gy:
-                            continue
-                        bb = bxb * BYg + byb
-                        same = ox == 0 and oy == 0
-                        b1 = bcount[bb + 1]
-                        for i in range(a0, a1):
-                            fi = sf[i]
-                            ci = sc[i]
-                            j0 = i + 1 if same else bcount[bb]
-                            for j in range(j0, b1):
-                                cj = sc[j]
-                                if ci == cj or J[ci, cj]:
-                                    continue
-                                # Necessary: translations less than tol + 1 squares apart.
-                                if abs(tx[j] - tx[i]) * gx >= lim or abs(ty[j] - ty[i]) * gy >= lim:
-                                    continue
-                                if sa[i] == sa[j] or (sg[i] & sg[j]) == 0:
-                                    continue
-                                tests += 1
-                                fj = sf[j]
-                                # Evaluate in the direction f < g, as the reference does.
-                                if fi < fj:
-                                    ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
-                                    mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
-                                else:
-                                    ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
-                                    mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
-                                if abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol:
-                                    J[ci, cj] = 1
-                                    J[cj, ci] = 1
-        stats[1] += 1
-        stats[2] += tests
-        # Row sums and the h-index bound.
-        deg = np.zeros(n, np.int64)
-        for i in range(n):
-            dsum = 0
-            for j in range(n):
-                dsum += J[i, j]
-            deg[i] = dsum
-        hist = np.zeros(n + 1, np.int64)
-        for i in range(n):
-            hist[deg[i]] += 1
-        # bound = max k with #{deg >= k - 1} >= k
-        bound = 0
-        atleast = 0
-        for d in range(n, -1, -1):
-            atleast += hist[d]
-            kk = min(atleast, d + 1)
-            if kk > bound:
-                bound = kk
-        if bound < thr:
-            scores[loc] = bound
-            continue
-        # Elimination (matching.eliminate, step for step).  Candidates with no
-        # consistent partner have keys in [0, 1), below every other key, and
-        # removing one changes no other key: unless all are such, they go first
-        # (in some order, counted as steps) and the rest runs on the others.
-        key = np.empty(n, np.float64)
-        for i in range(n):
-            key[i] = float(deg[i]) + _prio(np.uint64(seed), np.uint64(loc), np.uint64(cand_feat[i]))
-        idx = np.empty(n, np.int64)
-        m = 0
-        for i in range(n):
-            if deg[i] > 0:
-                idx[m] = i
-                m += 1
-        steps = 0
-        if m > 0:
-            steps = n - m
-            for i in range(n):
-                if deg[i] == 0:
-                    key[i] = np.inf
-        else:
-            for i in range(n):
-                idx[i] = i
-            m = n
-        size = m
-        dropped = False
-        while size > 0:
-            ei = 0
-            kmin = np.inf
-            kmax = -1.0
-            w = 0
-            for t in range(m):  # idx stays ascending: the first minimum is eliminate's
-                i = idx[t]
-                v = key[i]
-                if v == np.inf:
-                    continue
-                idx[w] = i
-                w += 1
-                if v < kmin:
-                    kmin = v
-                    ei = i
-                if v > kmax:
-                    kmax = v
-            m = w
-            if np.floor(kmin) >= size - 1:
-                break
-            b2 = min(size, int(np.floor(kmax)) + 1)
-            if b2 < thr:
-                dropped = True
-                scores[loc] = b2
-                break
-            key[ei] = np.inf
-            size -= 1
-            steps += 1
-            for t in range(m):
-                j = idx[t]
-                if J[ei, j]:
-                    key[j] -= 1.0
-        stats[0] += steps
-        if dropped:
-            continue
-        scores[loc] = size
-        exact[loc] = True
-        stats[3] += 1
-        if size > best_score or (size == best_score and loc < best_loc):
-            best_score = size
-            best_loc = loc
-            best_keep[:] = False
-            for i in range(n):
-                if key[i] != np.inf:
-                    best_keep[cand_feat[i]] = True
-        # Insert into the ascending top-k list.
-        if top_k > 0:
-            if n_fin < top_k:
+        if pos >= S and n_cand[order[pos]] < thr:
+            break  # every later location has at most this many candidates
+        m = min(batch, L - pos)
+        out_s = np.zeros(m)
+        out_e = np.zeros(m, np.bool_)
+        out_steps = np.zeros(m, np.int64)
+        out_tests = np.zeros(m, np.int64)
+        out_tb = np.zeros(m, np.int64)
+        out_built = np.zeros(m, np.int64)
+        keep = np.zeros((m, F), np.bool_)
+        for t in range(m):
+            loc = order[pos + t]
+            if n_cand[loc] < thr:
+                out_s[t] = n_cand[loc]
+                continue
+            res = _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx,
+                                gy, seed, keep[t])
+            out_s[t] = res[0]
+            out_e[t] = res[1]
+            out_steps[t] = res[2]
+            out_tests[t] = res[3]
+            out_tb[t] = res[4]
+            out_built[t] = 1 if res[3] > 0 or res[1] else 0
+        for t in range(m):
+            loc = order[pos + t]
+            scores[loc] = out_s[t]
+            exact[loc] = out_e[t]
+            stats[0] += out_steps[t]
+            stats[1] += out_built[t]
+            stats[2] += out_tests[t]
+            stats[4] += out_tb[t]
+            if not out_e[t]:
+                continue
+            size = out_s[t]
+            stats[3] += 1
+            if size > best_score or (size == best_score and loc < best_loc):
+                best_score = size
+                best_loc = loc
+                best_keep[:] = keep[t]
+            if n_fin < top_k:  # insert into the ascending top-k list
                 top[0] = size
                 n_fin += 1
             elif size > top[0]:
@@ -447,6 +470,8 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
                     tmp = top[i]
                     top[i] = top[i + 1]
                     top[i + 1] = tmp
+        pos += m
+        batch = min(2 * batch, max_batch)
     return best_loc
 
 
@@ -488,7 +513,8 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     # out-of-vocabulary features never become candidates (absent from by_word).
     _match_locations(order, n_cand, model.loc_ptr, model.word, model.xy, groups,
                      words[by_word], by_word.astype(np.int64), qx, qy, int(top_k), int(spatial_tolerance),
-                     int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF, SEED_FIRST, scores, exact, stats, keep)
+                     int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF, SEED_FIRST, 1, scores, exact,
+                     stats, keep)
     res = MatchResult(scores, exact, np.zeros(0, bool), int(stats[0]), 0, time.perf_counter() - t0)
     res.locations_built = int(stats[1])  # type: ignore[attr-defined]
     res.pair_tests = int(stats[2])  # type: ignore[attr-defined]

@@ -186,6 +186,10 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
     if gt.shape != S.shape:
         raise TopolocError(f"ground truth {gt.shape} does not match S.npy {S.shape}: {run_dir}")
     idx, score, right = best_matches(S, gt)
+    # JSON has no infinities: +-inf scores become just above / below every finite one (same order).
+    finite = score[np.isfinite(score)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+    score = np.nan_to_num(score, posinf=hi + 1.0, neginf=lo - 1.0)
     precision, recall = pr_curve(S, gt)
     hard = gt.hard
     has_pos = hard.any(axis=0)
@@ -259,7 +263,7 @@ def _fmt(x: Any, spec: str) -> str:
 
 
 def _table_html(runs: list[dict[str, Any]], labels: list[str]) -> str:
-    heads = ["#", *(h for _, h in COLUMNS), "places", "queries", "AUC", "R@100P", "R@1", "R@5", "R@10",
+    heads = ["#", *(h for _, h in COLUMNS), "places × queries", "AUC", "R@100P", "R@1", "R@5", "R@10",
              "fit s", "vocabulary s", "ms/query"]
     out = ["<table class='runs'><thead><tr>", *(f"<th>{html.escape(h)}</th>" for h in heads), "</tr></thead><tbody>"]
     for i, m in enumerate(runs):
@@ -267,7 +271,7 @@ def _table_html(runs: list[dict[str, Any]], labels: list[str]) -> str:
         run = m.get("run", {})
         cells = [f"<a href='#run{i}' title='{html.escape(labels[i])}'>{i + 1}</a>",
                  *(html.escape(c[k]) for k, _ in COLUMNS),
-                 str(m.get("n_places", "?")), str(m.get("n_queries", "?")),
+                 f"{m.get('n_places', '?')} × {m.get('n_queries', '?')}",
                  *(_fmt(m.get(k), ".3f") for k in ("auc", "recall_at_100_precision", "recall_at_1",
                                                    "recall_at_5", "recall_at_10")),
                  _fmt(run.get("fit_seconds"), ".2f"), _fmt(run.get("vocabulary_seconds"), ".1f"),

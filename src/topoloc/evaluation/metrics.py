@@ -43,19 +43,28 @@ def _masked(S: np.ndarray, gt: GroundTruth) -> np.ndarray:
 def best_matches(S: np.ndarray, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Best match of each query after masking soft-only cells.
 
+    Ties are scored as chance: when several rows share the best score, the
+    query is right with the probability that a random choice among them is in
+    ``GThard`` (a constant column is right with probability
+    ``n_correct / n_places``, not because row 0 happens to come first).
+
     Returns
     -------
     idx : ndarray of int, shape (n_queries,)
-        Row of the best match.
+        Row of the best match (the first of tied rows, as ``argmax``).
     score : ndarray of float, shape (n_queries,)
-    right : ndarray of bool, shape (n_queries,)
-        Whether the best match is in ``GThard``.
+    right : ndarray of float, shape (n_queries,)
+        1 if the best match is in ``GThard``, 0 if not, the share of hard rows among tied best rows.
     """
     check_shapes(S, gt)
     Sm = _masked(S, gt)
     idx = np.argmax(Sm, axis=0)
     cols = np.arange(S.shape[1])
-    return idx, Sm[idx, cols], gt.hard[idx, cols]
+    best = Sm[idx, cols]
+    tied = Sm == best[None, :]
+    n_tied = tied.sum(axis=0)
+    right = (tied & gt.hard).sum(axis=0) / np.maximum(n_tied, 1)
+    return idx, best, right.astype(np.float64)
 
 
 def pr_curve(S: np.ndarray, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +79,7 @@ def pr_curve(S: np.ndarray, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
     _, score, right = best_matches(S, gt)
     n_pos = int(gt.hard.any(axis=0).sum())
     order = np.argsort(-score, kind="stable")
-    s, r = score[order], right[order].astype(np.int64)
+    s, r = score[order], right[order].astype(np.float64)
     tp = np.cumsum(r)
     fp = np.cumsum(1 - r)
     # Queries with equal scores are accepted together by any threshold, so
@@ -97,22 +106,47 @@ def recall_at_k(S: np.ndarray, gt: GroundTruth, ks: tuple[int, ...] = (1, 5, 10)
     """Fraction of queries with a correct place whose top K rows contain one.
 
     Soft-only cells are masked as for the PR curve, so they cannot occupy a
-    top-K slot.  Ties are ordered by row index, as ``argmax`` orders them for
-    the single best match, so R@1 agrees with the best-match correctness.
+    top-K slot.  Ties are scored as chance: with ``g`` wrong rows scoring
+    above the best correct score ``s*``, ``t`` wrong and ``c`` correct rows
+    scoring exactly ``s*``, the query counts ``P(a correct row is among the
+    first K)`` under a random order of the tied rows,
+    ``1 - C(t, K - g) / C(t + c, K - g)`` (0 when ``K <= g``, 1 when
+    ``K - g > t``).  Without ties this is the plain top-K hit, and R@1 equals
+    the best-match correctness of :func:`best_matches`.
     """
+    from scipy.special import gammaln
+
     check_shapes(S, gt)
     has_pos = gt.hard.any(axis=0)
     if not has_pos.any():
         return dict.fromkeys(ks, 0.0)
     Sm = _masked(S, gt)[:, has_pos]
     hard = gt.hard[:, has_pos]
-    first = np.empty(Sm.shape[1], dtype=np.int64)
-    step = max(1, 2_000_000 // max(Sm.shape[0], 1))  # bound the argsort's memory
-    for a in range(0, Sm.shape[1], step):
-        order = np.argsort(-Sm[:, a:a + step], axis=0, kind="stable")
-        hit = np.take_along_axis(hard[:, a:a + step], order, axis=0)
-        first[a:a + step] = np.argmax(hit, axis=0)
-    return {k: float((first < k).mean()) for k in ks}
+    n_q = Sm.shape[1]
+    g = np.empty(n_q)
+    t = np.empty(n_q)
+    c = np.empty(n_q)
+    step = max(1, 2_000_000 // max(Sm.shape[0], 1))  # bound the memory of the comparisons
+    for a in range(0, n_q, step):
+        blk, hb = Sm[:, a:a + step], hard[:, a:a + step]
+        s_star = np.where(hb, blk, -np.inf).max(axis=0)
+        above, equal = blk > s_star, blk == s_star
+        g[a:a + step] = (above & ~hb).sum(axis=0)
+        t[a:a + step] = (equal & ~hb).sum(axis=0)
+        c[a:a + step] = (equal & hb).sum(axis=0)
+
+    def log_choose(n: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return gammaln(n + 1) - gammaln(k + 1) - gammaln(n - k + 1)
+
+    out = {}
+    for k in ks:
+        m = k - g
+        p = np.where(m > t, 1.0, 0.0)
+        mid = (m >= 1) & (m <= t)
+        if mid.any():
+            p[mid] = 1.0 - np.exp(log_choose(t[mid], m[mid]) - log_choose(t[mid] + c[mid], m[mid]))
+        out[k] = float(p.mean())
+    return out
 
 
 @dataclass(frozen=True)

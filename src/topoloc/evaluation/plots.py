@@ -18,10 +18,11 @@ def plot_pr_curves(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    # Long run labels go in a legend below the axes, so the figure grows with them.
-    fig, ax = plt.subplots(figsize=(7.0, 4.5 + 0.22 * len(curves)), dpi=110)
+    # Long run labels go in a legend below the axes; the saved image grows to hold it (tight bounding box).
+    fig, ax = plt.subplots(figsize=(7.0, 4.5), dpi=110)
     for label, p, r in curves:
-        ax.plot(r, p, label=label, linewidth=1.6)
+        # Long labels are wrapped, and the figure is saved with a tight bounding box: never cut off.
+        ax.plot(r, p, label="\n    ".join(textwrap.wrap(label, width=100)) or label, linewidth=1.6)
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
     ax.set_xlim(0, 1)
@@ -31,10 +32,9 @@ def plot_pr_curves(
         # Wrapped to the figure's width: a long run title is never cut at the right edge.
         ax.set_title("\n".join(textwrap.wrap(title, width=90)) or title, fontsize=9)
     if curves:
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), frameon=False)
-    fig.tight_layout()
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), frameon=False)
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp)
+    fig.savefig(tmp, bbox_inches="tight", pad_inches=0.15)
     plt.close(fig)
     tmp.replace(path)

@@ -114,7 +114,10 @@ def render_run_report(m: dict[str, Any]) -> str:
     else:
         lines.append("- vocabulary: none (this method does not use one)\n")
     lines += [
-        f"- fit time {run['fit_seconds']:.2f} s; ms/query median {m['ms_per_query']:.2f}, "
+        f"- fit time {run['fit_seconds']:.2f} s"
+        + (f" (vocabulary loaded or trained apart: {run['vocabulary_seconds']:.1f} s)"
+           if "vocabulary_seconds" in run else "")
+        + f"; ms/query median {m['ms_per_query']:.2f}, "
         f"95th percentile {run['ms_per_query_p95']:.2f} (feature extraction excluded)\n",
         f"- machine: {run['machine']}; date {run['date']}\n",
     ]

@@ -70,14 +70,9 @@ def check_output_dir(path: str | Path) -> None:
         existing = existing.parent
     if not existing.is_dir():
         raise input_error("output folder is inside a file", path)
-    if existing == path:
-        _probe(path, path)
-        return
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise input_error(f"cannot create the output folder ({exc.strerror or type(exc).__name__})", path) from None
-    _probe(path, path)
+    # Nothing is created yet (a run refused later leaves no folder): the nearest existing
+    # folder must take a new entry, which is what creating the output needs.
+    _probe(existing, path)
 
 
 def check_output_file(path: str | Path) -> None:

@@ -8,7 +8,7 @@ correspondences; and a verdict line (right or wrong by the query folder's
 place ids, with the distance in places).  Correspondences are coloured by
 consistency: green for those in the consistent group (Cooc-Map's final group
 ``K``; for other methods the epipolar-RANSAC inliers of ratio-test matches),
-red for the rest, so that a wrong match, with few consistent lines and many
+red (faint) for the rest, so that a wrong match, with few consistent lines and many
 inconsistent ones, can be told from a right one.
 
 For ``coocmap`` at its best place the green lines are the method's own group
@@ -115,14 +115,25 @@ def draw_labelled(
     m = cv2.resize(map_bgr, (round(map_bgr.shape[1] * sm), h))
     pics = np.hstack([q, m])
     cv2.line(pics, (q.shape[1], 0), (q.shape[1], h - 1), (255, 255, 255), 2)
-    order = np.argsort(consistent, kind="stable")  # inconsistent first, consistent on top
-    for i in order:
+    # Inconsistent correspondences: thin, half transparent, underneath; consistent ones solid on top.
+    faint = pics.copy()
+    blended = False
+    for i in np.argsort(consistent, kind="stable"):
         a = (round(float(pts_query[i, 0] * sq)), round(float(pts_query[i, 1] * sq)))
         b = (round(float(pts_map[i, 0] * sm)) + q.shape[1], round(float(pts_map[i, 1] * sm)))
-        col, thick = (GREEN, 2) if consistent[i] else (RED, 1)
-        cv2.line(pics, a, b, col, thick, cv2.LINE_AA)
-        cv2.circle(pics, a, 4, col, thick, cv2.LINE_AA)
-        cv2.circle(pics, b, 4, col, thick, cv2.LINE_AA)
+        if not consistent[i]:
+            cv2.line(faint, a, b, RED, 1, cv2.LINE_AA)
+            cv2.circle(faint, a, 3, RED, 1, cv2.LINE_AA)
+            cv2.circle(faint, b, 3, RED, 1, cv2.LINE_AA)
+            continue
+        if not blended:  # blend the faint layer once, before the first consistent line
+            pics = cv2.addWeighted(faint, 0.45, pics, 0.55, 0)
+            blended = True
+        cv2.line(pics, a, b, GREEN, 2, cv2.LINE_AA)
+        cv2.circle(pics, a, 4, GREEN, 2, cv2.LINE_AA)
+        cv2.circle(pics, b, 4, GREEN, 2, cv2.LINE_AA)
+    if not blended:
+        pics = cv2.addWeighted(faint, 0.45, pics, 0.55, 0)
     W = pics.shape[1]
     font, scale, thick, line_h = cv2.FONT_HERSHEY_SIMPLEX, 0.55, 1, 22
 
@@ -220,6 +231,10 @@ def labelled_match(
     bottom = [f"{method.name}: score {S[row]:.4g}, rank {rank} of {len(S)} places"
               + (f" (best: place {int(ids[best_row])}, score {S[best_row]:.4g})" if row != best_row else ""),
               f"{n_cons} consistent correspondences of {len(pq)} drawn; {how}"]
+    top_k = getattr(method, "top_k", None)
+    if method.name == "coocmap" and getattr(method, "simultaneous", False) and top_k is not None and rank > top_k:
+        bottom.append(f"(Cooc-Map with simultaneous matching: scores beyond rank {top_k} are bounds, "
+                      "so this rank is approximate)")
     correct = None
     verdict = None
     if qinfo.place is not None:
