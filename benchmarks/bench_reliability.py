@@ -147,7 +147,8 @@ def main() -> None:
         "file loads with its checksums, CSV lines are complete; hidden staging files are ignored), then it is "
         "run again and its result compared with an uninterrupted run's.\n\n",
         f"**{survived} of {tried} cases survived** (files whole and rerun identical).\n\n",
-        "| command | killed after s | uninterrupted run s | killed before it finished | files whole | rerun identical |\n",
+        "| command | killed after s | uninterrupted run s | killed before it finished | files whole "
+        "| rerun identical |\n",
         "| --- | --- | --- | --- | --- | --- |\n",
     ]
     for r in rows:
@@ -155,7 +156,8 @@ def main() -> None:
                     f"| {r['rerun_same']} |\n")
     bad = [r for r in rows if r["problems"]]
     if bad:
-        text.append("\nProblems found:\n\n" + "".join(f"- {r['command']}: {'; '.join(r['problems'])}\n" for r in bad))
+        text.append("\nProblems found:\n\n"
+                    + "".join(f"- {r['command']}: {'; '.join(r['problems'])}\n" for r in bad))
     (RESULTS / "reliability.md").write_text("".join(text))
     print(f"{survived} of {tried} survived; wrote {RESULTS / 'reliability.md'}")
 

@@ -241,7 +241,7 @@ def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> No
     where most queries show places the map lacks would report recall over a
     handful of queries without a word.
     """
-    has = gt.hard.any(axis=0)
+    has = np.asarray(gt.hard.any(axis=0))
     if not has.any():
         raise TopolocError(
             f"no query of {query.root} has a correct place in the map (query places "
@@ -249,7 +249,7 @@ def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> No
             f"{int(place_ids.max())}): check places.csv and the tolerance")
     if not has.all():
         log.warning("%d of %d queries have no correct place in the map; recall is computed over the other %d",
-                    int((~has).sum()), len(has), int(has.sum()))
+                    int((~has).sum()), int(has.size), int(has.sum()))
 
 
 def _saved_map(
