@@ -89,3 +89,47 @@ def test_a_rerun_replaces_the_run_folder_whole(cli: Cli, rf: dict[str, Path], tm
     assert json.loads((out / "metrics.json").read_text())["method"] == "seqslam"
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
     assert os.access(out, os.R_OK | os.X_OK)
+
+
+def test_a_saved_coocmap_model_is_refused_for_other_tours(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    model = tmp_path / "model.tlc"
+    base = ["evaluate", "--method", "coocmap", "--query", str(rf["query"]), "--vocab", str(rf["vocab"]),
+            "--param", f"model_path={model}", "--cache-dir", str(rf["cache"]), "--quiet", "--tolerance", "0:1"]
+    cli.ok([*base, "--map", str(rf["map"]), "--out", str(tmp_path / "a")])
+    assert model.is_file()
+    cli.ok([*base, "--map", str(rf["map"]), "--out", str(tmp_path / "b")])  # the same tours: reused
+    cli.error([*base, "--map", str(rf["morning"]), "--out", str(tmp_path / "c")], "built from other tours")
+    cli.error([*base, "--map", str(rf["map"]), "--preprocess", "clahe", "--out", str(tmp_path / "d")],
+              "feature settings")
+
+
+def test_one_line_warnings(cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    import cv2
+
+    q = tmp_path / "q"
+    shutil.copytree(rf["query"], q)
+    blank = sorted(q.glob("*.jpg"))
+    for p in blank[:3]:
+        cv2.imwrite(str(p), np.zeros((144, 192), np.uint8))  # no features at all
+    rows = (q / "places.csv").read_text().splitlines()
+    # Two queries show places the map does not have.
+    rows[1] = rows[1].split(",", 2)[0] + ",1000," + rows[1].split(",", 2)[2]
+    rows[2] = rows[2].split(",", 2)[0] + ",1001," + rows[2].split(",", 2)[2]
+    (q / "places.csv").write_text("\n".join(rows) + "\n")
+    with caplog.at_level(logging.WARNING):
+        cli.ok(["evaluate", "--method", "bow", "--map", str(rf["map"]), "--query", str(q), "--vocab", str(rf["vocab"]),
+                "--tolerance", "0:1", "--out", str(tmp_path / "o"), "--quiet", "--cache-dir", str(rf["cache"])])
+        cli.ok(["evaluate", "--method", "seqslam", "--map", str(rf["map"]), "--query", str(rf["query"]),
+                "--vocab-train", str(rf["morning"]), "--param", "ds=2", "--out", str(tmp_path / "s"), "--quiet"])
+    messages = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert sum("have no local features" in m for m in messages) == 1
+    from topoloc.datasets.traverse import load_traverse
+
+    map_places = set(load_traverse(rf["map"]).places.tolist())
+    lacking = sum(1 for x in load_traverse(q).places.tolist() if x not in map_places)  # HARD = 0
+    assert lacking >= 2
+    assert sum(f"{lacking} of" in m and "no correct place in the map" in m for m in messages) == 1
+    assert sum("uses no visual vocabulary" in m for m in messages) == 1
+    assert all("\n" not in m for m in messages)
