@@ -35,6 +35,7 @@ from topoloc.geometry import epipolar_inliers
 from topoloc.io.container import atomic_write_bytes
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
+from topoloc.methods.show_match import frame_pixels
 
 GREEN = (60, 200, 60)
 RED = (40, 40, 230)
@@ -174,12 +175,6 @@ def _place_image(maps: Sequence[Traverse], place: int, res: Resources, query_fea
     return best
 
 
-def _pixels(traverse: Traverse, index: int, shape: tuple[int, int]) -> np.ndarray:
-    if traverse.kind in ("files", "images"):
-        return traverse.read(index, gray=False)
-    return np.full((*shape, 3), 255, np.uint8)
-
-
 def labelled_match(
     method: PlaceRecognizer, query_image: Path, maps: Sequence[Traverse], *, resources: Resources,
     place: int | None = None, tolerance: int = 0,
@@ -242,7 +237,7 @@ def labelled_match(
         correct = d <= tolerance
         verdict = (f"{'RIGHT' if correct else 'WRONG'}: drawn place {drawn}, true place {qinfo.place} "
                    f"({d} places apart, tolerance {tolerance})", correct)
-    canvas = draw_labelled(_pixels(query, 0, qfeats.image_shape), _pixels(t, i, mfeats.image_shape),
+    canvas = draw_labelled(frame_pixels(query, 0, qfeats.image_shape), frame_pixels(t, i, mfeats.image_shape),
                            pq, pm, consistent, left=left, right=right, bottom=bottom, verdict=verdict)
     info = {"method": method.name, "query": str(query_image), "query_place": qinfo.place, "place": drawn,
             "best_place": int(ids[best_row]), "score": float(S[row]), "rank": rank, "n_places": len(S),

@@ -13,6 +13,7 @@ never uses it).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -71,11 +72,56 @@ def _pair_up(qw: np.ndarray, qxy: np.ndarray, mw: np.ndarray, mxy: np.ndarray) -
     return qxy[ok], mxy[j[ok]]
 
 
-def _pixels(traverse: Traverse, index: int, shape: tuple[int, int]) -> np.ndarray:
+def frame_pixels(traverse: Traverse, index: int, shape: tuple[int, int]) -> np.ndarray:
     """The image to draw on: its pixels, or a white canvas of its size for a traverse of features."""
     if traverse.kind in ("files", "images"):
         return traverse.read(index, gray=False)
     return np.full((*shape, 3), 255, np.uint8)
+
+
+@dataclass
+class _GroupMatch:
+    """One query matched by Cooc-Map, with the map image of its best place that holds most words of ``K``."""
+
+    words: np.ndarray
+    kp: np.ndarray
+    shape: tuple[int, int]
+    group: np.ndarray
+    place: int
+    score: float
+    map_ref: tuple[Traverse, int]
+    map_words: np.ndarray
+    map_kp: np.ndarray
+    map_shape: tuple[int, int]
+
+
+def _group_match(method: CoocMap, query: Traverse, maps: Sequence[Traverse], index: int,
+                 resources: Resources | None) -> _GroupMatch:
+    method.check_fitted()
+    res = resources if resources is not None else method.resources_
+    fs = res.features(query)[index]
+    k = method.max_features or None
+    words = np.asarray(res.words(query)[index], np.int64)[:k]
+    kp = fs.keypoints[:k, :2]
+    graphs, result = method.match((words, normalise_xy(kp, fs.image_shape)))
+    group = result.group(graphs, result.best)
+    place = int(method.place_ids_[result.best])
+    # The training image of the best place holding the most words of K.
+    best_ref, best_hits, best_feats = None, -1, None
+    for t in maps:
+        feats = res.features(t)
+        tw = res.words(t)
+        for i in np.flatnonzero(t.places == place):
+            hits = int(np.isin(words[group], tw[i][:k]).sum())
+            if hits > best_hits:
+                best_ref, best_hits, best_feats = (t, int(i)), hits, (tw[i][:k], feats[i])
+    if best_ref is None or best_feats is None:
+        raise input_error("the best place has no image in the map traverses", str(place))
+    return _GroupMatch(words=words, kp=kp.astype(np.float64), shape=fs.image_shape, group=group, place=place,
+                       score=float(result.scores[result.best]), map_ref=best_ref,
+                       map_words=np.asarray(best_feats[0]),
+                       map_kp=best_feats[1].keypoints[:k, :2].astype(np.float64),
+                       map_shape=best_feats[1].image_shape)
 
 
 def match_drawing(
@@ -104,34 +150,12 @@ def match_drawing(
         ``best_place``, ``score`` (size of ``K``), ``map_image`` (the training
         image drawn), ``n_lines``.
     """
-    method.check_fitted()
-    res = resources if resources is not None else method.resources_
-    fs = res.features(query)[index]
-    k = method.max_features or None
-    words = np.asarray(res.words(query)[index], np.int64)[:k]
-    kp = fs.keypoints[:k, :2]
-    graphs, result = method.match((words, normalise_xy(kp, fs.image_shape)))
-    best = result.best
-    group = result.group(graphs, best)
-    place = int(method.place_ids_[best])
-    # The training image of the best place holding the most words of K.
-    best_ref, best_hits, best_feats = None, -1, None
-    for t in maps:
-        feats = res.features(t)
-        tw = res.words(t)
-        for i in np.flatnonzero(t.places == place):
-            hits = int(np.isin(words[group], tw[i][:k]).sum())
-            if hits > best_hits:
-                best_ref, best_hits, best_feats = (t, int(i)), hits, (tw[i][:k], feats[i])
-    if best_ref is None or best_feats is None:
-        raise input_error("the best place has no image in the map traverses", str(place))
-    pq, pm = _pair_up(words[group], kp[group].astype(np.float64), np.asarray(best_feats[0]),
-                      best_feats[1].keypoints[:k, :2].astype(np.float64))
-    canvas = draw_correspondences(_pixels(query, index, fs.image_shape),
-                                  _pixels(best_ref[0], best_ref[1], best_feats[1].image_shape),
-                                  pq, pm, seed=method.seed)
-    return canvas, {"best_place": place, "score": float(result.scores[best]),
-                    "map_image": str(best_ref[0].images[best_ref[1]]), "n_lines": len(pq)}
+    m = _group_match(method, query, maps, index, resources)
+    pq, pm = _pair_up(m.words[m.group], m.kp[m.group], m.map_words, m.map_kp)
+    canvas = draw_correspondences(frame_pixels(query, index, m.shape),
+                                  frame_pixels(m.map_ref[0], m.map_ref[1], m.map_shape), pq, pm, seed=method.seed)
+    return canvas, {"best_place": m.place, "score": m.score,
+                    "map_image": str(m.map_ref[0].images[m.map_ref[1]]), "n_lines": len(pq)}
 
 
 def group_correspondences(
@@ -147,35 +171,16 @@ def group_correspondences(
         (each query feature to the same-word map feature nearest the median offset) and whether the
         query feature is in the final consistent group ``K``.
     """
-    method.check_fitted()
-    res = resources if resources is not None else method.resources_
-    fs = res.features(query)[index]
-    k = method.max_features or None
-    words = np.asarray(res.words(query)[index], np.int64)[:k]
-    kp = fs.keypoints[:k, :2].astype(np.float64)
-    graphs, result = method.match((words, normalise_xy(fs.keypoints[:k, :2], fs.image_shape)))
-    group = result.group(graphs, result.best)
-    place = int(method.place_ids_[result.best])
-    best_ref, best_hits, best_feats = None, -1, None
-    for t in maps:
-        feats = res.features(t)
-        tw = res.words(t)
-        for i in np.flatnonzero(t.places == place):
-            hits = int(np.isin(words[group], tw[i][:k]).sum())
-            if hits > best_hits:
-                best_ref, best_hits, best_feats = (t, int(i)), hits, (tw[i][:k], feats[i])
-    if best_ref is None or best_feats is None:
-        raise input_error("the best place has no image in the map traverses", str(place))
-    mw, mxy = np.asarray(best_feats[0]), best_feats[1].keypoints[:k, :2].astype(np.float64)
-    in_group = np.zeros(len(words), bool)
-    in_group[group] = True
+    m = _group_match(method, query, maps, index, resources)
+    in_group = np.zeros(len(m.words), bool)
+    in_group[m.group] = True
     # Pair every query feature whose word the image has; K's pairs as match_drawing pairs them.
-    pq_k, pm_k = _pair_up(words[group], kp[group], mw, mxy)
-    rest = ~in_group & np.isin(words, mw)
-    pq_o, pm_o = _pair_up(words[rest], kp[rest], mw, mxy)
+    pq_k, pm_k = _pair_up(m.words[m.group], m.kp[m.group], m.map_words, m.map_kp)
+    rest = ~in_group & np.isin(m.words, m.map_words)
+    pq_o, pm_o = _pair_up(m.words[rest], m.kp[rest], m.map_words, m.map_kp)
     pq, pm = np.vstack([pq_k, pq_o]), np.vstack([pm_k, pm_o])
     consistent = np.r_[np.ones(len(pq_k), bool), np.zeros(len(pq_o), bool)]
-    return best_ref[0], best_ref[1], (pq, pm, consistent)
+    return m.map_ref[0], m.map_ref[1], (pq, pm, consistent)
 
 
 def show_match(query_image: str | Path, map_dirs: Sequence[str | Path], out_png: str | Path, *,
