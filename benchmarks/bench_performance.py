@@ -88,7 +88,7 @@ def main() -> None:
                          "ms_features": m["ms_features"], "peak_rss_mb": m["peak_rss_mb"]})
     out["matching"] = matching
     # Method benchmarks at scale, written by benchmarks/bench_fabmap.py and bench_coocmap.py.
-    for name in ("fabmap_speed", "coocmap_speed", "seqslam_speed"):
+    for name in ("fabmap_speed", "coocmap_speed", "coocmap_speed_real", "seqslam_speed"):
         f = RESULTS / f"{name}.json"
         out[name] = json.loads(f.read_text()) if f.is_file() else None
     out["peak_rss_mb"] = peak_rss_mb()
@@ -132,8 +132,16 @@ def render(o: dict[str, Any]) -> str:
         at_scale.append("| FAB-MAP 2.0, 100,000 places (`topoloc bench fabmap2`) | "
                         f"median {b['ms_per_query_median']:.2f}, p95 {b['ms_per_query_p95']:.2f} ms per query | "
                         "paper: 14 ms mean |\n")
+    cr = o.get("coocmap_speed_real")
+    if cr:  # written by benchmarks/bench_coocmap_speed.py
+        at_scale.append(f"| Cooc-Map, real features: {cr['locations']} locations x {cr['tours']} tours, median "
+                        f"{cr['n_features_median']:.0f} SIFT features per image ([coocmap_speed.md](coocmap_speed.md), "
+                        f"`topoloc bench coocmap --real`) | median {cr['ms_per_query_median']:.1f}, p95 "
+                        f"{cr['ms_per_query_p95']:.1f} ms per localisation; map {cr['map_bytes'] / 1e6:.1f} MB | "
+                        "paper: 82 ms |\n")
     if cm:
-        at_scale.append(f"| Cooc-Map, {cm['locations']} locations x {cm['tours']} tours, {cm['features']} features "
+        at_scale.append(f"| Cooc-Map, synthetic: {cm['locations']} locations x {cm['tours']} tours, "
+                        f"{cm['features']} features "
                         f"(`topoloc bench coocmap`) | median {cm['ms_per_query_median']:.1f}, p95 "
                         f"{cm['ms_per_query_p95']:.1f} ms per localisation; map {cm['map_bytes'] / 1e6:.1f} MB | "
                         "paper: 82 ms |\n")

@@ -34,7 +34,17 @@ def tiny_route(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     voc = Vocabulary(n_words=300, seed=0).fit(desc, descriptor_kind=ex.config.descriptor_kind,
                                               provenance={"folders": [str(Path(dirs[2]))]})
     frames = [dusk.read(i, gray=False) for i in range(len(dusk))]
+    for trav in (noon, dusk, morning):  # global descriptors "computed elsewhere", for --method descriptors
+        np.save(trav.root / "descriptors.npy", np.stack([thumbnail_descriptor(trav.read(i)) for i in range(len(trav))]))
     return {"map": noon, "query": dusk, "training": morning, "query_frames": frames, "vocabulary": voc}
+
+
+def thumbnail_descriptor(gray: np.ndarray) -> np.ndarray:
+    """A 192-D global descriptor of a grey image: a 16 x 12 thumbnail with zero mean and unit variance."""
+    import cv2
+
+    small = cv2.resize(gray, (16, 12), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
+    return (small - small.mean()) / max(float(small.std()), 1e-6)
 
 
 @pytest.fixture(scope="session")

@@ -17,8 +17,8 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 # Pinned: adding a public name is a decision, removing one breaks users.
 PUBLIC = {
     "BagOfWords", "CachedResources", "CoocMap", "EvaluateOptions", "FabMap", "FabMap2", "FeatureConfig",
-    "FeatureExtractor", "FeatureSet", "GroundTruth", "ImageVoting", "InMemoryResources", "LandmarkMap",
-    "Localizer", "Map",
+    "FeatureExtractor", "FeatureSet", "GlobalDescriptors", "GroundTruth", "ImageVoting", "InMemoryResources",
+    "LandmarkMap", "Localizer", "Map",
     "NotFittedError", "PlaceRecognizer", "Resources", "Scores", "SeqSLAM", "SingleImageSeqSLAM", "TopolocError",
     "Traverse", "Vocabulary", "__version__", "available_methods", "compute_metrics", "evaluate",
     "extract_features", "get_method", "ground_truth_from_file", "ground_truth_from_places",

@@ -34,6 +34,7 @@ _LAZY: dict[str, str] = {
     "CoocMap": "topoloc.methods.cooc_map",
     "FabMap": "topoloc.methods.fab_map",
     "FabMap2": "topoloc.methods.fab_map",
+    "GlobalDescriptors": "topoloc.methods.global_descriptors",
     "ImageVoting": "topoloc.methods.image_voting",
     "LandmarkMap": "topoloc.methods.landmark_map",
     "SeqSLAM": "topoloc.methods.seq_slam",
@@ -79,6 +80,7 @@ __all__ = [
     "FeatureConfig",
     "FeatureExtractor",
     "FeatureSet",
+    "GlobalDescriptors",
     "GroundTruth",
     "ImageVoting",
     "InMemoryResources",
@@ -140,6 +142,7 @@ if TYPE_CHECKING:  # static checkers and IDEs see the real names
     from topoloc.methods.base import PlaceRecognizer
     from topoloc.methods.cooc_map import CoocMap
     from topoloc.methods.fab_map import FabMap, FabMap2
+    from topoloc.methods.global_descriptors import GlobalDescriptors
     from topoloc.methods.image_voting import ImageVoting
     from topoloc.methods.landmark_map import LandmarkMap
     from topoloc.methods.resources import CachedResources, InMemoryResources, Resources

@@ -92,6 +92,29 @@ def test_bench_coocmap_json() -> None:
     assert r.exit_code == 0, r.output + str(r.exception)
     res = json.loads(r.output.strip().splitlines()[-1])
     assert res["locations"] == 40 and res["ms_per_query_median"] > 0 and res["map_bytes"] > 0
+    assert res["benchmark"] == "synthetic" and res["best_matches_agree"]
+
+
+def test_bench_coocmap_real_json(tmp_path: Path) -> None:
+    from topoloc.synth import RouteConfig, generate_route
+
+    (route,) = generate_route(tmp_path / "route", config=RouteConfig(n_places=4, seed=3), tours=(("t", 12.0),))
+    (train,) = generate_route(tmp_path / "train", config=RouteConfig(n_places=4, seed=8), tours=(("t", 12.0),))
+    r = runner.invoke(app, ["bench", "coocmap", "--real", str(route), "--vocab-train", str(train), "--locations", "8",
+                            "--tours", "2", "--queries", "3", "--words", "50", "--compare", "1",
+                            "--cache-dir", str(tmp_path / "cache"), "--json"])
+    assert r.exit_code == 0, r.output + str(r.exception)
+    res = json.loads(r.output.strip().splitlines()[-1])
+    for key in ("ms_per_query_median", "ms_per_query_p95", "map_bytes", "recall_at_1", "n_features_median"):
+        assert key in res
+    assert res["benchmark"] == "real" and res["locations"] == 8 and res["n_queries"] == 3
+
+
+def test_bench_coocmap_real_needs_folders_and_vocabulary(tmp_path: Path) -> None:
+    r = runner.invoke(app, ["bench", "coocmap", "--real"])
+    assert r.exit_code == 2 and "--real" in r.output
+    r = runner.invoke(app, ["bench", "coocmap", "--real", str(tmp_path)])
+    assert r.exit_code == 2 and "--vocab-train" in r.output
 
 
 def test_show_match_draws_png(tmp_path: Path) -> None:

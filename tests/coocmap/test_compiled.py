@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from topoloc.coocmap.compiled import _prio, match_compiled
+from topoloc.coocmap.compiled import _one_location, _prio, match_compiled
 from topoloc.coocmap.matching import consistency_graphs, match_lazy, match_sequential, tie_priority
 from topoloc.coocmap.model import CoocModel
 
@@ -77,3 +77,26 @@ def test_compiled_empty_and_unknown_words() -> None:
     ref = match_sequential(consistency_graphs(model, words, np.zeros((3, 2), np.uint16)))
     np.testing.assert_array_equal(res.scores, ref.scores)
     assert group.tolist() == [2]
+
+
+def test_one_location_with_and_without_the_translation_bound() -> None:
+    model, w, xy = _case(np.random.default_rng(5), n_loc=6)
+    g = consistency_graphs(model, w, xy, seed=0, spatial_tolerance=1)
+    ref = match_sequential(g)
+    words = np.asarray(w, np.int64)
+    order = np.argsort(words, kind="stable")
+    xyq = model.quantise_xy(xy)
+    qx, qy = xyq[:, 0].astype(np.int64), xyq[:, 1].astype(np.int64)
+    for loc in range(6):
+        for tb_prune in (True, False):
+            keep = np.zeros(len(words), bool)
+            score, exact, *_ = _one_location(loc, -1.0, model.loc_ptr, model.word, model.xy, model.group_masks(),
+                                             words[order], order.astype(np.int64), qx, qy, 1, model.grid_x,
+                                             model.grid_y, 0, keep, tb_prune)
+            assert exact and score == ref.scores[loc]
+            np.testing.assert_array_equal(np.flatnonzero(keep), ref.group(g, loc))
+        # A threshold above every bound drops the location with an upper bound on its score.
+        score, exact, *_ = _one_location(loc, 1e9, model.loc_ptr, model.word, model.xy, model.group_masks(),
+                                         words[order], order.astype(np.int64), qx, qy, 1, model.grid_x,
+                                         model.grid_y, 0, np.zeros(len(words), bool))
+        assert not exact and score >= ref.scores[loc]

@@ -24,6 +24,7 @@ from topoloc.testing import check_recognizer
 BAD_PARAMS: dict[str, dict[str, Any]] = {
     "bow": {"merge": "mean"},
     "coocmap": {"top_k": 0, "schedule": "fast", "grid_x": 0},
+    "descriptors": {"metric": "dot", "query": 3},
     "fabmap": {"output": "tfidf", "p_new": 1.5},
     "fabmap2": {"normaliser": "exact"},
     "landmarks": {"match_threshold": 0.0, "index": "kd"},
@@ -34,6 +35,13 @@ BAD_PARAMS: dict[str, dict[str, Any]] = {
 # Small parameter changes so that each method runs in well under a second on 10 places.
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20},
                                    "seqslam": {"ds": 3, "enhance_window": 0}, "seqslam-single": {"enhance_window": 0}}
+
+
+def _params(name: str, route: dict[str, Any]) -> dict[str, Any]:
+    """FAST's parameters; for ``descriptors`` also the query file (camera frames in memory have no folder)."""
+    if name == "descriptors":
+        return {"query": str(route["query"].root / "descriptors.npy")}
+    return FAST.get(name, {})
 
 
 def test_every_method_has_a_contract_case() -> None:
@@ -47,7 +55,7 @@ def _memory(route: dict[str, Any]) -> InMemoryResources:
 @pytest.mark.parametrize("name", available_methods())
 def test_contract_in_memory(name: str, tiny_route: dict[str, Any]) -> None:
     cls = get_method(name)
-    rec = cls(**FAST.get(name, {}))
+    rec = cls(**_params(name, tiny_route))
     camera = Traverse.from_images(tiny_route["query_frames"], tiny_route["query"].places, name="camera")
     S = check_recognizer(rec, [tiny_route["map"]], camera, resources=_memory(tiny_route),
                          bad_params=BAD_PARAMS[name])
@@ -61,11 +69,11 @@ def test_contract_in_memory(name: str, tiny_route: dict[str, Any]) -> None:
 def test_files_and_arrays_go_through_the_same_door(name: str, tiny_route: dict[str, Any], tmp_path: Path) -> None:
     """Frames given as arrays score exactly as the same images read from files (with the disk cache)."""
     cls = get_method(name)
-    params = FAST.get(name, {})
+    params = _params(name, tiny_route)
     cached = CachedResources(extractor=FeatureExtractor(cache_dir=tmp_path), vocabulary=tiny_route["vocabulary"],
                              training=tiny_route["training"])
     from_files = cls(**params).fit(tiny_route["map"], resources=cached).similarity(tiny_route["query"])
-    assert any((tmp_path / "features").rglob("*.tlf")) == (name not in ("seqslam", "seqslam-single"))
+    assert any((tmp_path / "features").rglob("*.tlf")) == (name not in ("seqslam", "seqslam-single", "descriptors"))
     camera = Traverse.from_images(tiny_route["query_frames"], tiny_route["query"].places)
     in_memory = cls(**params).fit(tiny_route["map"], resources=_memory(tiny_route)).similarity(camera)
     np.testing.assert_allclose(in_memory, from_files, rtol=1e-6, atol=1e-6)

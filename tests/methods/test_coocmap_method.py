@@ -51,7 +51,7 @@ def _data() -> tuple[InMemoryResources, list[Traverse], Traverse]:
 
 def test_fit_score_recognises_day_and_night() -> None:
     res, maps, query = _data()
-    for simultaneous, schedule in [(True, "lazy"), (True, "best_first"), (True, "rounds"),
+    for simultaneous, schedule in [(True, "compiled"), (True, "lazy"), (True, "best_first"), (True, "rounds"),
                                    (False, "lazy")]:
         m = CoocMap(grid_x=6, grid_y=4, simultaneous=simultaneous,
                     schedule=schedule).fit(maps, resources=res)

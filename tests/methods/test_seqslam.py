@@ -216,6 +216,66 @@ def test_parameters(world: dict[str, Traverse]) -> None:
             SeqSLAM(**bad).fit([world["map"]], resources=res)
 
 
+# ------------------------------------------------------- degenerate frames (#12)
+def _degenerate(kind: str, seed: int) -> np.ndarray:
+    """A 64 x 32 frame without structure: the issue's recipe and its relatives."""
+    rng = np.random.default_rng(seed)
+    if kind == "dark":  # value 6 with ~12 scattered pixels of 20-90 (issue #12)
+        im = np.full((32, 64), 6, np.uint8)
+        idx = rng.choice(im.size, 12, replace=False)
+        im.flat[idx] = rng.integers(20, 90, 12)
+        return im
+    if kind == "uniform":
+        return np.full((32, 64), 128, np.uint8)
+    if kind == "overexposed":
+        return np.full((32, 64, 3), 255, np.uint8)
+    assert kind == "featureless"  # a faint smooth gradient, no texture
+    return np.tile(np.linspace(100, 104, 64), (32, 1)).astype(np.uint8)
+
+
+def _strip_frames(pano: np.ndarray, n: int, **kw: float) -> list[np.ndarray]:
+    rng = np.random.default_rng(int(kw.get("seed", 0)))
+    shift, gain = int(kw.get("shift", 0)), kw.get("gain", 1.0)
+    out = []
+    for k in range(n):
+        crop = pano[:, 64 * k + shift : 64 * k + shift + 128] * gain + kw.get("offset", 0.0)
+        if kw.get("noise", 0.0):
+            crop = crop + rng.normal(0, kw["noise"], crop.shape)
+        out.append(np.clip(crop, 0, 255).astype(np.uint8))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["dark", "uniform", "overexposed", "featureless"])
+@pytest.mark.parametrize("where", ["first", "middle"])
+def test_one_degenerate_frame_does_not_capture_the_queries(kind: str, where: str) -> None:
+    # Issue #12's recipe on a synthetic route: the same structureless frame is
+    # put into both traverses (first, or in the middle), as a tunnel or a
+    # blanked camera gives.  It patch-normalises to (almost) all zeros, which
+    # is closer to every image than the true place is; before the fix the
+    # trajectories of the first places sat on it for all ds + 1 frames and it
+    # was the best match of every query.
+    n = 60
+    pano = _panorama(n, seed=4)
+    summer = _strip_frames(pano, n)
+    winter = _strip_frames(pano, n, shift=6, gain=0.35, offset=20, noise=20.0, seed=5)
+    at = 0 if where == "first" else n // 2
+    summer[at], winter[at] = _degenerate(kind, 1), _degenerate(kind, 2)
+    res = InMemoryResources(n_jobs=1)
+    m = SeqSLAM().fit([Traverse.from_images(summer, name="summer")], resources=res)
+    D = m.place_differences(np.stack(m.encode(Traverse.from_images(winter), resources=res)))
+    others = np.delete(np.arange(n), at)
+    # The degenerate image is nearer to most queries than their own place is...
+    assert np.mean(D[at, others] < D[others, others]) > 0.5
+    S = m.score(m.encode(Traverse.from_images(winter, name="winter"), resources=res))
+    best = np.argmax(S, axis=0)
+    # ...yet no query with a sequence behind it (query 0 has a single frame, so
+    # it is matched as single images are) takes it more than one place from
+    # its own (neighbouring crops overlap by half), and the route is recovered.
+    far = np.abs(np.arange(n) - at) > 1
+    assert np.sum((best == at) & far & (np.arange(n) >= 1)) == 0
+    assert np.mean(np.abs(best - np.arange(n)) <= 1) >= 0.9
+
+
 # ---------------------------------------------------------------- real data
 @pytest.mark.realdata
 def test_nordland_first_200_frames() -> None:

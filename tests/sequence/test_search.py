@@ -20,14 +20,19 @@ from topoloc.sequence import (
 
 
 # ----------------------------------------------------------------- brute force
+def at(D: np.ndarray, row: int, col: int) -> float:
+    """D[row, col], or the column's mean over the map for a row before place 0."""
+    return float(D[row, col]) if row >= 0 else float(D[:, col].astype(np.float64).mean())
+
+
 def brute_constant(D: np.ndarray, ds: int, velocities: list[float]) -> np.ndarray:
-    """Straight lines ending at (p, T), clamped at place 0, mean over real frames."""
+    """Straight lines ending at (p, T), neutral before place 0, mean over real frames."""
     n, m = D.shape
     out = np.full((n, m), np.inf)
     for T, p, v in itertools.product(range(m), range(n), velocities):
         end = int(np.floor(ds * v + 1e-9))
         vals = [
-            D[max(p - end + int(np.floor(k * v + 1e-9)), 0), T - ds + k]
+            at(D, p - end + int(np.floor(k * v + 1e-9)), T - ds + k)
             for k in range(ds + 1)
             if T - ds + k >= 0
         ]
@@ -36,21 +41,28 @@ def brute_constant(D: np.ndarray, ds: int, velocities: list[float]) -> np.ndarra
 
 
 def brute_acceleration(
-    D: np.ndarray, ds: int, max_step: int, a_min: int, a_max: int, penalty: float = 0.0
+    D: np.ndarray, ds: int, max_step: int, v_min: float, v_max: float, penalty: float = 0.0
 ) -> np.ndarray:
-    """Every forward path of ds steps of 0..max_step places, total advance in [a_min, a_max]."""
-    n, m = D.shape
-    out = np.full((n, m), np.inf)
-    for steps in itertools.product(range(max_step + 1), repeat=ds):
-        a = sum(steps)
-        if not a_min <= a <= a_max:
-            continue
-        pos = np.r_[0, np.cumsum(steps)]
-        pen = penalty * sum(abs(s - 1) for s in steps)
-        for T, p in itertools.product(range(m), range(n)):
-            ks = [k for k in range(ds + 1) if T - ds + k >= 0]
-            tot = pen + sum(D[max(p - a + pos[k], 0), T - ds + k] for k in ks)
-            out[p, T] = min(out[p, T], tot / len(ks))
+    """Every forward path of steps of 0..max_step places over the real frames of the window.
+
+    Query T has n = min(T, ds) steps behind it; the path's total advance lies in
+    [ceil(n v_min), min(n max_step, floor(n v_max))].
+    """
+    n_db, m = D.shape
+    out = np.full((n_db, m), np.inf)
+    for T in range(m):
+        n = min(T, ds)
+        lo = int(np.ceil(n * v_min - 1e-9))
+        hi = n * max_step if not np.isfinite(v_max) else min(n * max_step, int(np.floor(n * v_max + 1e-9)))
+        for steps in itertools.product(range(max_step + 1), repeat=n):
+            a = sum(steps)
+            if not lo <= a <= hi:
+                continue
+            pos = np.r_[0, np.cumsum(steps)].astype(int)
+            pen = penalty * sum(abs(s - 1) for s in steps)
+            for p in range(n_db):
+                tot = pen + sum(at(D, p - a + int(pos[k]), T - n + k) for k in range(n + 1))
+                out[p, T] = min(out[p, T], tot / (n + 1))
     return out
 
 
@@ -97,8 +109,7 @@ def test_acceleration_matches_brute_force(
     got = acceleration_search(
         D, ds=ds, max_skip=max_skip, v_min=v_min, v_max=v_max, step_penalty=penalty
     )
-    a_min, a_max = search._advance_range(ds, max_skip + 1, v_min, v_max)
-    want = brute_acceleration(D, ds, max_skip + 1, a_min, a_max, penalty)
+    want = brute_acceleration(D, ds, max_skip + 1, v_min, v_max, penalty)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
 
 
@@ -227,13 +238,70 @@ def test_first_queries_use_a_shorter_window() -> None:
     assert cv[:, :10].mean() == pytest.approx(cv[:, 10:].mean(), rel=0.25)
 
 
-def test_start_of_route_is_clamped_to_place_zero() -> None:
+def test_frames_before_place_zero_count_as_the_mean_difference() -> None:
     D = noise(20, 12, seed=8)
     cv = constant_velocity_search(D, ds=10, v_min=1.0, v_max=1.0)
-    # The v = 1 line ending at place 3 at query 11 waits on place 0 for frames 1-8.
-    want = (D[0, 1:9].sum() + D[1, 9] + D[2, 10] + D[3, 11]) / 11
+    # The v = 1 line ending at place 3 at query 11 is before place 0 at frames 1-7:
+    # those count with their query's mean over the map, and all 11 frames divide.
+    mean = D.astype(np.float64).mean(axis=0)
+    want = (mean[1:8].sum() + D[0, 8] + D[1, 9] + D[2, 10] + D[3, 11]) / 11
     assert cv[3, 11] == pytest.approx(want, rel=1e-6)
     assert np.isfinite(acceleration_search(D)).all()
+
+
+@pytest.mark.parametrize("mode", ["constant", "acceleration"])
+def test_one_hub_at_place_zero_does_not_capture_the_search(mode: str) -> None:
+    # Queries follow the diagonal (difference 0.3, noise 0.6-1); place 0 is a
+    # "hub" image that resembles every query better than its true place does.
+    n = 60
+    D = path_matrix(list(range(n)), n_db=n, seed=3)
+    D[np.arange(n), np.arange(n)] = 0.3
+    D[0] = 0.2  # the best row of every column
+    # The searches on D and on its enhancement, and the stage every method's
+    # --sequence runs (a similarity with a "hub" row, z-scored per query).
+    for best in (
+        search.sequence_search(D, mode=mode).argmin(axis=0),  # type: ignore[arg-type]
+        search.sequence_search(contrast_enhance(D), mode=mode).argmin(axis=0),  # type: ignore[arg-type]
+        sequence_similarity(-D, mode=mode).argmax(axis=0),  # type: ignore[arg-type]
+    ):
+        # Only query 0, whose true place it is.  (Acceleration paths of the
+        # first ds queries used to repeat the hub for all their real frames,
+        # their velocity bound met in frames before query 0.)
+        assert (best[1:] == 0).sum() == 0
+        assert np.mean(best == np.arange(n)) >= 0.85
+
+
+def test_advance_bounds_of_short_windows() -> None:
+    n = np.arange(0, 11)
+    lo, hi = search._advance_bounds(n, 2, 0.8, 1.2)
+    assert lo.tolist() == [0, 1, 2, 3, 4, 4, 5, 6, 7, 8, 8]  # ceil(0.8 n)
+    assert hi.tolist() == [0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 12]  # floor(1.2 n)
+    assert (lo[-1], hi[-1]) == search._advance_range(10, 2, 0.8, 1.2)
+    lo, hi = search._advance_bounds(n, 2, 0.0, np.inf)
+    assert lo.tolist() == [0] * 11 and hi.tolist() == (2 * n).tolist()
+    # An empty range after rounding (v_min = v_max = 1.5, odd n) takes its nearest integers.
+    lo, hi = search._advance_bounds(np.array([1, 2, 3]), 2, 1.5, 1.5)
+    assert lo.tolist() == [1, 3, 4] and hi.tolist() == [2, 3, 5]
+
+
+def test_early_acceleration_paths_keep_their_velocity_bound() -> None:
+    # Query 3 has 3 steps behind it: with v in [1, 1] its path must advance
+    # 3 places over its four real frames, so it can be on place 20 for two of
+    # them at most, not sit on it for all four (cost 0).
+    D = noise(30, 8, seed=5)
+    D[20, :4] = 0.0  # place 20 resembles queries 0-3
+    cost = acceleration_search(D, ds=10, v_min=1.0, v_max=1.0)
+    want = brute_acceleration(D[:, :4], 10, 2, 1.0, 1.0)
+    np.testing.assert_allclose(cost[:, :4], want, rtol=1e-5, atol=1e-6)
+    assert cost[20, 3] >= 0.6 * 2 / 4
+
+
+def test_neutral_difference() -> None:
+    D = np.array([[1.0, 2.0, np.inf], [3.0, np.inf, np.inf], [5.0, 2.0, np.inf]])
+    np.testing.assert_allclose(search.neutral_difference(D), [3.0, 2.0, 0.0])
+    assert search.neutral_difference(np.zeros((0, 4))).tolist() == [0.0] * 4
+    E = contrast_enhance(noise(40, 5))
+    np.testing.assert_allclose(search.neutral_difference(E), E.mean(axis=0), atol=1e-6)
 
 
 # ---------------------------------------------------------- tiling/chunking

@@ -400,7 +400,9 @@ def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5
         ``n_features_median`` (per image, tours and queries),
         ``ms_lazy_median``/``ms_lazy_p95``/``recall_at_1_lazy`` and
         ``lazy_agree`` (same best location) on the ``compare`` queries,
-        ``locations_built_median`` (locations whose ``J`` was built),
+        ``locations_built_median``/``_p95`` (locations whose ``J`` was built),
+        ``translation_pruned_median`` (dropped by the translation bound before
+        any ``J``), ``pair_tests_median``,
         ``peak_rss_mb``, ``build_s`` and the settings.
     """
     import resource
@@ -419,12 +421,14 @@ def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5
     kw: dict[str, Any] = {"top_k": top_k, "seed": seed, "spatial_tolerance": spatial_tolerance}
     q_loc = data["query_loc"]
     match_compiled(model, data["query_words"][0], data["query_xy"][0], **kw)  # compile / load the kernel
-    ms, built, best = [], [], []
+    ms, built, pruned, tests, best = [], [], [], [], []
     for w, xy in zip(data["query_words"], data["query_xy"], strict=True):
         t = time.perf_counter()
         res, _ = match_compiled(model, w, xy, **kw)
         ms.append(1e3 * (time.perf_counter() - t))
         built.append(res.locations_built)  # type: ignore[attr-defined]
+        pruned.append(res.translation_pruned)  # type: ignore[attr-defined]
+        tests.append(res.pair_tests)  # type: ignore[attr-defined]
         best.append(res.best)
     lazy_ms, lazy_best = [], []
     for w, xy in list(zip(data["query_words"], data["query_xy"], strict=True))[:compare]:
@@ -444,7 +448,8 @@ def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5
         "recall_at_1": float(np.mean(np.asarray(best) == q_loc)),
         "map_bytes": model.nbytes, "bytes_per_location": model.bytes_per_location,
         "features_stored": model.n_features, "n_features_median": float(np.median(n_feat)),
-        "locations_built_median": float(np.median(built)),
+        "locations_built_median": float(np.median(built)), "locations_built_p95": float(np.percentile(built, 95)),
+        "translation_pruned_median": float(np.median(pruned)), "pair_tests_median": float(np.median(tests)),
         "compare": nc,
         "ms_lazy_median": float(np.median(lazy_ms)) if nc else float("nan"),
         "ms_lazy_p95": float(np.percentile(lazy_ms, 95)) if nc else float("nan"),

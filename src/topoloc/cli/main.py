@@ -13,6 +13,7 @@ from typing import Annotated, Any, TypeVar
 import typer
 
 from topoloc.cli.progress import console, rich_progress
+from topoloc.cli.recordings import EveryMOption, EverySOption, PoseTopicOption, TopicOption
 from topoloc.errors import TopolocError
 
 app = typer.Typer(
@@ -99,10 +100,11 @@ def _parse_params(items: list[str]) -> dict[str, str]:
 @app.command()
 @handle_errors
 def evaluate(
-    query: Annotated[Path, typer.Option(help="Query traverse folder.")],
+    query: Annotated[Path, typer.Option(help="Query traverse: a folder, a ROS bag (--topic) or a video.")],
     out: Annotated[Path, typer.Option(help="Output folder.")],
     method: Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")] = "",
-    map: Annotated[list[Path] | None, typer.Option("--map", help="Map traverse folder (repeatable).")] = None,
+    map: Annotated[list[Path] | None, typer.Option(
+        "--map", help="Map traverse (repeatable): a folder, a ROS bag (--topic) or a video.")] = None,
     map_file: Annotated[Path | None, typer.Option(
         "--map-file", help="A saved map (topoloc map build) instead of --map tours and --method.")] = None,
     vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
@@ -125,6 +127,9 @@ def evaluate(
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
     ] = "1,5,10",
+    top_k: Annotated[int, typer.Option(
+        "--top-k", help="Keep only the K best places per query (S_topk.npz) and compute every metric from them "
+                        "(a correct place outside the top K counts as not found); 0 = the whole S.")] = 0,
     param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
@@ -134,8 +139,13 @@ def evaluate(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
     html: Annotated[Path | None, typer.Option(
         help="Also write a self-contained HTML page to browse the run (e.g. OUT/index.html).")] = None,
+    topic: TopicOption = None,
+    every_s: EverySOption = None,
+    every_m: EveryMOption = None,
+    pose_topic: PoseTopicOption = None,
 ) -> None:
     """Run one method on map and query traverses and score it (docs/protocol.md)."""
+    from topoloc.cli.recordings import check_recording_options
     from topoloc.evaluation.pipeline import EvaluateOptions
     from topoloc.evaluation.pipeline import evaluate as run
     from topoloc.evaluation.report import TABLE_HEADER, table_row
@@ -144,14 +154,17 @@ def evaluate(
         method=method, maps=list(map or []), query=query, out=out, vocab=vocab, map_file=map_file,
         vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
         tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence, sequence_mode=sequence_mode,
-        recall_at=recall_at,
+        recall_at=recall_at, top_k=top_k,
         params=_parse_params(param or []), features=features, max_features=max_features,
         max_side=max_side, preprocess=preprocess, cache_dir=cache_dir, html=html,
+        topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic,
     )
+    check_recording_options([*opts.maps, query], topic, every_s, every_m, pose_topic)
     with rich_progress(not quiet) as progress:
         metrics = run(opts, progress=progress)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
-    typer.echo(f"wrote {out}/S.npy, metrics.json, pr.png, report.md" + (f"; {html}" if html else ""))
+    s_file = "S_topk.npz" if top_k else "S.npy"
+    typer.echo(f"wrote {out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {html}" if html else ""))
 
 
 @app.command()

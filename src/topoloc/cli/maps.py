@@ -18,13 +18,15 @@ from topoloc.cli.main import (
     handle_errors,
 )
 from topoloc.cli.progress import rich_progress
+from topoloc.cli.recordings import EveryMOption, EverySOption, PoseTopicOption, TopicOption
 from topoloc.errors import TopolocError, input_error
 
 map_app = typer.Typer(help="Saved maps: build once from tours, add tours later, inspect, calibrate.",
                       no_args_is_help=True)
 app.add_typer(map_app, name="map")
 
-TourOption = Annotated[list[Path], typer.Option("--map", help="Tour folder of the map (repeatable).")]
+TourOption = Annotated[list[Path], typer.Option(
+    "--map", help="Tour of the map (repeatable): a folder, a ROS bag (--topic) or a video.")]
 CacheOption = Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")]
 
 
@@ -70,16 +72,20 @@ def map_build(
     preprocess: PreprocessOption = "none",
     cache_dir: CacheOption = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    topic: TopicOption = None,
+    every_s: EverySOption = None,
+    every_m: EveryMOption = None,
+    pose_topic: PoseTopicOption = None,
 ) -> None:
     """Build a map from one or more tours and save it in one file."""
-    from topoloc.datasets.traverse import load_traverse
+    from topoloc.cli.recordings import load_tours
     from topoloc.evaluation.prepare import build_method
     from topoloc.maps import Map
 
     _check_out_file(out)
     if vocab is not None and vocab_train:
         raise TopolocError("pass either --vocab or --vocab-train, not both")
-    tours = [load_traverse(m) for m in map]
+    tours = load_tours(list(map), topic, every_s, every_m, pose_topic)
     params = build_method(method, _parse_params(param or [])).get_params()  # checks names and types first
     config = _feature_config(features, max_features, max_side, preprocess, tours)
     t0 = time.perf_counter()
@@ -97,16 +103,20 @@ def map_build(
 @handle_errors
 def map_add(
     map_file: Annotated[Path, typer.Argument(help="Map file to extend (rewritten atomically).")],
-    tour: Annotated[Path, typer.Argument(help="Tour folder to add.")],
+    tour: Annotated[Path, typer.Argument(help="Tour to add: a folder, a ROS bag (--topic) or a video.")],
     vocab: Annotated[Path | None, typer.Option(help="Must be the map's vocabulary when given.")] = None,
     features: Annotated[str | None, typer.Option(help="Must be the map's when given.")] = None,
     max_features: Annotated[int | None, typer.Option(help="Must be the map's when given.")] = None,
     preprocess: Annotated[str | None, typer.Option(help="Must be the map's when given.")] = None,
     cache_dir: CacheOption = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    topic: TopicOption = None,
+    every_s: EverySOption = None,
+    every_m: EveryMOption = None,
+    pose_topic: PoseTopicOption = None,
 ) -> None:
     """Add a tour to a saved map without rebuilding it from the earlier images."""
-    from topoloc.datasets.traverse import load_traverse
+    from topoloc.cli.recordings import load_tours
     from topoloc.maps import Map
     from topoloc.vocabulary import Vocabulary
     from topoloc.vocabulary.vocab import vocabulary_fingerprint
@@ -122,7 +132,7 @@ def map_add(
         other = vocabulary_fingerprint(Vocabulary.load(vocab))
         if m.vocabulary is None or other != vocabulary_fingerprint(m.vocabulary):
             raise input_error(f"vocabulary {vocab} is not the one this map was built with", map_file)
-    t = load_traverse(tour)
+    t = load_tours([tour], topic, every_s, every_m, pose_topic)[0]
     with rich_progress(not quiet) as progress:
         m.add_tour(t, cache_dir=cache_dir, progress=progress)
     m.save(map_file)
@@ -164,10 +174,14 @@ def map_calibrate(
         str | None, typer.Option("--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")] = None,
     cache_dir: CacheOption = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    topic: TopicOption = None,
+    every_s: EverySOption = None,
+    every_m: EveryMOption = None,
+    pose_topic: PoseTopicOption = None,
 ) -> None:
     """Choose the score threshold that reaches --precision on a labelled tour and store it in the map."""
+    from topoloc.cli.recordings import load_tours
     from topoloc.datasets.groundtruth import ground_truth_from_places, ground_truth_from_xy, parse_tolerance
-    from topoloc.datasets.traverse import load_traverse
     from topoloc.maps import Map
 
     if not 0 < precision <= 1:
@@ -175,7 +189,7 @@ def map_calibrate(
     hard, soft = parse_tolerance(tolerance_m if tolerance_m is not None else tolerance)
     m = Map.load(map_file)
     _check_out_file(map_file)
-    q = load_traverse(query)
+    q = load_tours([query], topic, every_s, every_m, pose_topic)[0]
     if tolerance_m is not None:
         if q.xy is None:
             raise input_error("--tolerance-m needs x,y columns in places.csv", q.root)
@@ -196,33 +210,42 @@ def map_calibrate(
 @handle_errors
 def localize(
     map_file: Annotated[Path, typer.Argument(help="Map file (topoloc map build).")],
-    inputs: Annotated[list[Path], typer.Argument(help="Image files or folders, in order.")],
+    inputs: Annotated[list[Path], typer.Argument(
+        help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order.")],
     out: Annotated[Path, typer.Option(help="JSON lines file, one line per frame, written as it goes.")],
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
     sequence: Annotated[int, typer.Option(help="Match each frame with the N before it, online (0 = off).")] = 0,
     sequence_mode: Annotated[str, typer.Option(help="constant (SeqSLAM) or acceleration (Cooc-Map II-F).")]
     = "constant",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    topic: TopicOption = None,
+    every_s: EverySOption = None,
+    every_m: EveryMOption = None,
+    pose_topic: PoseTopicOption = None,
 ) -> None:
     """Localise new images against a saved map: place, score, accepted, top places (and x, y) per frame."""
+    from topoloc.cli.recordings import localize_frames
     from topoloc.maps import Map
-    from topoloc.maps.map import iter_inputs, read_frame
 
     m = Map.load(map_file)
-    files = list(iter_inputs(inputs))
+    total, frames = localize_frames(list(inputs), topic=topic, every_s=every_s, every_m=every_m,
+                                    pose_topic=pose_topic)
     _check_out_file(out)
     loc = m.localizer(top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
     t0 = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     # Written line by line: a run that is stopped keeps every frame done so far.
     with open(out, "w", encoding="utf-8") as fh, rich_progress(not quiet) as progress:
-        advance = progress(f"localize ({m.recognizer.name})", len(files))
+        advance = progress(f"localize ({m.recognizer.name})", total)
         decode_s = 0.0
-        for path in files:
+        while True:  # bags and videos are streamed: one frame decoded at a time
             t1 = time.perf_counter()
-            frame = read_frame(path)
+            item = next(frames, None)
             decode_s += time.perf_counter() - t1
-            fh.write(json.dumps(loc.step(frame, name=path.name)) + "\n")
+            if item is None:
+                break
+            name, time_s, frame = item
+            fh.write(json.dumps(loc.step(frame, name=name, time_s=time_s)) + "\n")
             fh.flush()
             advance(1)
     wall = time.perf_counter() - t0

@@ -5,6 +5,9 @@
   interpolation (Sec. II-B, II-E), persistence;
 * :mod:`~topoloc.coocmap.matching` -- candidate correspondences, J_i,
   elimination, simultaneous matching (Sec. II-C, II-D).
+* :mod:`~topoloc.coocmap.compiled` -- the same matching compiled with numba,
+  with bounds before any J_i is built: the method's default (imported on
+  use, not here, so that importing the package does not load numba).
 
 Sequence matching (Sec. II-F) is :func:`topoloc.sequence.sequence_similarity`.
 """

@@ -3,7 +3,9 @@
 This is the single door of ``docs/protocol.md``.  Outputs under ``out``:
 
 ``S.npy``
-    float32 (n_places, n_queries), higher = more similar.
+    float32 (n_places, n_queries), higher = more similar; with ``top_k`` instead
+    ``S_topk.npz`` (``rows``, ``scores`` of shape (n_queries, K), best first, and
+    ``shape``; see :mod:`topoloc.evaluation.topk`) and no dense ground truth.
 ``places.npy`` / ``queries.npy``
     place id of each row / true place id of each column.
 ``metrics.json``
@@ -37,13 +39,15 @@ from topoloc.datasets.groundtruth import (
     parse_tolerance,
     place_positions,
 )
-from topoloc.datasets.traverse import Traverse, load_traverse
+from topoloc.datasets.sources import load_input
+from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.evaluation.metrics import Scores, compute_metrics, parse_recall_at
 from topoloc.evaluation.plots import plot_pr_curves
 from topoloc.evaluation.prepare import build_method, make_resources, resolve_max_side
 from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
+from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
 from topoloc.io.dirs import check_output_dir, staged_dir
 from topoloc.methods.base import PlaceRecognizer
@@ -79,7 +83,12 @@ class EvaluateOptions:
     seed: int = 0
     map_file: Path | None = None
     recall_at: str = "1,5,10"
+    top_k: int = 0  # > 0: keep only the K best places per query (S_topk.npz), metrics from them
     html: Path | None = None  # also write the browsable HTML page of this run here
+    topic: str | None = None  # ROS bags among maps/query: the image topic
+    every_s: float | None = None  # bags and videos: one keyframe every T seconds
+    every_m: float | None = None  # bags with poses: one keyframe every D metres
+    pose_topic: str | None = None  # bags: the odometry, pose or GPS topic (default: the bag's first)
 
 
 def _save_npy(path: Path, arr: np.ndarray) -> None:
@@ -155,12 +164,18 @@ def evaluate(
         raise TopolocError(f"--sequence-mode must be constant or acceleration, got {opts.sequence_mode!r}")
     parse_tolerance(opts.tolerance)
     recall_at = parse_recall_at(opts.recall_at)
+    if opts.top_k < 0:
+        raise TopolocError(f"--top-k must be >= 0 (0 = keep the whole S), got {opts.top_k}")
+    if opts.top_k and opts.html is not None:
+        raise TopolocError("--html draws the whole S: leave out --top-k, or --html")
     if opts.tolerance_m is not None:
         parse_tolerance(opts.tolerance_m)
     if opts.ground_truth is not None and not Path(opts.ground_truth).is_file():
         raise TopolocError(f"ground-truth file not found: {opts.ground_truth}")
-    maps = [load_traverse(m) for m in opts.maps]
-    query = load_traverse(opts.query)
+    # Folders, or bags and videos (their keyframes in memory: topoloc.datasets.sources).
+    loaded = [load_input(p, topic=opts.topic, every_s=opts.every_s, every_m=opts.every_m,
+                         pose_topic=opts.pose_topic) for p in [*opts.maps, opts.query]]
+    maps, query = loaded[:-1], loaded[-1]
     if opts.sequence >= len(query):
         raise TopolocError(f"--sequence {opts.sequence} needs more than {opts.sequence} queries; "
                            f"{opts.query} has {len(query)}")
@@ -190,12 +205,27 @@ def evaluate(
     gt = make_ground_truth(opts, maps, query, place_ids, map_xy)
     check_overlap(gt, query, place_ids)
     items = method.encode(query, resources=resources)
-    S, ms_each = score_queries(method, items, prog)
-    if opts.sequence:
-        S, seq_ms = apply_sequence(S, opts.sequence, opts.sequence_mode)
-        ms_each = ms_each + seq_ms
-    S = np.asarray(S, dtype=np.float32)
-    scores = compute_metrics(S, gt, recall_at)
+    top: TopK | None = None
+    S: np.ndarray | None = None
+    if opts.top_k and not opts.sequence:
+        top, ms_each = score_top_k(method, items, opts.top_k, prog)
+        del items
+    else:
+        S, ms_each = score_queries(method, items, prog)
+        if opts.sequence:
+            S, seq_ms = apply_sequence(S, opts.sequence, opts.sequence_mode)
+            ms_each = ms_each + seq_ms
+        S = np.asarray(S, dtype=np.float32)
+        if opts.top_k:  # sequence matching needs neighbouring columns: the dense S is formed first
+            top = TopK(*top_k_of(S, opts.top_k), n_places=S.shape[0])
+            S = None
+    if top is not None:
+        scores = compute_metrics_top_k(top, gt, recall_at)
+        shape = (top.n_places, top.n_queries)
+    else:
+        assert S is not None
+        scores = compute_metrics(S, gt, recall_at)
+        shape = S.shape
 
     metrics: dict[str, Any] = {
         "method": method.name,
@@ -203,8 +233,9 @@ def evaluate(
         "ms_per_query": float(np.median(ms_each)) if len(ms_each) else 0.0,
         "ms_features": resources.ms_features_median(),
         "peak_rss_mb": peak_rss_mb(),
-        "n_places": int(S.shape[0]),
-        "n_queries": int(S.shape[1]),
+        "n_places": int(shape[0]),
+        "n_queries": int(shape[1]),
+        **({"top_k": top.k} if top is not None else {}),
         "params": {**method.get_params(), "sequence": opts.sequence,
                    **({"sequence_mode": opts.sequence_mode} if opts.sequence else {})},
         "run": {
@@ -226,7 +257,7 @@ def evaluate(
     }
     # All files of the run appear together, replacing an earlier run's whole (never a mixture).
     with staged_dir(opts.out) as stage:
-        write_outputs(stage, S, place_ids, query.places, metrics, scores, gt)
+        write_outputs(stage, S, place_ids, query.places, metrics, scores, None if top is not None else gt, top=top)
     if opts.html is not None:
         from topoloc.evaluation.html import build_html_report
 
@@ -241,7 +272,7 @@ def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> No
     where most queries show places the map lacks would report recall over a
     handful of queries without a word.
     """
-    has = np.asarray(gt.hard.any(axis=0))
+    has = np.diff(gt.hard_sparse.indptr) > 0 if gt.is_sparse else np.asarray(gt.hard.any(axis=0))
     if not has.any():
         raise TopolocError(
             f"no query of {query.root} has a correct place in the map (query places "
@@ -277,18 +308,22 @@ def _saved_map(
 
 
 def write_outputs(
-    out: Path, S: np.ndarray, place_ids: np.ndarray, query_places: np.ndarray,
-    metrics: dict[str, Any], scores: Scores, gt: GroundTruth | None = None,
+    out: Path, S: np.ndarray | None, place_ids: np.ndarray, query_places: np.ndarray,
+    metrics: dict[str, Any], scores: Scores, gt: GroundTruth | None = None, *, top: TopK | None = None,
 ) -> None:
     """Write S, ids, metrics, PR curve and report under ``out`` (each file atomically).
 
     With ``gt``, also ``gt_hard.npy`` / ``gt_soft.npy`` (boolean, the shape of S) for the HTML page.
+    With ``top``, ``S_topk.npz`` is written instead of ``S.npy``.
     """
     out.mkdir(parents=True, exist_ok=True)
     if gt is not None:
         _save_npy(out / "gt_hard.npy", np.asarray(gt.hard, dtype=bool))
         _save_npy(out / "gt_soft.npy", np.asarray(gt.soft, dtype=bool))
-    _save_npy(out / "S.npy", S.astype(np.float32))
+    if top is not None:
+        top.save(out / "S_topk.npz")
+    if S is not None:
+        _save_npy(out / "S.npy", S.astype(np.float32))
     _save_npy(out / "places.npy", np.asarray(place_ids, dtype=np.int64))
     _save_npy(out / "queries.npy", np.asarray(query_places, dtype=np.int64))
     atomic_write_bytes(out / "metrics.json", (json.dumps(metrics, indent=2, default=str) + "\n").encode())

@@ -57,11 +57,11 @@ def resolve_max_side(
         if value < 0:
             raise TopolocError(f"--max-side must be >= 0 (0 = no resizing), got {value}")
         return value
-    probe = list(images)
-    for trav in traverses:
+    sides = {max(read_image(path).shape[:2]) for path in images}
+    for trav in traverses:  # files or frames in memory (bags, videos); features and words have no size
         n = len(trav.images)
-        probe += [trav.images[i] for i in sorted({0, n // 2, n - 1})] if n else []
-    sides = {max(read_image(path).shape[:2]) for path in probe}
+        if trav.kind in ("files", "images"):
+            sides |= {max(trav.read(i).shape[:2]) for i in (sorted({0, n // 2, n - 1}) if n else [])}
     return min(sides) if len(sides) > 1 else 0
 
 

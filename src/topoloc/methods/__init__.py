@@ -15,6 +15,7 @@ from topoloc.methods.resources import CachedResources, InMemoryResources, Resour
 _REGISTRY: dict[str, str] = {
     "bow": "topoloc.methods.bag_of_words:BagOfWords",
     "coocmap": "topoloc.methods.cooc_map:CoocMap",
+    "descriptors": "topoloc.methods.global_descriptors:GlobalDescriptors",
     "fabmap": "topoloc.methods.fab_map:FabMap",
     "fabmap2": "topoloc.methods.fab_map:FabMap2",
     "landmarks": "topoloc.methods.landmark_map:LandmarkMap",

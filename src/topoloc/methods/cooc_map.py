@@ -239,7 +239,7 @@ class CoocMap(PlaceRecognizer):
     def match(self, item: Item) -> tuple[ConsistencyGraphs, MatchResult]:
         """Candidate correspondences, ``J_i`` and the matching result of one query.
 
-        With ``schedule="lazy"`` the graphs returned cover the best place only
+        With ``schedule="lazy"`` or ``"compiled"`` the graphs returned cover the best place only
         (enough for :meth:`MatchResult.group` of the best place).
         """
         self.check_fitted()

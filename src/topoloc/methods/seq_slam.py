@@ -46,6 +46,14 @@ Deliberate differences, and why:
   cost outside ``Rwindow``, a property of the best match only;
   ``uniqueness=10`` gives its per-cell analogue (best matches almost
   always unchanged, better thresholds: on Nordland R@100P 0.76 instead of 0).
+* *Start of the route.*  A trajectory that would reach back before the
+  first map place counts those frames with the query's mean difference over
+  the map (no evidence) instead of waiting on place 0 (this project's
+  earlier rule); otherwise one structureless first image (a tunnel,
+  a blanked camera: nearer to every query than its true place after patch
+  normalisation) is the best match of almost every query (issue #12, R@1
+  0.23 instead of 0.83 on Nordland with such a first frame).  See
+  :mod:`topoloc.sequence.search`.
 * *Several map traverses.*  The difference of a query to a place is the
   minimum over all map images of that place (from any traverse), so a winter
   query can match the winter tour; averaging normalised images instead would
@@ -59,7 +67,7 @@ The contrast enhancement window is the release's and suits routes sampled
 like Nordland (a frame every few tens of metres).  On densely sampled routes,
 where the ±5 neighbouring places look almost the same as the true one, it
 removes the signal it should sharpen: Gardens Point day_left -> day_right
-gives AUC 0.09 with ``enhance_window=10`` and 0.91 with ``enhance_window=0``
+gives AUC 0.11 with ``enhance_window=10`` and 0.92 with ``enhance_window=0``
 (Nordland needs it: 0.82 with, 0.005 without).
 
 :class:`SingleImageSeqSLAM` (``seqslam-single``) is the same pipeline without

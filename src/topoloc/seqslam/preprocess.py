@@ -4,6 +4,21 @@ Patch normalisation follows OpenSeqSLAM's ``patchNormalize.m``; the
 quantisation keeps ``levels_per_std`` grey levels per standard deviation
 (``1`` is the original release's rounding), see
 :mod:`topoloc.methods.seq_slam` for why.
+
+*Frames without structure.*  A patch without spread (uniform, black,
+saturated) has no z-scores and becomes 0, so a uniform, dark, overexposed or
+featureless frame becomes (almost) the zero image, the centre of all
+normalised images.  Its mean absolute difference to any image is that
+image's mean ``|z|`` (about 0.8), while two images of the same place in
+different seasons differ by about 0.87 on Nordland: such a frame is nearer
+to every query than its true place, a "hub".  (OpenSeqSLAM leaves ``0 / 0``
+as NaN, which MATLAB's ``uint8`` turns into 0, i.e. ``z = -127``: the opposite
+extreme, far from everything.)  No single value for a structureless patch is
+neutral under the L1 difference, so the representation is unchanged and the
+hub is contained where a frame can do harm, in the sequence search: a single
+image is one of the ``ds + 1`` frames of any trajectory, including at the
+start of the route (see "Start of the database" in
+:mod:`topoloc.sequence.search`, issue #12).
 """
 
 from __future__ import annotations

@@ -44,24 +44,52 @@ history.  Its trajectory uses those frames only (a shorter window) and the
 cost is their mean, so scores of early queries are on the scale of the rest;
 they are naturally noisier, as a shorter sequence carries less evidence.
 Implemented by padding ``D`` with ``ds`` columns of zeros before query 0 and
-dividing by ``min(T, ds) + 1``.
+dividing by ``min(T, ds) + 1``.  A constant-velocity line keeps its velocity
+over the shorter window; an acceleration path's bound on its average
+velocity applies to its ``T`` real steps (it waits, at no cost, through the
+padding), so it cannot meet the bound in frames that do not exist and sit on
+one place for all of its real frames.
 
-*Start of the database.*  A constant-velocity line that would start before
-place 0 is clamped to place 0 (the trajectory waits at the start of the
-route), so every place, including the first ``ds * v_max`` ones, is scored
-with a full-length trajectory.  OpenSeqSLAM instead gives such lines an
-infinite cost at the *end* of the database (its lines run forward from the
-start place); with a causal window the analogous problem is at the start.
-The acceleration search clamps the same way (a path may wait on place 0
-before it moves), which its bound on the average velocity would otherwise
-forbid.
+*Start of the database.*  A trajectory ending near the start of the route
+may reach back before place 0 (a constant-velocity line ending on place
+``p < ds * v``, or an acceleration path that starts there).  Those frames
+have no map place to compare with, so they count with the *neutral* value,
+the query's mean difference over the whole map (what a place drawn at random
+scores against that query), and the cost is still divided by all the frames of
+the window.  A place near the start is thus scored on the scale of the others
+but only with the evidence the map holds: a true match there keeps its own
+frames (the query traverse normally starts where the map does, and then no
+frame of the true trajectory is off the map), and no frame can count twice.
+Rows before place 0 are the route extended backwards by places about which
+nothing is known.
+
+Earlier versions clamped such lines to place 0 (the trajectory "waited" at
+the start of the route), which scored place 0 with the *same* map image for
+all ``ds + 1`` frames.  One degenerate first image then captures the search
+(issue #12): an almost uniform dark frame patch-normalises to nearly all
+zeros, the centre of every normalised image, so its difference to *any*
+query (about 0.82 on Nordland) is below that of the true place (0.87), it is
+the lowest row of every column after contrast enhancement (on average -1.9
+against -1.5 for true matches), and a line that sits on it for 11 frames beat
+the true trajectory for 1,344 of 1,772 Nordland queries (R@1 0.82 -> 0.23;
+with the neutral value 0.83, and no query takes place 0).
+Anywhere else in the route a single image is one frame of any trajectory
+and is diluted by the ``ds`` others; the neutral value makes the start of
+the route behave like the rest of it.  (OpenSeqSLAM instead gives lines
+that leave the database an infinite cost, which leaves the first ``ds v_min``
+places without any score; the neutral value keeps them scored.)  The
+acceleration search pads the same way, so its paths may start before
+place 0 but, like everywhere else, repeat a place only as often as their
+bound on the average velocity allows.
 
 *Locality.*  Column ``T`` of every result depends only on columns
-``T - ds .. T`` of ``D``.  The searches therefore run over tiles of at most
-``chunk_queries`` queries (plus a ``ds``-column halo) and a bounded number of
-database rows (plus the rows a trajectory can reach back over), so memory
-beyond the output stays bounded for long routes, and tiles are spread over
-``n_jobs`` threads (numpy releases the GIL in the array operations).
+``T - ds .. T`` of ``D`` (the neutral value of a column is computed from that
+column alone, so online matching over the last ``ds + 1`` queries agrees).
+The searches therefore run over tiles of at most ``chunk_queries`` queries
+(plus a ``ds``-column halo) and a bounded number of database rows (plus
+the rows a trajectory can reach back over), so memory beyond the output
+stays bounded for long routes, and tiles are spread over ``n_jobs`` threads
+(numpy releases the GIL in the array operations).
 """
 
 from __future__ import annotations
@@ -146,13 +174,15 @@ def _run_tiles(
 
 
 def _padded_tile(
-    D: np.ndarray, r0: int, r1: int, c0: int, c1: int, halo_rows: int, ds: int
+    D: np.ndarray, r0: int, r1: int, c0: int, c1: int, halo_rows: int, ds: int,
+    neutral: np.ndarray,
 ) -> np.ndarray:
     """Rows ``r0 - halo_rows .. r1`` and columns ``c0 - ds .. c1`` of ``D``, padded.
 
-    Columns before query 0 are zeros (no evidence; see "Start of the query
-    traverse" in the module docstring).  Rows before place 0 are copies of
-    place 0 (a trajectory waits at the start of the route).
+    Columns before query 0 are zeros (no frame; see "Start of the query
+    traverse" in the module docstring, they are divided out).  Rows before
+    place 0 hold ``neutral`` (each query's mean difference over the map; see
+    "Start of the database").
 
     Returns
     -------
@@ -164,8 +194,43 @@ def _padded_tile(
     blk[rs - g_r0 :, cs - g_c0 :] = D[rs:r1, cs:c1]
     n_above = rs - g_r0
     if n_above:
-        blk[:n_above, cs - g_c0 :] = D[0, cs:c1]
+        blk[:n_above, cs - g_c0 :] = neutral[cs:c1]
     return blk
+
+
+def neutral_difference(D: np.ndarray) -> np.ndarray:
+    """The value of a frame that falls before place 0: each query's mean difference over the map.
+
+    The mean of the finite entries of each column of ``D`` (0 for a column
+    with none), i.e. the expected difference of a map place drawn at random:
+    such a frame is evidence neither for nor against the trajectory.  For a
+    contrast-enhanced ``D`` it is close to 0; for raw differences (or any
+    method's normalised scores) it is that query's typical difference.
+
+    Parameters
+    ----------
+    D : array_like, shape (n_db, n_q)
+
+    Returns
+    -------
+    ndarray of float32, shape (n_q,)
+    """
+    return _neutral(_as_difference_matrix(D))
+
+
+def _neutral(D: np.ndarray) -> np.ndarray:
+    """:func:`neutral_difference` of a checked float32 matrix (one pass when all is finite)."""
+    if D.shape[0] == 0:
+        return np.zeros(D.shape[1], dtype=np.float32)
+    mu = D.mean(axis=0, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(mu))  # columns holding +-inf
+    if bad.size:
+        X = D[:, bad]
+        fin = np.isfinite(X)
+        cnt = fin.sum(axis=0)
+        tot = np.where(fin, X, 0.0).sum(axis=0, dtype=np.float64)
+        mu[bad] = np.where(cnt > 0, tot / np.maximum(cnt, 1), 0.0)
+    return mu.astype(np.float32)
 
 
 def _frames_used(c0: int, c1: int, ds: int) -> np.ndarray:
@@ -198,6 +263,18 @@ def contrast_enhance(
     stand out locally score low.  A window without spread (constant
     differences, or a single row) gives 0.  The window sums are OpenCV box
     filters over tiles of the matrix, in float64.
+
+    The window is truncated at the ends of the route (6 rows for the first
+    and last place with the defaults) rather than shifted inwards to keep 11
+    rows.  This is deliberate: a row's own value is part of its window, so its
+    enhanced value is bounded by ``(n - 1) / sqrt(n)`` for a window of ``n``
+    rows (2.04 for 6, 3.02 for 11), and a truncated window makes an
+    outlying first place (issue #12: a uniform dark frame, nearer to every
+    query than its true place) stand out *less*, not more: with the old
+    clamped start of the searches, shifted windows took R@1 on Nordland with
+    such a first frame from 0.24 to 0.002.  With the neutral start they
+    change nothing (R@1 0.829 either way, 0.839 with the dark first frame;
+    best place of the costs within 2 places), so the release's rule is kept.
 
     Parameters
     ----------
@@ -321,7 +398,8 @@ def constant_velocity_search(
         cost[p, T] = min_v  mean_{k=0..ds}  D[p - floor(ds v) + floor(k v), T - ds + k]
 
     with the conventions of the module docstring (causal window, shorter
-    window for the first ``ds`` queries, clamping at place 0).  Vectorised
+    window for the first ``ds`` queries, frames before place 0 counted with
+    the query's mean difference over the map, :func:`neutral_difference`).  Vectorised
     over places and queries: one array addition per trajectory frame, no loop
     over places.
 
@@ -349,9 +427,10 @@ def constant_velocity_search(
     ds = _check_ds(ds)
     offsets = velocity_offsets(ds, v_min, v_max, v_step)
     halo = int(offsets.max()) if offsets.size else 0
+    neutral = _neutral(D)
 
     def work(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-        blk = _padded_tile(D, r0, r1, c0, c1, halo, ds)
+        blk = _padded_tile(D, r0, r1, c0, c1, halo, ds, neutral)
         nr, w = r1 - r0, c1 - c0
         best: np.ndarray | None = None
         acc = np.empty((nr, w), dtype=np.float32)
@@ -390,6 +469,29 @@ def _advance_range(ds: int, max_step: int, v_min: float, v_max: float) -> tuple[
             f"{v_min}..{v_max} places per query"
         )
     return a_min, a_max
+
+
+def _advance_bounds(
+    n_steps: np.ndarray, max_step: int, v_min: float, v_max: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest total advance of a path of ``n_steps`` steps, per query.
+
+    ``ceil(n v_min) .. min(n max_step, floor(n v_max))``, the rule of
+    :func:`_advance_range` for a window of ``n`` real steps (the first queries
+    of a traverse have fewer than ``ds``).  Where rounding leaves that empty
+    (``v_max - v_min`` under ``1 / n``), the integers nearest to it,
+    ``floor(n v_min) .. ceil(n v_max)``, clipped to ``n max_step``.
+    """
+    n = n_steps.astype(np.float64)
+    cap = n_steps * max_step
+    lo = np.ceil(n * v_min - 1e-9).astype(np.int64)
+    hi = cap if not math.isfinite(v_max) else np.minimum(cap, np.floor(n * v_max + 1e-9).astype(np.int64))
+    empty = lo > hi
+    if empty.any():
+        lo = np.where(empty, np.floor(n * v_min + 1e-9).astype(np.int64), lo)
+        up = cap if not math.isfinite(v_max) else np.minimum(cap, np.ceil(n * v_max - 1e-9).astype(np.int64))
+        hi = np.where(empty, up, hi)
+    return np.minimum(lo, cap), hi
 
 
 def acceleration_search(
@@ -446,8 +548,13 @@ def acceleration_search(
     lowest dissimilarity at each step, and notes this "almost always provides
     the global optimum"; the programme computes that optimum exactly.
     Conventions at the start of the route and of the traverse are those of
-    the module docstring (a path may wait on place 0; early queries use the
-    frames they have).
+    the module docstring (a path may start before place 0, where every frame
+    counts with the query's mean difference over the map; early queries use
+    the frames they have).  For a query ``T < ds`` the path has ``T`` steps
+    and the bound applies to them, ``ceil(T v_min) <= a <= floor(T v_max)``:
+    it may not meet its bound in frames before query 0 (which would let it
+    repeat one place for all of its real frames, so that a single image
+    resembling every query captured the first ``ds`` queries).
 
     Parameters
     ----------
@@ -492,9 +599,10 @@ def acceleration_search(
         raise ValueError(f"step_penalty must be finite and >= 0, got {step_penalty}")
     halo = a_max
     n_a = a_max + 1
+    neutral = _neutral(D)
 
     def work(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-        blk = _padded_tile(D, r0, r1, c0, c1, halo, ds)
+        blk = _padded_tile(D, r0, r1, c0, c1, halo, ds, neutral)
         nb, w = blk.shape[0], c1 - c0
         # V[a, s, c] = blk[s + a, c]: the difference at the place a path
         # that started on block row s reaches after advancing a places.
@@ -507,12 +615,14 @@ def acceleration_search(
         E = np.full((n_a, nb, w), np.inf, dtype=np.float32)
         E[0] = V[0, :, 0:w]
         new = np.full_like(E, np.inf)
+        early = c0 < ds  # the tile holds queries with fewer than ds steps behind them
         for k in range(1, ds + 1):
             # Only advances reachable after k steps that can still reach
             # a_min in the remaining ones: about 40 % less work for the
             # defaults.  Both bounds only grow with k, so every state read
-            # below was written at step k - 1 or is still +inf.
-            lo = max(0, a_min - (ds - k) * max_step)
+            # below was written at step k - 1 or is still +inf.  (Early
+            # queries have smaller bounds: no pruning from below there.)
+            lo = 0 if early else max(0, a_min - (ds - k) * max_step)
             hi = min(k * max_step, a_max)
             out = new[lo : hi + 1]
             if lam:
@@ -528,11 +638,27 @@ def acceleration_search(
                     prev = prev + np.float32(lam * (j - 1))  # skip j - 1 places
                 np.minimum(new[a0 : hi + 1], prev, out=new[a0 : hi + 1])
             out += V[lo : hi + 1, :, k : k + w]
+            # Queries whose frame k is query 0 or before it: the path waits
+            # on its start place (no step, no penalty), so its steps are
+            # those between real frames only.
+            jf = min(w, max(0, ds - k - c0 + 1))
+            if jf:
+                np.add(E[lo : hi + 1, :, :jf], V[lo : hi + 1, :, k : k + jf],
+                       out=new[lo : hi + 1, :, :jf])
             E, new = new, E
         res = np.full((r1 - r0, w), np.inf, dtype=np.float32)
-        for a in range(a_min, a_max + 1):
-            # Output row p (block row halo + p - r0) started on row p - a.
-            np.minimum(res, E[a, halo - a : halo - a + r1 - r0], out=res)
+        if not early:
+            for a in range(a_min, a_max + 1):
+                # Output row p (block row halo + p - r0) started on row p - a.
+                np.minimum(res, E[a, halo - a : halo - a + r1 - r0], out=res)
+        else:
+            steps = np.minimum(np.arange(c0, c1), ds)
+            a_lo, a_hi = _advance_bounds(steps, max_step, float(v_min), float(v_max))
+            for a in range(0, a_max + 1):
+                ok = (a_lo <= a) & (a <= a_hi)
+                if ok.any():
+                    cand = np.where(ok, E[a, halo - a : halo - a + r1 - r0], np.float32(np.inf))
+                    np.minimum(res, cand, out=res)
         res /= _frames_used(c0, c1, ds)
         return res
 

@@ -1,0 +1,212 @@
+"""What every frame source shares: the frame record, keyframe selection, and opening a path.
+
+A *source* is a recording read as a stream: a ROS 1 bag, a ROS 2 bag (rosbag2
+folder, sqlite3 or MCAP storage) or a video file.  :meth:`FrameSource.frames`
+is a generator of :class:`Frame` (time in seconds, pixels, name, position): one
+frame is decoded at a time and nothing is kept, so memory does not grow with
+the recording's length.  Frames not selected as keyframes are not decoded.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from topoloc.datasets.traverse import IMAGE_SUFFIXES, Traverse, load_traverse
+from topoloc.errors import TopolocError, input_error
+
+VIDEO_SUFFIXES = frozenset({
+    ".mp4", ".m4v", ".mov", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts", ".mts",
+    ".m2ts", ".ogv", ".3gp", ".mjpeg", ".mjpg", ".h264", ".h265", ".hevc",
+})
+
+
+class Frame(NamedTuple):
+    """One frame of a recording.
+
+    Attributes
+    ----------
+    time_s : float
+        Seconds: the message's header stamp (else the bag's record time), Unix epoch, for bags;
+        seconds from the start for a video.
+    image : ndarray of uint8, shape (H, W) grey or (H, W, 3) BGR
+    name : str
+        ``<file name>#<index>``, the index counting every message of the topic (every video frame).
+    xy : tuple of float or None
+        Position in metres from the pose or GPS message nearest in time, when the bag has one.
+    """
+
+    time_s: float
+    image: np.ndarray
+    name: str
+    xy: tuple[float, float] | None = None
+
+
+class FrameSource(Protocol):
+    """A recording read one frame at a time."""
+
+    path: Path
+    absolute_time: bool  # True when ``time_s`` is a Unix time (bags), False for seconds from the start (video)
+    has_positions: bool
+
+    def frames(self) -> Iterator[Frame]:
+        """The keyframes, in recording order, decoded one at a time."""
+        ...
+
+    def __len__(self) -> int:
+        """Messages or frames in the recording before keyframe selection (an upper bound; 0 if unknown)."""
+        ...
+
+
+@dataclass
+class Keyframes:
+    """Keep a frame when ``every_s`` seconds or ``every_m`` metres have passed since the last kept one.
+
+    The first frame is always kept; with neither set, every frame is.  Distance is the straight
+    line from the last keyframe's position.
+    """
+
+    every_s: float | None = None
+    every_m: float | None = None
+    _t: float | None = field(default=None, init=False, repr=False)
+    _xy: tuple[float, float] | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for flag, value in (("--every-s", self.every_s), ("--every-m", self.every_m)):
+            if value is not None and not (math.isfinite(value) and value >= 0):
+                raise TopolocError(f"{flag} must be a number >= 0, got {value}")
+        if self.every_s is not None and self.every_m is not None:
+            raise TopolocError("give --every-s or --every-m, not both")
+
+    def keep(self, time_s: float, xy: tuple[float, float] | None = None) -> bool:
+        """Whether the frame at ``time_s`` (at ``xy``) is a keyframe; remembers it if so."""
+        if self._t is not None:
+            if self.every_s is not None and time_s - self._t < self.every_s:
+                return False
+            if self.every_m is not None:
+                if xy is None or self._xy is None:
+                    return False
+                if math.hypot(xy[0] - self._xy[0], xy[1] - self._xy[1]) < self.every_m:
+                    return False
+        elif self.every_m is not None and xy is None:
+            return False
+        self._t, self._xy = time_s, xy
+        return True
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 bag (``.bag`` file) or a ROS 2 bag (a folder with ``metadata.yaml``, or a file in one)."""
+    return path.suffix.lower() == ".bag" or (path.is_dir() and (path / "metadata.yaml").is_file()) or (
+        path.is_file() and path.suffix.lower() in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file())
+
+
+def is_stream_input(path: str | Path, *, images_are_files: bool = True) -> bool:
+    """Whether ``path`` is read as a recording (bag or video) rather than a folder or an image file.
+
+    A file is a video when its suffix is a video's, or (``images_are_files``) when it is neither
+    an image OpenCV can read nor a known image suffix; a folder is a recording only if it is a
+    rosbag2 folder.
+    """
+    p = Path(path)
+    if is_bag(p):
+        return True
+    if not p.is_file():
+        return False
+    suffix = p.suffix.lower()
+    if suffix in VIDEO_SUFFIXES:
+        return True
+    if suffix in IMAGE_SUFFIXES:
+        return False
+    if not images_are_files:
+        return True
+    import cv2
+
+    return p.stat().st_size > 0 and not cv2.haveImageReader(str(p))
+
+
+def open_source(
+    path: str | Path, *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
+    pose_topic: str | None = None, gray: bool = True,
+) -> FrameSource:
+    """Open a bag or a video for streaming; every check that can fail early is made here.
+
+    Parameters
+    ----------
+    path : path
+        A ``.bag`` file, a rosbag2 folder, or a video file.
+    topic : str, optional
+        Image topic of a bag (sensor_msgs/Image or CompressedImage); may be left out when the bag
+        has one image topic.  Ignored for a video.
+    every_s, every_m : float, optional
+        Keyframes: one every ``every_s`` seconds, or every ``every_m`` metres (bags with an
+        odometry, pose or GPS topic).
+    pose_topic : str, optional
+        The pose/GPS topic (default: the first odometry, else pose, else GPS topic of the bag).
+    gray : bool
+        Decode frames grey (as ``localize`` and feature extraction read images) or BGR.
+
+    Raises
+    ------
+    TopolocError
+        Naming the file: not a bag or video, a missing topic (the bag's image topics listed),
+        ``--every-m`` without positions, the ``rosbags`` package missing.
+    """
+    p = Path(path)
+    keyframes = Keyframes(every_s=every_s, every_m=every_m)
+    if not p.exists():
+        raise input_error("input does not exist", p)
+    if is_bag(p):
+        from topoloc.datasets.sources.rosbag import BagSource
+
+        return BagSource(p, topic=topic, keyframes=keyframes, pose_topic=pose_topic, gray=gray)
+    from topoloc.datasets.sources.video import VideoSource
+
+    if every_m is not None:
+        raise input_error("--every-m needs positions: a bag with an odometry, pose or GPS topic, not a video", p)
+    return VideoSource(p, keyframes=keyframes, gray=gray)
+
+
+def stream_traverse(source: FrameSource, *, name: str | None = None) -> Traverse:
+    """The keyframes of a recording as an in-memory traverse (times, and x, y when the bag has positions).
+
+    The keyframes are decoded into memory (grey by default, a third of BGR): a map built from the
+    recording needs features of every keyframe anyway.  ``localize`` does not use this; it streams.
+    """
+    images: list[np.ndarray] = []
+    times: list[float] = []
+    xy: list[tuple[float, float]] = []
+    have_xy = source.has_positions
+    for f in source.frames():
+        images.append(f.image)
+        times.append(f.time_s)
+        if have_xy:
+            xy.append(f.xy if f.xy is not None else (math.nan, math.nan))
+    if not images:
+        raise input_error("the recording gives no frames (empty topic or video, or no keyframe)", source.path)
+    stamps = None
+    if source.absolute_time:
+        stamps = np.asarray([round(t * 1e3) for t in times], dtype=np.int64).astype("datetime64[ms]")
+    label = name or source.path.name
+    return Traverse.from_images(images, name=label, times=stamps,
+                                xy=np.asarray(xy, dtype=np.float64) if have_xy else None)
+
+
+def load_input(
+    path: str | Path, *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
+    pose_topic: str | None = None,
+) -> Traverse:
+    """A traverse from a folder (``load_traverse``), or from a bag or video (:func:`stream_traverse`).
+
+    ``topic``, ``every_s``, ``every_m`` and ``pose_topic`` apply to recordings only (a command may
+    take folders and recordings together).
+    """
+    p = Path(path)
+    if is_bag(p) or (p.is_file() and is_stream_input(p, images_are_files=False)):
+        return stream_traverse(open_source(p, topic=topic, every_s=every_s, every_m=every_m,
+                                           pose_topic=pose_topic))
+    return load_traverse(p)

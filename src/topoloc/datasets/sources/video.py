@@ -1,0 +1,77 @@
+"""A video file (anything OpenCV's ``VideoCapture`` opens) as a stream of frames.
+
+A frame's time is its position in the video in seconds (``CAP_PROP_POS_MSEC``, else index / fps);
+a video has no absolute clock, so its traverse has no ``times``.  Frames that are not keyframes are
+grabbed but not decoded into pixels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from topoloc.datasets.sources.base import Frame, Keyframes
+from topoloc.errors import input_error
+
+
+class VideoSource:
+    """A video read one frame at a time; opening checks that OpenCV opens it and that it has a frame."""
+
+    absolute_time = False
+    has_positions = False
+
+    def __init__(self, path: Path, *, keyframes: Keyframes | None = None, gray: bool = True) -> None:
+        self.path = path
+        self.gray = gray
+        self.keyframes = keyframes or Keyframes()
+        if not path.is_file():
+            raise input_error("video is not a file", path)
+        if path.stat().st_size == 0:
+            raise input_error("video file is empty", path)
+        cap = self._capture()
+        try:
+            self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+            self._count = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)
+            ok, first = cap.read()
+            if not ok or first is None or first.size == 0:
+                raise input_error("video has no frame OpenCV can decode", path)
+        finally:
+            cap.release()
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __repr__(self) -> str:
+        return f"VideoSource({str(self.path)!r})"
+
+    def _capture(self) -> cv2.VideoCapture:
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            cap.release()
+            raise input_error("not a bag, image or video OpenCV can open", self.path)
+        return cap
+
+    def frames(self) -> Iterator[Frame]:
+        """The keyframes (``every_s``), decoded one at a time."""
+        keep = replace(self.keyframes)
+        cap = self._capture()
+        name = self.path.name
+        try:
+            k = 0
+            while cap.grab():
+                msec = float(cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
+                t = msec / 1e3 if (msec > 0 or k == 0) else (k / self.fps if self.fps > 0 else float(k))
+                if keep.keep(t):
+                    ok, img = cap.retrieve()
+                    if not ok or img is None or img.size == 0:
+                        raise input_error(f"frame {k} of the video cannot be decoded", self.path)
+                    if self.gray and img.ndim == 3:
+                        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+                    yield Frame(t, np.ascontiguousarray(img), f"{name}#{k}", None)
+                k += 1
+        finally:
+            cap.release()
