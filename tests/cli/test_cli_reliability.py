@@ -45,7 +45,8 @@ def test_output_paths_are_checked_before_work(cli: Cli, rf: dict[str, Path], tmp
 def test_options_that_would_be_silently_wrong(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "o"
     cli.error(_evaluate(rf, out, "--tolerance", "3"), "ambiguous")
-    cli.error(_evaluate(rf, out, "--sequence", "-1"), "--sequence must be >= 0")
+    cli.error(_evaluate(rf, out, "--sequence", "-1"), "--sequence must be >= 1")
+    cli.error(_evaluate(rf, out, "--sequence", "0"), "--sequence must be >= 1")
     cli.error(_evaluate(rf, out, "--sequence", "500"), "needs more than 500 queries")
     cli.error(["evaluate", "--method", "bow", "--map", str(rf["map"]), "--query", str(rf["query"]),
             "--vocab", str(rf["vocab"]), "--vocab-train", str(rf["morning"]), "--out", str(out)], "not both")
@@ -133,3 +134,22 @@ def test_one_line_warnings(cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog
     assert sum(f"{lacking} of" in m and "no correct place in the map" in m for m in messages) == 1
     assert sum("uses no visual vocabulary" in m for m in messages) == 1
     assert all("\n" not in m for m in messages)
+
+
+def test_evaluate_sequence_modes(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    """Both sequence searches are reachable from evaluate, labelled, and equal to the library's search."""
+    from topoloc.sequence import sequence_similarity
+
+    base = ["evaluate", "--method", "bow", "--map", str(rf["map"]), "--query", str(rf["query"]), "--vocab",
+            str(rf["vocab"]), "--tolerance", "0:1", "--quiet", "--cache-dir", str(rf["cache"])]
+    cli.ok([*base, "--out", str(tmp_path / "single")])
+    single = np.load(tmp_path / "single" / "S.npy")
+    for mode in ("constant", "acceleration"):
+        out = tmp_path / mode
+        cli.ok([*base, "--sequence", "3", "--sequence-mode", mode, "--out", str(out)])
+        np.testing.assert_allclose(np.load(out / "S.npy"), sequence_similarity(single, ds=3, mode=mode), rtol=1e-5)
+        m = json.loads((out / "metrics.json").read_text())
+        assert m["params"]["sequence"] == 3 and m["params"]["sequence_mode"] == mode
+        label = (out / "report.md").read_text().splitlines()[0]
+        assert "seq 3" in label and (mode == "constant") == ("acceleration" not in label)
+    cli.error([*base, "--sequence", "3", "--sequence-mode", "zigzag", "--out", str(tmp_path / "x")], "sequence-mode")

@@ -97,6 +97,15 @@ def _parse_params(items: list[str]) -> dict[str, str]:
     return out
 
 
+def _sequence_length(n: int | None) -> int:
+    """``--sequence N``: absent means off; a given N must be >= 1 (0 would silently mean "off")."""
+    if n is None:
+        return 0
+    if n < 1:
+        raise TopolocError(f"--sequence must be >= 1 (leave it out to match single images), got {n}")
+    return n
+
+
 @app.command()
 @handle_errors
 def evaluate(
@@ -120,7 +129,8 @@ def evaluate(
     ground_truth: Annotated[
         Path | None, typer.Option(help="VPR-Bench ground_truth_new.npy or .npz with GThard/GTsoft.")
     ] = None,
-    sequence: Annotated[int, typer.Option(help="Sequence matching over each query and the N before it (0 = off).")] = 0,
+    sequence: Annotated[int | None, typer.Option(
+        help="Sequence matching over each query and the N >= 1 before it (off when not given).")] = None,
     sequence_mode: Annotated[str, typer.Option(
         help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
     = "constant",
@@ -153,7 +163,8 @@ def evaluate(
     opts = EvaluateOptions(
         method=method, maps=list(map or []), query=query, out=out, vocab=vocab, map_file=map_file,
         vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
-        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=sequence, sequence_mode=sequence_mode,
+        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=_sequence_length(sequence),
+        sequence_mode=sequence_mode,
         recall_at=recall_at, top_k=top_k,
         params=_parse_params(param or []), features=features, max_features=max_features,
         max_side=max_side, preprocess=preprocess, cache_dir=cache_dir, html=html,
