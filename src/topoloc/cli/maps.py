@@ -14,6 +14,7 @@ from topoloc.cli.main import (
     MaxFeaturesOption,
     PreprocessOption,
     _parse_params,
+    _sequence_length,
     app,
     handle_errors,
 )
@@ -214,7 +215,8 @@ def localize(
         help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order.")],
     out: Annotated[Path, typer.Option(help="JSON lines file, one line per frame, written as it goes.")],
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
-    sequence: Annotated[int, typer.Option(help="Match each frame with the N before it, online (0 = off).")] = 0,
+    sequence: Annotated[int | None, typer.Option(
+        help="Match each frame with the N >= 1 before it, online (off when not given).")] = None,
     sequence_mode: Annotated[str, typer.Option(help="constant (SeqSLAM) or acceleration (Cooc-Map II-F).")]
     = "constant",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
@@ -231,7 +233,7 @@ def localize(
     total, frames = localize_frames(list(inputs), topic=topic, every_s=every_s, every_m=every_m,
                                     pose_topic=pose_topic)
     _check_out_file(out)
-    loc = m.localizer(top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
+    loc = m.localizer(top_k=top_k, sequence=_sequence_length(sequence), sequence_mode=sequence_mode)
     t0 = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     # Written line by line: a run that is stopped keeps every frame done so far.
