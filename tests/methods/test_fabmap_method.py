@@ -166,3 +166,21 @@ def test_detector_validation(world: dict[str, Any]) -> None:
         FabMapModel.train(world["training"], n_words=V, p_fp=0.5, p_fn=0.6)
     with pytest.raises(TopolocError, match="at least 2"):
         FabMapModel.train(world["training"][:1], n_words=V)
+
+
+@pytest.mark.parametrize("cls", [FabMap, FabMap2])
+def test_separate_tours_score_a_place_by_its_best_image(world: dict[str, Any], cls: type[FabMap]) -> None:
+    res = world["res"]
+    a, b = world["maps"]
+    sep = cls(tours="separate").fit([a, b], resources=res)
+    items = sep.encode(world["query"], resources=res)
+    S = sep.score(items)
+    # Each image its own model: the place's log-likelihood is the best of its two tours' images.
+    Sa = cls().fit([a], resources=res).score(items)
+    Sb = cls().fit([b], resources=res).score(items)
+    np.testing.assert_allclose(S, np.maximum(Sa, Sb), rtol=1e-5)
+    assert len(sep.model_row_) == 50 and np.array_equal(sep.place_ids_, world["ids"])
+    post = cls(tours="separate", output="posterior").fit([a, b], resources=res).score(items)
+    assert (post >= 0).all() and (post.sum(axis=0) <= 1 + 1e-5).all()
+    hits = (world["ids"][np.argmax(S, axis=0)] == world["truth"]).mean()
+    assert hits >= 0.9

@@ -79,6 +79,19 @@ class FabMap(PlaceRecognizer):
         Bail-out probability bound.
     seed : int
         Seed of the sampled places.
+    tours : {"merge", "separate"}
+        ``"merge"`` (the paper): all images of a place, from every map tour,
+        update one appearance model (Eq. 11).  ``"separate"``: every map image
+        keeps its own model, as openFABMAP does with one tour image per place;
+        a place scores its best image (``loglik``) or the sum of its images'
+        posteriors (``posterior``: the probability of being at the place).  With
+        tours at different times of day, merging averages day and night away.
+
+    Attributes
+    ----------
+    place_ids_ : ndarray of int64, shape (n_places,)
+    model_row_ : ndarray of int64, shape (n_models,)
+        Row of ``S`` of each appearance model (one per place, or per image with ``tours="separate"``).
     """
 
     name: ClassVar[str] = "fabmap"
@@ -90,6 +103,7 @@ class FabMap(PlaceRecognizer):
         "p_new": Interval(float, 0.0, 1.0, closed="left"), "smoothing": Interval(float, 0.0, 1.0, closed="right"),
         "p_fp": Interval(float, 0.0, 1.0, closed="neither"), "p_fn": Interval(float, 0.0, 1.0, closed="neither"),
         "bailout": OfType(bool), "p_bailout": Interval(float, 0.0, 1.0, closed="neither"), "seed": Interval(int),
+        "tours": Options(("merge", "separate")),
     }
 
     def __init__(
@@ -107,6 +121,7 @@ class FabMap(PlaceRecognizer):
         bailout: bool = False,
         p_bailout: float = 1e-6,
         seed: int = 0,
+        tours: str = "merge",
     ) -> None:
         self.model_path = model_path
         self.output = output
@@ -120,6 +135,7 @@ class FabMap(PlaceRecognizer):
         self.bailout = bailout
         self.p_bailout = p_bailout
         self.seed = seed
+        self.tours = tours
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         """Train (or load) the model and build one appearance model per map place."""
@@ -150,12 +166,21 @@ class FabMap(PlaceRecognizer):
         """Place appearance models from the stored observations: prior + Eq. 11 per observation."""
         om = ObservationModel(self.model_, naive_bayes=self.naive_bayes)
         place_ids = np.unique(self.obs_places_)
-        # all observations of each place, in map order (traverse by traverse)
-        per_place: list[list[Observation]] = [[] for _ in range(place_ids.size)]
         rows = np.searchsorted(place_ids, self.obs_places_)
-        for i, r in enumerate(rows):
+        if self.tours == "separate":
+            # One model per image, grouped by place (stable: map order within a place).
+            order = np.argsort(rows, kind="stable")
+            model_row = rows[order]
+        else:
+            order = np.arange(len(rows))
+            model_row = np.arange(place_ids.size)
+        # all observations of each model, in map order (traverse by traverse)
+        per_place: list[list[Observation]] = [[] for _ in range(len(model_row))]
+        for k, i in enumerate(order):
             w = self.obs_words_[self.obs_ptr_[i]:self.obs_ptr_[i + 1]]
-            per_place[int(r)].append(om.observe(w))
+            per_place[k if self.tours == "separate" else int(rows[i])].append(om.observe(w))
+        self.model_row_ = model_row.astype(np.int64)
+        self._starts = np.flatnonzero(np.r_[True, model_row[1:] != model_row[:-1]])
         pmap = make_map(om, variant=self.variant, normaliser=self.normaliser,
                         n_samples=self.n_samples, seed=self.seed, bailout=self.bailout,
                         p_bailout=self.p_bailout)
@@ -189,17 +214,21 @@ class FabMap(PlaceRecognizer):
     def score(self, items: Sequence[Any]) -> np.ndarray:
         """``S`` of shape (n_map_places, len(items)): log-likelihood or posterior."""
         self.check_fitted()
-        n = len(self.place_ids_)
-        S = np.empty((n, len(items)), dtype=np.float32)
+        n_models = len(self.model_row_)
+        S = np.empty((n_models, len(items)), dtype=np.float32)
         for j, words in enumerate(items):
             obs = self.obs_model_.observe(words)
             ll = self.map_.log_likelihood(obs)
             if self.output == "posterior":
                 new_ll = self.map_.new_place_log_likelihood(obs)
                 S[:, j] = location_posterior(ll, None, new_ll, p_new=self.p_new,
-                                             smoothing=self.smoothing)[:n]
+                                             smoothing=self.smoothing)[:n_models]
             else:
                 S[:, j] = ll
+        if n_models != len(self.place_ids_):
+            # Several models per place: the place's probability, or its best image's likelihood.
+            reduce = np.add if self.output == "posterior" else np.maximum
+            S = reduce.reduceat(S, self._starts, axis=0)
         return self._check_block(S, len(items))
 
 
