@@ -73,7 +73,7 @@ def test_not_fitted() -> None:
 @pytest.mark.parametrize("cls", [FabMap, FabMap2])
 @pytest.mark.parametrize("output", ["loglik", "posterior"])
 def test_localisation(world: dict[str, Any], cls: type[FabMap], output: str) -> None:
-    m = cls(output=output).fit(world["maps"], resources=world["res"])
+    m = cls(output=output, tours="merge").fit(world["maps"], resources=world["res"])
     assert m.name in ("fabmap", "fabmap2") and m.uses_vocabulary
     assert np.array_equal(m.place_ids_, world["ids"])
     # two map traverses of the same places merged into one model per place (Eq. 11)
@@ -90,7 +90,7 @@ def test_localisation(world: dict[str, Any], cls: type[FabMap], output: str) -> 
 
 def test_loglik_is_eq4_and_options(world: dict[str, Any]) -> None:
     res = world["res"]
-    base = FabMap().fit(world["maps"], resources=res)
+    base = FabMap(tours="merge").fit(world["maps"], resources=res)
     items = base.encode(world["query"], resources=res)
     S = base.score(items)
     obs = base.obs_model_.observe(items[0])
@@ -100,7 +100,7 @@ def test_loglik_is_eq4_and_options(world: dict[str, Any]) -> None:
     # naive Bayes, mean field, bail-out all work and agree on the best place
     for kw in ({"naive_bayes": True}, {"bailout": True},
                {"output": "posterior", "normaliser": "mean_field", "smoothing": 0.99}):
-        S2 = FabMap(**kw).fit(world["maps"], resources=res).score(items)
+        S2 = FabMap(tours="merge", **kw).fit(world["maps"], resources=res).score(items)
         assert S2.shape == S.shape
         assert (np.argmax(S2, axis=0) == np.argmax(S, axis=0)).mean() >= 0.9
 
