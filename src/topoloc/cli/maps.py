@@ -32,9 +32,9 @@ CacheOption = Annotated[Path | None, typer.Option(help="Feature/vocabulary cache
 
 
 def _check_out_file(path: Path) -> None:
-    from topoloc.maps.map import default_out_ok
+    from topoloc.io.dirs import check_output_file
 
-    default_out_ok(path)
+    check_output_file(path)
 
 
 def _feature_config(features: str, max_features: int, max_side: str, preprocess: str,

@@ -349,6 +349,20 @@ def find_images(folders: list[Path] | list[str]) -> list[Path]:
     return out
 
 
+def probe_image_sides(traverses: Sequence[Traverse]) -> set[int]:
+    """Longer image sides found in the first, middle and last image of each traverse.
+
+    Traverses of features or words have no size and add nothing; a corrupt
+    probed image is a one-line :class:`~topoloc.errors.TopolocError`.
+    """
+    sides: set[int] = set()
+    for trav in traverses:
+        n = len(trav)
+        if trav.kind in ("files", "images"):
+            sides |= {max(trav.read(i).shape[:2]) for i in (sorted({0, n // 2, n - 1}) if n else [])}
+    return sides
+
+
 def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
     """Read an image with OpenCV.
 

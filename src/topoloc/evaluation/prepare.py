@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from topoloc.datasets.traverse import Traverse, find_images, read_image
+from topoloc.datasets.traverse import Traverse, find_images, probe_image_sides, read_image
 from topoloc.errors import TopolocError
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, parse_param
@@ -57,11 +57,7 @@ def resolve_max_side(
         if value < 0:
             raise TopolocError(f"--max-side must be >= 0 (0 = no resizing), got {value}")
         return value
-    sides = {max(read_image(path).shape[:2]) for path in images}
-    for trav in traverses:  # files or frames in memory (bags, videos); features and words have no size
-        n = len(trav.images)
-        if trav.kind in ("files", "images"):
-            sides |= {max(trav.read(i).shape[:2]) for i in (sorted({0, n // 2, n - 1}) if n else [])}
+    sides = {max(read_image(path).shape[:2]) for path in images} | probe_image_sides(traverses)
     return min(sides) if len(sides) > 1 else 0
 
 

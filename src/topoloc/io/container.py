@@ -43,14 +43,15 @@ _PREFIX_V1 = struct.Struct("<8sIQ")
 _PREFIX = struct.Struct("<8sIQI")
 
 
-def _umask() -> int:
+def umask() -> int:
+    """The process's umask (read by setting it, so done once at import)."""
     mask = os.umask(0)
     os.umask(mask)
     return mask
 
 
 # Read once: os.umask can only be read by setting it, which is not thread-safe.
-_FILE_MODE = 0o666 & ~_umask()
+_FILE_MODE = 0o666 & ~umask()
 
 
 def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:

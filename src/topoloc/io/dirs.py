@@ -26,6 +26,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from topoloc.errors import input_error
+from topoloc.io.container import umask
 
 log = logging.getLogger(__name__)
 
@@ -116,13 +117,7 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 # mkdtemp makes 0700 folders; a run folder gets what any folder the user creates gets.
-_DIR_MODE = 0o777 & ~_umask()
+_DIR_MODE = 0o777 & ~umask()
 
 __all__ = ["check_output_dir", "check_output_file", "staged_dir"]

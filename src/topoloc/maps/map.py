@@ -12,7 +12,6 @@ NumPy array) and returns the place it shows with a confidence, and
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
@@ -24,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.datasets.traverse import Traverse, load_traverse, read_image
+from topoloc.datasets.traverse import Traverse, load_traverse, probe_image_sides, read_image
 from topoloc.errors import TopolocError, input_error
 from topoloc.features import FeatureConfig, FeatureExtractor
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
@@ -69,12 +68,7 @@ def auto_max_side(tours: Sequence[Traverse]) -> int:
     A map records the scale its features were extracted at, so that later
     queries from a larger camera are described at the same scale.
     """
-    sides = []
-    for t in tours:
-        n = len(t)
-        for i in sorted({0, n // 2, n - 1}) if n else []:
-            sides.append(max(t.read(i).shape[:2]) if t.kind in ("files", "images") else 0)
-    sides = [s for s in sides if s]
+    sides = probe_image_sides(tours)
     return min(sides) if sides else 0
 
 
@@ -522,17 +516,6 @@ def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
 def read_frame(path: Path) -> np.ndarray:
     """A grey frame from a file, decoded as the map's own images were (one-line error if unreadable)."""
     return read_image(path, gray=True)
-
-
-def default_out_ok(path: Path) -> None:
-    """Refuse an output path that cannot be written, before any work starts."""
-    if path.exists() and path.is_dir():
-        raise input_error("output is a folder, not a file", path)
-    parent = path.parent if str(path.parent) else Path(".")
-    if parent.exists() and not parent.is_dir():
-        raise input_error("output folder is a file", parent)
-    if parent.exists() and not os.access(parent, os.W_OK):
-        raise input_error("output folder is not writable", parent)
 
 
 __all__ = ["Localizer", "Map", "auto_max_side", "iter_inputs", "read_frame", "tour_record"]
