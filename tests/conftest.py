@@ -55,3 +55,19 @@ def fabmap_loop_model() -> FabMapModel:
 
     x = zipf_occurrence(300, n_words=400, words_per_image=40, seed=21, permutation_seed=0)
     return FabMapModel.train(x, n_words=400)
+
+
+@pytest.fixture(scope="session")
+def dask_scheduler() -> Any:
+    """The address of a real Dask cluster on localhost: a scheduler and 2 worker processes (1 thread each).
+
+    Skips when the ``distributed`` extra is not installed.  Started once per
+    test session (a few seconds) and closed at its end.
+    """
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                       host="127.0.0.1", silence_logs=40)
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()

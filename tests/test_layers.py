@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "topoloc"
 
 LAYERS: dict[str, int] = {
     # 0 foundation: no topoloc imports but each other
-    "errors": 0, "io": 0, "_params": 0, "_parallel": 0, "progress": 0,
+    "errors": 0, "io": 0, "_params": 0, "_parallel": 0, "cluster": 0, "progress": 0,
     # 1 inputs: images, traverses, features, vocabularies, geometry, synthetic data
     "datasets": 1, "features": 1, "vocabulary": 1, "geometry": 1, "synth": 1,
     # 2 algorithm packages: arrays in, arrays out

@@ -1,0 +1,146 @@
+"""The executor of a run: local threads or a real Dask cluster on localhost; same results, clear faults."""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from topoloc.cluster import (
+    DaskExecutor,
+    LocalExecutor,
+    chunks,
+    connect,
+    default_timeout_s,
+    flatten,
+    scheduler_address,
+)
+from topoloc.errors import TopolocError
+
+
+def _work(k: int) -> np.ndarray:
+    """A deterministic per-item result with float summation (so order matters if it were wrong)."""
+    rng = np.random.default_rng(k)
+    return rng.normal(size=(50, 8)).astype(np.float32).sum(axis=0)
+
+
+def _die_once(arg: tuple[str, int]) -> int:
+    """Kills its worker process the first time it sees item 3, then succeeds when rescheduled."""
+    marker, k = arg
+    if k == 3 and not Path(marker).exists():
+        Path(marker).write_text("died")
+        os._exit(1)
+    return k * k
+
+
+_flaky_calls: dict[int, int] = {}
+
+
+def _raise_once(arg: tuple[str, int]) -> int:
+    """Raises the first time (per worker process) for item 2: Dask's retries run it again."""
+    marker, k = arg
+    if k == 2 and not Path(marker).exists():
+        Path(marker).write_text("raised")
+        raise RuntimeError("transient failure")
+    return k + 100
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _pickle_this_module_by_value() -> None:
+    # Workers cannot import a test module (pytest imports it by path): send its functions by value.
+    cloudpickle = pytest.importorskip("cloudpickle")
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+def test_local_executor_keeps_order_and_counts_progress() -> None:
+    seen: list[int] = []
+    with LocalExecutor(n_jobs=2) as ex:
+        out = ex.map(_work, list(range(9)), advance=seen.append)
+    assert ex.name == "local" and ex.n_workers == 2
+    assert len(seen) == 9
+    for k, row in enumerate(out):
+        np.testing.assert_array_equal(row, _work(k))
+
+
+def test_connect_without_scheduler_runs_locally(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_SCHEDULER", raising=False)
+    assert isinstance(connect(None, n_jobs=1), LocalExecutor)
+    assert scheduler_address("") is None
+    monkeypatch.setenv("TOPOLOC_SCHEDULER", " tcp://example:8786 ")
+    assert scheduler_address(None) == "tcp://example:8786"
+    assert scheduler_address("tcp://other:1") == "tcp://other:1"
+
+
+def test_timeout_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_SCHEDULER_TIMEOUT", raising=False)
+    assert default_timeout_s() == 10.0
+    monkeypatch.setenv("TOPOLOC_SCHEDULER_TIMEOUT", "2.5")
+    assert default_timeout_s() == 2.5
+    for bad in ("soon", "0", "-1"):
+        monkeypatch.setenv("TOPOLOC_SCHEDULER_TIMEOUT", bad)
+        with pytest.raises(TopolocError, match="TOPOLOC_SCHEDULER_TIMEOUT"):
+            default_timeout_s()
+
+
+def test_chunks_and_flatten() -> None:
+    parts = chunks(10, 4)
+    assert [list(r) for r in parts] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9]]
+    assert flatten([[1, 2], [], [3]]) == [1, 2, 3]
+    assert chunks(0, 3) == []
+    with pytest.raises(ValueError):
+        chunks(5, 0)
+
+
+def test_missing_extra_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import fails as when not installed
+    with pytest.raises(TopolocError, match=r"topoloc\[distributed\]") as err:
+        connect("tcp://127.0.0.1:1")
+    assert "\n" not in str(err.value)
+
+
+def test_unreachable_scheduler_fails_within_the_timeout() -> None:
+    pytest.importorskip("distributed")
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.perf_counter()
+    with pytest.raises(TopolocError, match=rf"cannot reach the Dask scheduler at tcp://127.0.0.1:{port} within 1 s"):
+        connect(f"tcp://127.0.0.1:{port}", timeout_s=1.0)
+    assert time.perf_counter() - t0 < 10.0
+
+
+def test_dask_equals_local_bit_for_bit(dask_scheduler: str) -> None:
+    items = list(range(12))
+    with LocalExecutor(n_jobs=2) as local:
+        expected = local.map(_work, items)
+    seen: list[int] = []
+    with connect(dask_scheduler, timeout_s=20) as ex:
+        assert isinstance(ex, DaskExecutor)
+        assert ex.n_workers == 2
+        got = ex.map(_work, items, advance=seen.append)
+    assert len(seen) == 12
+    for a, b in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_task_that_raises_is_retried(dask_scheduler: str, tmp_path: Path) -> None:
+    marker = str(tmp_path / "raised")
+    with connect(dask_scheduler, timeout_s=20, retries=1) as ex:
+        out = ex.map(_raise_once, [(marker, k) for k in range(5)])
+    assert Path(marker).exists()  # it did fail once
+    assert out == [k + 100 for k in range(5)]
+
+
+def test_a_dead_worker_has_its_task_rescheduled(dask_scheduler: str, tmp_path: Path) -> None:
+    marker = str(tmp_path / "died")
+    with connect(dask_scheduler, timeout_s=20) as ex:
+        out = ex.map(_die_once, [(marker, k) for k in range(6)])
+        assert Path(marker).exists()  # a worker process really died
+        # The nanny restarts the dead worker; wait so later tests see 2 workers again.
+        ex.client.wait_for_workers(2, timeout=60)
+    assert out == [k * k for k in range(6)]
