@@ -100,3 +100,30 @@ def test_one_location_with_and_without_the_translation_bound() -> None:
                                          words[order], order.astype(np.int64), qx, qy, 1, model.grid_x,
                                          model.grid_y, 0, np.zeros(len(words), bool))
         assert not exact and score >= ref.scores[loc]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_parallel_batches_give_the_same_scores(seed: int) -> None:
+    """Threads and batch sizes change which locations get finished, never what S says."""
+    import numba
+
+    rng = np.random.default_rng(100 + seed)
+    model, w, xy = _case(rng, n_loc=80, position_bits=6)
+    ref = match_sequential(consistency_graphs(model, w, xy, seed=seed, spatial_tolerance=1))
+    for k in (1, 5):
+        serial, g1 = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=1, parallel=False)
+        old = numba.get_num_threads()
+        try:
+            numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+            par, g2 = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=1, parallel=True)
+        finally:
+            numba.set_num_threads(old)
+        np.testing.assert_array_equal(serial.scores, par.scores)
+        np.testing.assert_array_equal(serial.exact, par.exact)
+        np.testing.assert_array_equal(g1, g2)
+        assert serial.best == par.best == ref.best
+        T = np.sort(ref.scores)[::-1][k - 1]
+        # Locations at or above the top_k-th best score are exact; the others report min(n_i, T - 1/2).
+        np.testing.assert_array_equal(serial.exact, ref.scores >= T)
+        assert (serial.scores[~serial.exact] < T).all()
+        assert (serial.scores >= ref.scores).all()

@@ -46,10 +46,12 @@ Nothing here is approximate; :func:`match_compiled` only computes less.
 
 from __future__ import annotations
 
+import threading
 import time
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
@@ -393,8 +395,7 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
     return float(size), True, steps, tests, 0
 
 
-@njit(cache=True)
-def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy,
+def _match_locations_py(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy,
                      top_k, tol, gx, gy, seed, seed_first, max_batch, scores, exact, stats, best_keep):
     """The location loop of :func:`match_compiled` (see the module docstring).
 
@@ -404,8 +405,8 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
     4, ... ``max_batch``, those of a batch against the threshold known when
     the batch starts (the ``top_k``-th best finished score: only an upper
     bound below it drops a location, so the result does not depend on the
-    batches; batches are there for a parallel loop, which on two shared
-    cores did not pay, so ``max_batch`` is 1).  ``stats`` (int64, 5): elimination steps, locations whose ``J``
+    batches) and, compiled with ``parallel=True``, on all threads at once.
+    ``stats`` (int64, 5): elimination steps, locations whose ``J``
     was built, pair tests, locations finished, locations dropped by the
     translation bound.  ``best_keep`` (bool, F): query features of the final
     group of the best location.  Returns the best location (-1 if none).
@@ -444,7 +445,7 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
         out_tb = np.zeros(m, np.int64)
         out_built = np.zeros(m, np.int64)
         keep = np.zeros((m, F), np.bool_)
-        for t in range(m):
+        for t in prange(m):
             loc = order[pos + t]
             if n_cand[loc] < thr:
                 out_s[t] = n_cand[loc]
@@ -488,21 +489,33 @@ def _match_locations(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_
     return best_loc
 
 
+_match_locations = njit(cache=True)(_match_locations_py)
+_match_locations_parallel = njit(cache=True, parallel=True)(_match_locations_py)
+_PARALLEL_LOCK = threading.Lock()
+
+#: Locations per thread in a parallel batch (batches grow 1, 2, 4, ... up to this times the threads).
+BATCH_PER_THREAD = 2
+
+
 def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k: int = 1,
-                   interpolate: bool | None = None, seed: int = 0,
-                   spatial_tolerance: int = 0) -> tuple[MatchResult, np.ndarray]:
+                   interpolate: bool | None = None, seed: int = 0, spatial_tolerance: int = 0,
+                   parallel: bool = True) -> tuple[MatchResult, np.ndarray]:
     """Match one query against all locations (Sec. II-C, II-D); see the module docstring.
 
-    Parameters are those of :func:`~topoloc.coocmap.matching.match_lazy`.
+    Parameters are those of :func:`~topoloc.coocmap.matching.match_lazy`, and
+    ``parallel``: match the locations of a batch on all of numba's threads
+    (``numba.set_num_threads`` or ``NUMBA_NUM_THREADS`` choose how many); the
+    result is the same either way.
 
     Returns
     -------
     result : MatchResult
-        ``scores`` of finished locations (``exact``) equal
+        ``scores`` of the locations scoring at least ``T``, the
+        ``top_k``-th best (``exact``), equal
         :func:`~topoloc.coocmap.matching.match_sequential`'s; the others
-        report an upper bound strictly below the ``top_k``-th best exact
-        score (the bound they were dropped with, or ``n_i`` if never
-        reached).  ``kept`` is empty; ``steps`` counts eliminations.
+        report ``min(n_i, T - 1/2)``: an upper bound strictly below ``T``
+        that does not depend on the order in which locations were matched.
+        ``kept`` is empty; ``steps`` counts eliminations.
     group : ndarray of int64
         Query feature indices of the final group ``K`` of the best location.
     """
@@ -524,10 +537,26 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     qy = xyq[:, 1].astype(np.int64)
     # Candidate ids follow ascending query feature index, as in consistency_graphs;
     # out-of-vocabulary features never become candidates (absent from by_word).
-    _match_locations(order, n_cand, model.loc_ptr, model.word, model.xy, groups,
-                     words[by_word], by_word.astype(np.int64), qx, qy, int(top_k), int(spatial_tolerance),
-                     int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF, SEED_FIRST, 1, scores, exact,
-                     stats, keep)
+    threads = numba.get_num_threads() if parallel else 1
+    args = (order, n_cand, model.loc_ptr, model.word, model.xy, groups, words[by_word], by_word.astype(np.int64),
+            qx, qy, int(top_k), int(spatial_tolerance), int(model.grid_x), int(model.grid_y),
+            int(seed) & 0xFFFFFFFF, SEED_FIRST, BATCH_PER_THREAD * threads, scores, exact, stats, keep)
+    if threads > 1:
+        # One parallel kernel at a time: numba's fallback threading layer (workqueue) must not be
+        # entered by two Python threads at once.
+        with _PARALLEL_LOCK:
+            _match_locations_parallel(*args)
+    else:
+        _match_locations(*args)
+    # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact
+    # score (their bounds never fall below the threshold); which others it finishes depends on the
+    # order and the batches.  So that S does not depend on the threads, every other location
+    # reports min(n_i, T - 1/2), an upper bound strictly below T.
+    if exact.sum() >= top_k and not exact.all():
+        T = np.sort(scores[exact])[::-1][int(top_k) - 1]
+        below = ~exact | (scores < T)
+        scores[below] = np.minimum(n_cand[below], T - 0.5)
+        exact[below] = False
     res = MatchResult(scores, exact, np.zeros(0, bool), int(stats[0]), 0, time.perf_counter() - t0)
     res.locations_built = int(stats[1])  # type: ignore[attr-defined]
     res.pair_tests = int(stats[2])  # type: ignore[attr-defined]
