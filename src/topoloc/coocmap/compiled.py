@@ -359,6 +359,7 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
             idx[i] = i
         m = n
     size = m
+    prev = -1  # the candidate eliminated last: its partners' keys drop by one in the next pass
     while size > 0:
         ei = 0
         kmin = np.inf
@@ -369,6 +370,9 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
             v = key[i]
             if v == np.inf:
                 continue
+            if prev >= 0 and J[prev, i]:
+                v -= 1.0
+                key[i] = v
             idx[w] = i
             w += 1
             if v < kmin:
@@ -385,10 +389,7 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
         key[ei] = np.inf
         size -= 1
         steps += 1
-        for t in range(m):
-            j = idx[t]
-            if J[ei, j]:
-                key[j] -= 1.0
+        prev = ei
     for i in range(n):
         if key[i] != np.inf:
             keep[cand_feat[i]] = True
