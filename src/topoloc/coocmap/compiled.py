@@ -21,8 +21,9 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   translations near one another; counting triples in windows of the
   translation histogram bounds the group size.  On near-duplicate views it
   is within ~1.5x of the true score and drops almost every wrong location
-  (real-image benchmark: ~2 of 2,200 locations get a ``J``); across day and
-  night it prunes little.
+  (``benchmarks/bench_coocmap_speed.py``, real-image rows of
+  docs/results/coocmap_speed.md: J built for 2 of 2,200 locations, median);
+  across day and night it prunes little.
 * ``J_i`` is filled as a dense 0/1 matrix by the same translation-bucketed
   enumeration of (query feature, stored feature) pairs as
   :func:`~topoloc.coocmap.matching.consistency_graphs` (exact), skipping the

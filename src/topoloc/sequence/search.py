@@ -72,7 +72,10 @@ query (about 0.82 on Nordland) is below that of the true place (0.87), it is
 the lowest row of every column after contrast enhancement (on average -1.9
 against -1.5 for true matches), and a line that sits on it for 11 frames beat
 the true trajectory for 1,344 of 1,772 Nordland queries (R@1 0.82 -> 0.23;
-with the neutral value 0.83, and no query takes place 0).
+with the neutral value 0.83, and no query takes place 0).  These numbers are
+the ``seqslam_nordland`` and ``seqslam_dark_frame`` rows of
+``../shared/scorecard`` (the issue's recipe), before and after this change;
+``tests/sequence`` holds the recipe as a test.
 Anywhere else in the route a single image is one frame of any trajectory
 and is diluted by the ``ds`` others; the neutral value makes the start of
 the route behave like the rest of it.  (OpenSeqSLAM instead gives lines
@@ -275,6 +278,8 @@ def contrast_enhance(
     such a first frame from 0.24 to 0.002.  With the neutral start they
     change nothing (R@1 0.829 either way, 0.839 with the dark first frame;
     best place of the costs within 2 places), so the release's rule is kept.
+    (Measured with the ``seqslam_nordland`` and ``seqslam_dark_frame`` rows of
+    ``../shared/scorecard``, the windows switched by hand.)
 
     Parameters
     ----------
@@ -522,13 +527,16 @@ def acceleration_search(
     practice: with no bound, a path can sit on one "hub" place that resembles
     every query (a blank or generic image stands out after contrast
     enhancement) and beat the true sequence; on Nordland summer -> winter
-    that takes R@1 from 0.8 to under 0.01.  ``v_min=0, v_max=inf`` gives the
-    paper's unconstrained paths.
+    that takes R@1 from 0.8 to under 0.01 (``topoloc evaluate --method seqslam
+    --param search=acceleration --param v_min=0 --param v_max=inf`` on
+    nordland_64x32 summer -> winter, tolerance 0:2).  ``v_min=0, v_max=inf``
+    gives the paper's unconstrained paths.
 
     Flexibility has a price where speeds do match: every wrong place can
     also bend its path towards low differences.  On Nordland (both traverses
     at the same speed) R@1 is 0.51 with these bounds against 0.82 for
-    straight lines, 0.73 with ``step_penalty=0.5``.  ``step_penalty`` (0, as in
+    straight lines, 0.73 with ``step_penalty=0.5`` (docs/results/seqslam.md,
+    written by ``benchmarks/bench_sequence.py``).  ``step_penalty`` (0, as in
     the paper) adds that much cost per place of deviation from a unit step
     (a repeat costs ``step_penalty``, skipping ``j`` places ``j *
     step_penalty``), trading acceleration tolerance for discrimination.
