@@ -144,3 +144,19 @@ def test_a_dead_worker_has_its_task_rescheduled(dask_scheduler: str, tmp_path: P
         # The nanny restarts the dead worker; wait so later tests see 2 workers again.
         ex.client.wait_for_workers(2, timeout=60)
     assert out == [k * k for k in range(6)]
+
+
+def test_local_executor_stops_on_interrupt() -> None:
+    """Ctrl-C in one item: the items not yet started are not run."""
+    started: list[int] = []
+
+    def work(k: int) -> int:
+        started.append(k)
+        if k == 1:
+            raise KeyboardInterrupt
+        time.sleep(0.05)
+        return k
+
+    with pytest.raises(KeyboardInterrupt):
+        LocalExecutor(n_jobs=2).map(work, list(range(50)))
+    assert len(started) < 50

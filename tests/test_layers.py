@@ -21,7 +21,7 @@ LAYERS: dict[str, int] = {
     # 1 inputs: images, traverses, features, vocabularies, geometry, synthetic data
     "datasets": 1, "features": 1, "vocabulary": 1, "geometry": 1, "synth": 1,
     # 2 algorithm packages: arrays in, arrays out
-    "bow": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2, "voting": 2,
+    "bow": 2, "confidence": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2, "voting": 2,
     # 3 recognisers (adapters to the Resources protocol), their registry and test helpers
     "methods": 3, "testing": 3,
     # 4 pipelines: evaluation, saved maps and localisation, benchmarks, demo

@@ -117,8 +117,15 @@ class LocalExecutor:
         workers = min(self.n_workers, max(len(items), 1))
         if workers == 1:
             return [run(x) for x in items]
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            return list(pool.map(run, items))
+        pool = ThreadPoolExecutor(max_workers=workers)
+        try:
+            out = list(pool.map(run, items))
+        except BaseException:
+            # Interrupted (Ctrl-C) or failed: items not yet started are dropped, not run to the end.
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+        pool.shutdown(wait=True)
+        return out
 
     def close(self) -> None:
         return None

@@ -129,3 +129,15 @@ def test_bad_input_is_one_line_and_leaves_the_map_untouched(cli: Cli, rf: dict[s
     cli.error(["evaluate", "--map-file", str(tlm), "--query", str(rf["query"]), "--param", "merge=sum",
             "--out", str(tmp_path / "e")], "fixes its parameters")
     assert cv2 is not None
+
+
+def test_map_built_from_shards_equals_the_one_piece_map(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    one = _build(cli, rf, tmp_path / "one.tlm", "coocmap")
+    three = _build(cli, rf, tmp_path / "three.tlm", "coocmap", "--shards", "3")
+    a, b = tmp_path / "a", tmp_path / "b"
+    for tlm, out in ((one, a), (three, b)):
+        cli.ok(["evaluate", "--map-file", str(tlm), "--query", str(rf["query"]), "--out", str(out),
+                "--cache-dir", str(rf["cache"]), "--quiet"])
+    np.testing.assert_array_equal(np.load(a / "S.npy"), np.load(b / "S.npy"))
+    cli.error(["map", "build", "--method", "bow", "--map", str(rf["map"]), "--vocab", str(rf["vocab"]),
+               "--out", str(tmp_path / "x.tlm"), "--shards", "0"], "shards")

@@ -61,8 +61,9 @@ def test_config_key_is_stable_and_depends_on_every_field() -> None:
         FeatureConfig(fast_threshold=10).key(),
         FeatureConfig(preprocess="clahe").key(),
         FeatureConfig(preprocess="equalize").key(),
+        FeatureConfig(preprocess="auto").key(),
     }
-    assert len(keys) == 8
+    assert len(keys) == 9
     assert base.key().startswith("sift-")
 
 
@@ -72,7 +73,7 @@ def test_key_without_preprocessing_is_the_key_from_before_it_existed() -> None:
     import hashlib
     import json
 
-    cfg = FeatureConfig(method="rootsift", max_side=640)
+    cfg = FeatureConfig(method="rootsift", max_side=640, preprocess="none")
     old_fields = {"method": "rootsift", "max_features": 1000, "max_side": 640, "contrast_threshold": 0.04,
                   "fast_threshold": 20, "akaze_threshold": 0.001}
     payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, **old_fields}, sort_keys=True)
@@ -201,6 +202,88 @@ def test_clahe_recovers_keypoints_of_a_dim_low_contrast_image() -> None:
     n_clahe = len(extract_features(night, FeatureConfig(max_features=1000, preprocess="clahe")))
     assert n_plain < 0.5 * n_day
     assert n_clahe > 2 * n_plain
+
+
+def test_auto_key_carries_the_version_of_its_rule(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A refined per-image rule must not reuse cache entries the previous rule wrote.
+    before = FeatureConfig(preprocess="auto").key()
+    monkeypatch.setattr(local, "AUTO_PREPROCESS_VERSION", local.AUTO_PREPROCESS_VERSION + 1)
+    assert FeatureConfig(preprocess="auto").key() != before
+    # ... while the values that existed before "auto" keep the key they always had.
+    import hashlib
+    import json
+
+    fields = {"method": "sift", "max_features": 1000, "max_side": 0, "contrast_threshold": 0.04,
+              "fast_threshold": 20, "akaze_threshold": 0.001, "preprocess": "clahe"}
+    payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, **fields}, sort_keys=True)
+    assert FeatureConfig(preprocess="clahe").key() == "sift-" + hashlib.sha1(payload.encode()).hexdigest()[:12]
+
+
+def _contrast(img: np.ndarray) -> float:
+    p5, p95 = np.percentile(img, [5, 95])
+    return float(p95 - p5)
+
+
+def test_nonuniformity_is_near_zero_for_an_equalised_image_and_near_one_for_a_dark_one() -> None:
+    ramp = np.tile(np.arange(256, dtype=np.uint8), (64, 1))
+    assert local.histogram_nonuniformity(ramp) < 0.01
+    assert local.histogram_nonuniformity(cv2.equalizeHist(textured_image(3))) < 0.05
+    dark = (textured_image(3).astype(np.float32) * (25 / 255)).astype(np.uint8)  # levels 0..25
+    assert local.histogram_nonuniformity(dark) > 0.85
+    flat = (110 + textured_image(3).astype(np.float32) * (30 / 255)).astype(np.uint8)  # 110..140
+    assert local.histogram_nonuniformity(flat) > 0.4
+    assert local.histogram_nonuniformity(np.full((8, 8), 255, np.uint8)) > 0.99
+
+
+def test_auto_equalises_a_dark_image_and_leaves_an_equalised_one_nearly_alone() -> None:
+    day = textured_image(5)
+    dark = (5 + day.astype(np.float32) * (30 / 255)).astype(np.uint8)
+    out = local.adaptive_equalize(dark)
+    assert out.dtype == np.uint8 and out.shape == dark.shape
+    assert _contrast(out) > 2 * _contrast(dark)  # clip limit 2 bounds the gain of CLAHE itself
+    # Dark enough that the blend is mostly CLAHE: within a few levels of CLAHE itself.
+    clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(dark)
+    assert np.abs(out.astype(int) - clahe).mean() < 0.2 * np.abs(dark.astype(int) - clahe).mean()
+    equalised = cv2.equalizeHist(day)
+    kept = local.adaptive_equalize(equalised)
+    moved = np.abs(kept.astype(int) - equalised).mean()
+    moved_by_clahe = np.abs(
+        cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(equalised).astype(int) - equalised
+    ).mean()
+    assert moved < 0.1 * moved_by_clahe
+
+
+def test_auto_weight_grows_with_nonuniformity() -> None:
+    # The same texture squeezed into narrower and darker ranges is changed more and more.
+    day = textured_image(6).astype(np.float32)
+    changes = []
+    for top in (255, 120, 40):
+        img = (day * (top / 255)).astype(np.uint8)
+        changes.append(np.abs(local.adaptive_equalize(img).astype(int) - img).mean() / top)
+    assert changes[0] < changes[1] < changes[2]
+
+
+@pytest.mark.parametrize(("shape", "grid"), [((540, 960), (8, 8)), ((180, 320), (8, 5)), ((32, 64), (2, 1)),
+                                             ((8, 8), (1, 1))])
+def test_clahe_tiles_shrink_on_small_images(shape: tuple[int, int], grid: tuple[int, int]) -> None:
+    assert local.clahe_grid(shape) == grid
+
+
+@pytest.mark.parametrize("shape", [(32, 64), (1, 1), (3, 200)])
+def test_auto_works_on_tiny_images(shape: tuple[int, int]) -> None:
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 20, shape, dtype=np.uint8)
+    out = local.adaptive_equalize(img)
+    assert out.shape == shape and out.dtype == np.uint8
+    assert len(extract_features(img, FeatureConfig(preprocess="auto"))) >= 0
+
+
+def test_auto_recovers_keypoints_of_a_dim_low_contrast_image() -> None:
+    day = textured_image(7)
+    night = (10 + day.astype(np.float32) * (30 / 255)).astype(np.uint8)
+    n_plain = len(extract_features(night, FeatureConfig(max_features=1000, preprocess="none")))
+    n_auto = len(extract_features(night, FeatureConfig(max_features=1000, preprocess="auto")))
+    assert n_auto > 2 * n_plain
 
 
 @pytest.mark.parametrize("preprocess", ["clahe", "equalize"])
@@ -337,3 +420,24 @@ def test_unreadable_images_raise_topoloc_error(tmp_path: Path) -> None:
         ex.extract_path(empty)
     with pytest.raises(TopolocError, match=r"missing\.png"):
         ex.extract_path(tmp_path / "missing.png")
+
+
+# -- real data -----------------------------------------------------------------------------
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+
+
+@pytest.mark.realdata
+def test_auto_weights_on_the_development_data() -> None:
+    # gardens_point's night_right frames come already equalised: auto leaves them nearly alone,
+    # while the darkest webcam frame (a night shot) gets a stronger equalisation than any of them.
+    night = sorted((DATA / "gardens_point" / "night_right").glob("*.jpg"))[:5]
+    webcam = sorted((DATA / "webcam_daynight" / "queries").glob("*.jpg"))
+    if not night or not webcam:
+        pytest.skip(f"{DATA} is not available")
+    d_night = [local.histogram_nonuniformity(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in night]
+    darkest = min((cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in webcam[::20]), key=lambda g: float(g.mean()))
+    assert max(d_night) < 0.2
+    assert local.histogram_nonuniformity(darkest) > 0.8
+    out = local.adaptive_equalize(darkest)
+    assert _contrast(out) > _contrast(darkest)

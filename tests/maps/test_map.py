@@ -173,3 +173,22 @@ def test_a_failed_save_leaves_the_old_map_whole(tiny_route: dict[str, Any], tmp_
         m.add_tour(tiny_route["training"]).save(path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["m.tlm"]  # no temporary file left behind
+
+
+def test_a_map_built_from_shards_saves_the_same_state(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    from topoloc.cluster import LocalExecutor
+
+    tours = [tiny_route["map"], tiny_route["training"]]
+    kw: dict[str, Any] = {"method": "bow", "tours": tours, "vocabulary": tiny_route["vocabulary"],
+                          "cache_dir": tiny_route["map"].root.parent / "cache"}
+    one = Map.build(**kw)
+    sharded = Map.build(**kw, shards=3, executor=LocalExecutor(n_jobs=2))
+    meta_a, arrays_a = one.recognizer.get_state()
+    meta_b, arrays_b = sharded.recognizer.get_state()
+    assert meta_a == meta_b and sorted(arrays_a) == sorted(arrays_b)
+    for name in arrays_a:
+        assert arrays_a[name].dtype == arrays_b[name].dtype and arrays_a[name].tobytes() == arrays_b[name].tobytes()
+    assert sharded.tours == one.tours
+    np.testing.assert_array_equal(sharded.place_xy, one.place_xy)
+    with pytest.raises(TopolocError, match="shards must be"):
+        Map.build(**kw, shards=0)

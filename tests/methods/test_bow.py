@@ -38,7 +38,7 @@ def test_inverted_file_equals_dense_cosine() -> None:
     map_words = [rng.integers(0, n_words, 30) for _ in range(8)]
     q_words = [rng.integers(0, n_words, 30) for _ in range(3)]
     res = _res(n_words)
-    bow = BagOfWords().fit([_trav("m", map_words, list(range(8)))], resources=res)
+    bow = BagOfWords(confidence="raw").fit([_trav("m", map_words, list(range(8)))], resources=res)
     S = bow.score(bow.encode(_trav("q", q_words, [0, 1, 2]), resources=res))
     counts = term_counts(map_words, n_words)
     idf = inverse_document_frequency(counts)

@@ -73,7 +73,8 @@ def test_files_and_arrays_go_through_the_same_door(name: str, tiny_route: dict[s
     cached = CachedResources(extractor=FeatureExtractor(cache_dir=tmp_path), vocabulary=tiny_route["vocabulary"],
                              training=tiny_route["training"])
     from_files = cls(**params).fit(tiny_route["map"], resources=cached).similarity(tiny_route["query"])
-    assert any((tmp_path / "features").rglob("*.tlf")) == (name not in ("seqslam", "seqslam-single", "descriptors"))
+    # Features of image files go through the feature store (blocks, topoloc.features.store).
+    assert any((tmp_path / "features").rglob("*.tlb")) == (name not in ("seqslam", "seqslam-single", "descriptors"))
     camera = Traverse.from_images(tiny_route["query_frames"], tiny_route["query"].places)
     in_memory = cls(**params).fit(tiny_route["map"], resources=_memory(tiny_route)).similarity(camera)
     np.testing.assert_allclose(in_memory, from_files, rtol=1e-6, atol=1e-6)

@@ -54,7 +54,7 @@ def test_fit_score_recognises_day_and_night() -> None:
     for simultaneous, schedule in [(True, "compiled"), (True, "lazy"), (True, "best_first"), (True, "rounds"),
                                    (False, "lazy")]:
         m = CoocMap(grid_x=6, grid_y=4, simultaneous=simultaneous,
-                    schedule=schedule).fit(maps, resources=res)
+                    schedule=schedule, confidence="raw").fit(maps, resources=res)
         assert m.tour_order_ == ["day", "night"]  # ordered by time of day
         S = m.score(m.encode(query, resources=res))
         assert S.shape == (6, 2) and S.dtype == np.float32

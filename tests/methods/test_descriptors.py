@@ -30,7 +30,8 @@ def test_scores_are_cosine_or_negative_l2_max_over_a_places_images(metric: str, 
     np.save(tmp_path / "map.npy", np.vstack([a, b]).astype(np.float32))
     np.save(tmp_path / "query.npy", q.astype(np.float32))
     tours = [_traverse(tmp_path, [0, 1, 2, 3, 4, 5]), _traverse(tmp_path, [5, 4, 3, 2, 1, 0])]
-    rec = GlobalDescriptors(map=str(tmp_path / "map.npy"), query=str(tmp_path / "query.npy"), metric=metric)
+    rec = GlobalDescriptors(map=str(tmp_path / "map.npy"), query=str(tmp_path / "query.npy"), metric=metric,
+                            confidence="raw")
     S = rec.fit(tours).similarity(_traverse(tmp_path, [0, 1, 2, 3]))
     imgs, places = np.vstack([a, b]), np.r_[0:6, 5:-1:-1]
     if metric == "cosine":
@@ -42,14 +43,17 @@ def test_scores_are_cosine_or_negative_l2_max_over_a_places_images(metric: str, 
     np.testing.assert_allclose(S, expected, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("confidence", ["raw", "margin"])
 @pytest.mark.parametrize("metric", ["cosine", "l2"])
-def test_faiss_top_k_equals_the_top_k_of_s(metric: str, tmp_path: Path) -> None:
+def test_faiss_top_k_equals_the_top_k_of_s(metric: str, confidence: str, tmp_path: Path) -> None:
     rng = np.random.default_rng(1)
     n = 50
     np.save(tmp_path / "map.npy", rng.normal(size=(2 * n, 16)).astype(np.float32))
     np.save(tmp_path / "query.npy", rng.normal(size=(30, 16)).astype(np.float32))
     places = list(rng.permutation(n)) + list(rng.permutation(n))  # two images per place, in any order
-    rec = GlobalDescriptors(map=str(tmp_path / "map.npy"), query=str(tmp_path / "query.npy"), metric=metric)
+    # raw: faiss's search; margin: dense blocks of score (the margin needs the whole column).
+    rec = GlobalDescriptors(map=str(tmp_path / "map.npy"), query=str(tmp_path / "query.npy"), metric=metric,
+                            confidence=confidence)
     rec.fit([_traverse(tmp_path, places[:n]), _traverse(tmp_path, places[n:])])
     items = rec.encode(_traverse(tmp_path, list(range(30))))
     rows, scores = rec.top_k(items, 7, block=8)

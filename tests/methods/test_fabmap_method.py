@@ -73,7 +73,7 @@ def test_not_fitted() -> None:
 @pytest.mark.parametrize("cls", [FabMap, FabMap2])
 @pytest.mark.parametrize("output", ["loglik", "posterior"])
 def test_localisation(world: dict[str, Any], cls: type[FabMap], output: str) -> None:
-    m = cls(output=output, tours="merge").fit(world["maps"], resources=world["res"])
+    m = cls(output=output, tours="merge", confidence="raw").fit(world["maps"], resources=world["res"])
     assert m.name in ("fabmap", "fabmap2") and m.uses_vocabulary
     assert np.array_equal(m.place_ids_, world["ids"])
     # two map traverses of the same places merged into one model per place (Eq. 11)
@@ -90,7 +90,7 @@ def test_localisation(world: dict[str, Any], cls: type[FabMap], output: str) -> 
 
 def test_loglik_is_eq4_and_options(world: dict[str, Any]) -> None:
     res = world["res"]
-    base = FabMap(tours="merge").fit(world["maps"], resources=res)
+    base = FabMap(tours="merge", confidence="raw").fit(world["maps"], resources=res)
     items = base.encode(world["query"], resources=res)
     S = base.score(items)
     obs = base.obs_model_.observe(items[0])
@@ -172,15 +172,15 @@ def test_detector_validation(world: dict[str, Any]) -> None:
 def test_separate_tours_score_a_place_by_its_best_image(world: dict[str, Any], cls: type[FabMap]) -> None:
     res = world["res"]
     a, b = world["maps"]
-    sep = cls(tours="separate").fit([a, b], resources=res)
+    sep = cls(tours="separate", confidence="raw").fit([a, b], resources=res)
     items = sep.encode(world["query"], resources=res)
     S = sep.score(items)
     # Each image its own model: the place's log-likelihood is the best of its two tours' images.
-    Sa = cls().fit([a], resources=res).score(items)
-    Sb = cls().fit([b], resources=res).score(items)
+    Sa = cls(confidence="raw").fit([a], resources=res).score(items)
+    Sb = cls(confidence="raw").fit([b], resources=res).score(items)
     np.testing.assert_allclose(S, np.maximum(Sa, Sb), rtol=1e-5)
     assert len(sep.model_row_) == 50 and np.array_equal(sep.place_ids_, world["ids"])
-    post = cls(tours="separate", output="posterior").fit([a, b], resources=res).score(items)
+    post = cls(tours="separate", output="posterior", confidence="raw").fit([a, b], resources=res).score(items)
     assert (post >= 0).all() and (post.sum(axis=0) <= 1 + 1e-5).all()
     hits = (world["ids"][np.argmax(S, axis=0)] == world["truth"]).mean()
     assert hits >= 0.9

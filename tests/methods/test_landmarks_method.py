@@ -76,7 +76,7 @@ def test_splitting_and_verification_options() -> None:
     split = LandmarkMap(r_min=float(r) * 1.5, max_splits=30).fit([tr["map"]], resources=res)
     assert 0 < len(split.splits_) <= 30
     assert split.model_.n_landmarks_ == base.model_.n_landmarks_ + len(split.splits_)
-    ver = LandmarkMap(verify_nodes=3, normalise=True).fit([tr["map"]], resources=res)
+    ver = LandmarkMap(verify_nodes=3, normalise=True, confidence="raw").fit([tr["map"]], resources=res)
     S = ver.score(ver.encode(tr["query"], resources=res))
     np.testing.assert_allclose(S.sum(axis=0), 1.0, rtol=1e-5)
     assert np.mean(np.argmax(S, axis=0) == np.arange(N_FRAMES)) >= 0.75

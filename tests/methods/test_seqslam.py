@@ -198,10 +198,10 @@ def test_not_fitted_and_bad_items(world: dict[str, Traverse]) -> None:
 def test_parameters(world: dict[str, Traverse]) -> None:
     assert SeqSLAM.param_names() == [
         "width", "height", "patch_size", "levels_per_std", "enhance_window", "ds",
-        "v_min", "v_max", "v_step", "search", "max_skip", "step_penalty", "uniqueness",
+        "v_min", "v_max", "v_step", "search", "max_skip", "step_penalty", "uniqueness", "confidence",
     ]
     assert SingleImageSeqSLAM.param_names() == [
-        "width", "height", "patch_size", "levels_per_std", "enhance_window", "uniqueness",
+        "width", "height", "patch_size", "levels_per_std", "enhance_window", "uniqueness", "confidence",
     ]
     p = SeqSLAM().get_params()
     assert (p["width"], p["height"], p["patch_size"], p["ds"], p["enhance_window"]) == (

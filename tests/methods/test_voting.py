@@ -40,7 +40,7 @@ def _trav(feats: dict[str, list[FeatureSet]], name: str, places: list[int]) -> T
 def test_votes_pick_the_right_image() -> None:
     feats = {"map": _views(1, 0.0, 0.01), "q": _views(2, 0.4, 0.02)}
     res = InMemoryResources()
-    v = ImageVoting().fit([_trav(feats, "map", list(range(N)))], resources=res)
+    v = ImageVoting(confidence="raw").fit([_trav(feats, "map", list(range(N)))], resources=res)
     assert v.index_.ntotal == sum(len(f) for f in feats["map"])
     S = v.score(v.encode(_trav(feats, "q", list(range(N))), resources=res))
     assert S.shape == (N, N) and S.dtype == np.float32

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -12,6 +14,7 @@ import pytest
 
 import topoloc.vocabulary.vocab as vocab_module
 from topoloc.bench.quantisation import measure_quantisation, quantisation_agreement
+from topoloc.cluster import LocalExecutor
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureConfig, FeatureExtractor
 from topoloc.io import write_container
@@ -361,18 +364,53 @@ def test_train_vocabulary_without_images(tmp_path: Path) -> None:
         train_vocabulary([blank], extractor=ex, n_words=10)
 
 
-def test_sampling_is_uniform_and_independent_of_chunking(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_sampling_is_uniform_and_independent_of_the_workers(tmp_path: Path) -> None:
     folder = tmp_path / "train"
     write_training_images(folder, 6)
     ex = FeatureExtractor(FeatureConfig(method="orb", max_features=100), cache_dir=tmp_path / "c")
     images = sorted(folder.rglob("*.png"))
-    a, n_a = vocab_module._sample_descriptors(images, ex, 150, 0, None)
-    monkeypatch.setattr(vocab_module, "_CHUNK_IMAGES", 2)
-    b, n_b = vocab_module._sample_descriptors(images, ex, 150, 0, None)
+    kw = {"max_descriptors": 150, "seed": 0, "block_images": 2}
+    a, n_a = vocab_module.sample_descriptors(images, ex, executor=LocalExecutor(n_jobs=1), **kw)
+    b, n_b = vocab_module.sample_descriptors(images, ex, executor=LocalExecutor(n_jobs=3), **kw)
     assert n_a == n_b > 150 and a.shape == (150, 32)
     np.testing.assert_array_equal(a, b)
+    # The sample is the 150 smallest keys over every descriptor, each block keyed from (seed, block).
+    sets = ex.extract_paths(images)
+    every, keys = [], []
+    for blk in range(3):
+        d = np.concatenate([s.descriptors for s in sets[2 * blk:2 * blk + 2]])
+        every.append(d)
+        keys.append(np.random.default_rng([0, blk]).random(len(d)))
+    allk = np.concatenate(keys)
+    np.testing.assert_array_equal(a, np.concatenate(every)[np.sort(np.argsort(allk)[:150])])
+    c, _ = vocab_module.sample_descriptors(images, ex, executor=LocalExecutor(n_jobs=1), max_descriptors=150, seed=1,
+                                           block_images=2)
+    assert not np.array_equal(a, c)  # the seed matters
+
+
+@pytest.fixture(scope="module")
+def _pickle_tests_by_value() -> None:
+    cloudpickle = pytest.importorskip("cloudpickle")
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+def test_vocabulary_trained_on_a_dask_cluster_equals_the_local_one(tmp_path: Path, dask_scheduler: str,
+                                                                   _pickle_tests_by_value: None,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from topoloc.cluster import connect
+
+    monkeypatch.setattr(vocab_module, "SAMPLE_BLOCK_IMAGES", 2)  # 4 blocks: 4 tasks over the 2 workers
+    folder = tmp_path / "train"
+    write_training_images(folder, 7)
+    kw: dict[str, Any] = {"n_words": 16, "seed": 3, "max_descriptors": 400}
+    ex = FeatureExtractor(FeatureConfig(method="orb", max_features=120), cache_dir=tmp_path / "local")
+    local = train_vocabulary([folder], extractor=ex, **kw)
+    remote_ex = FeatureExtractor(FeatureConfig(method="orb", max_features=120), cache_dir=tmp_path / "remote")
+    with connect(dask_scheduler, timeout_s=20) as cluster:
+        remote = train_vocabulary([folder], extractor=remote_ex, executor=cluster, **kw)
+    assert remote.provenance_["n_descriptors"] == local.provenance_["n_descriptors"] > 400
+    assert remote.provenance_["n_descriptors_used"] == 400
+    assert remote.words_.tobytes() == local.words_.tobytes()
 
 
 def test_measure_quantisation_reports_times() -> None:

@@ -32,6 +32,35 @@ def term_counts(words: Sequence[np.ndarray], n_words: int) -> sp.csr_matrix:
     return m
 
 
+def merge_documents(parts: Sequence[sp.csr_matrix], order: np.ndarray) -> sp.csr_matrix:
+    """The documents of partial collections (map shards) as one collection, in map order.
+
+    Document frequencies need no merging of their own: ``N_i`` of the merged
+    collection is the sum of the parts' ``N_i`` and ``N`` the sum of their
+    ``N``, so :func:`inverse_document_frequency` of the result is the idf of
+    the map built in one piece.
+
+    Parameters
+    ----------
+    parts : sequence of csr_matrix, each (n_documents_k, n_words)
+        Word counts (:func:`term_counts`) of each part.
+    order : ndarray of int64, shape (sum n_documents_k,)
+        Row ``j`` of the result is row ``order[j]`` of the parts stacked in order.
+
+    Returns
+    -------
+    csr_matrix, shape (len(order), n_words)
+        Built like :func:`term_counts` (same dtypes, sorted indices), so it equals
+        the counts of the whole map bit for bit.
+    """
+    n_words = int(parts[0].shape[1])
+    stacked = sp.csr_matrix(sp.vstack(list(parts), format="csr"))[np.asarray(order, np.int64)]
+    m = sp.csr_matrix((stacked.data.astype(np.float32), stacked.indices.astype(np.int64),
+                       stacked.indptr.astype(np.int64)), shape=(len(order), n_words))
+    m.sum_duplicates()
+    return m
+
+
 def inverse_document_frequency(counts: sp.csr_matrix) -> np.ndarray:
     """``log(N / N_i)`` per word, shape (n_words,); 0 for words absent from every document."""
     n_docs = counts.shape[0]

@@ -84,7 +84,26 @@ MaxSideAutoOption = Annotated[str, typer.Option(
     help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
          "the traverses when their sizes differ, 0 = never.")]
 MaxSideOption = Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")]
-PreprocessOption = Annotated[str, typer.Option(help="Photometric preprocessing: none, clahe, equalize.")]
+# Where per-block work runs (topoloc.cluster); shared by every command that extracts features.
+SchedulerOption = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address (tcp://host:8786): feature extraction and quantisation run on its "
+                        "workers, which must see the cache folder at the same path; default $TOPOLOC_SCHEDULER, "
+                        "else this machine's threads. Needs pip install 'topoloc[distributed]'.")]
+SchedulerTimeoutOption = Annotated[float | None, typer.Option(
+    "--scheduler-timeout", help="Seconds to wait for the scheduler and a worker before a one-line error "
+                                "(default $TOPOLOC_SCHEDULER_TIMEOUT, else 10).")]
+PreprocessOption = Annotated[str, typer.Option(
+    help="Photometric preprocessing: none, clahe, equalize, auto (CLAHE weighted per image by how far its "
+         "histogram is from uniform).")]
+
+
+def open_executor(scheduler: str | None, timeout: float | None) -> Any:
+    """The run's executor (:func:`topoloc.cluster.connect`): a Dask client, or this machine's threads."""
+    from topoloc.cluster import connect
+
+    if timeout is not None and not timeout > 0:
+        raise TopolocError(f"--scheduler-timeout must be a positive number of seconds, got {timeout}")
+    return connect(scheduler, timeout_s=timeout)
 
 
 def _parse_params(items: list[str]) -> dict[str, str]:
@@ -153,6 +172,8 @@ def evaluate(
     every_s: EverySOption = None,
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
+    scheduler: SchedulerOption = None,
+    scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
     """Run one method on map and query traverses and score it (docs/protocol.md)."""
     from topoloc.cli.recordings import check_recording_options
@@ -171,8 +192,8 @@ def evaluate(
         topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic,
     )
     check_recording_options([*opts.maps, query], topic, every_s, every_m, pose_topic)
-    with rich_progress(not quiet) as progress:
-        metrics = run(opts, progress=progress)
+    with open_executor(scheduler, scheduler_timeout) as executor, rich_progress(not quiet) as progress:
+        metrics = run(opts, progress=progress, executor=executor)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
     s_file = "S_topk.npz" if top_k else "S.npy"
     typer.echo(f"wrote {out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {html}" if html else ""))
@@ -245,6 +266,8 @@ def vocab_train_cmd(
     preprocess: PreprocessOption = "none",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     cache_dir: Annotated[Path | None, typer.Option(help="Feature cache folder.")] = None,
+    scheduler: SchedulerOption = None,
+    scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
     """Train a visual vocabulary (k-means) on the images under FOLDERS."""
     from topoloc.features import FeatureConfig, FeatureExtractor
@@ -254,9 +277,9 @@ def vocab_train_cmd(
     check_output_file(out)
     config = FeatureConfig(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     extractor = FeatureExtractor(config, cache_dir=cache_dir)
-    with rich_progress() as progress:
+    with open_executor(scheduler, scheduler_timeout) as executor, rich_progress() as progress:
         voc = train_vocabulary(list(folders), extractor=extractor, n_words=words, seed=seed,
-                               progress=progress)
+                               progress=progress, executor=executor)
     voc.save(out)
     typer.echo(json.dumps({"out": str(out), **voc.provenance_}, default=str))
 

@@ -13,10 +13,13 @@ from topoloc.cli.main import (
     FeaturesOption,
     MaxFeaturesOption,
     PreprocessOption,
+    SchedulerOption,
+    SchedulerTimeoutOption,
     _parse_params,
     _sequence_length,
     app,
     handle_errors,
+    open_executor,
 )
 from topoloc.cli.progress import rich_progress
 from topoloc.cli.recordings import EveryMOption, EverySOption, PoseTopicOption, TopicOption
@@ -77,6 +80,11 @@ def map_build(
     every_s: EverySOption = None,
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
+    shards: Annotated[int, typer.Option(
+        help="Build the map as this many partial models of place ranges, one task each, merged into the "
+                    "same map as a one-piece build (docs/map_shards.md).")] = 1,
+    scheduler: SchedulerOption = None,
+    scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
     """Build a map from one or more tours and save it in one file."""
     from topoloc.cli.recordings import load_tours
@@ -90,9 +98,11 @@ def map_build(
     params = build_method(method, _parse_params(param or [])).get_params()  # checks names and types first
     config = _feature_config(features, max_features, max_side, preprocess, tours)
     t0 = time.perf_counter()
-    with rich_progress(not quiet) as progress:
-        m = Map.build(method=method, tours=tours, params=params, vocabulary=vocab, vocab_train=list(vocab_train or []),
-                      vocab_words=vocab_words, features=config, cache_dir=cache_dir, progress=progress)
+    with open_executor(scheduler, scheduler_timeout) as executor, rich_progress(not quiet) as progress:
+        m = Map.build(executor=executor,
+                      method=method, tours=tours, params=params, vocabulary=vocab, vocab_train=list(vocab_train or []),
+                      vocab_words=vocab_words, features=config, cache_dir=cache_dir, progress=progress,
+                      shards=shards)
     m.save(out)
     info = m.info()
     typer.echo(json.dumps({"out": str(out), "bytes": info["bytes"], "method": info["method"],
@@ -115,6 +125,8 @@ def map_add(
     every_s: EverySOption = None,
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
+    scheduler: SchedulerOption = None,
+    scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
     """Add a tour to a saved map without rebuilding it from the earlier images."""
     from topoloc.cli.recordings import load_tours
@@ -134,8 +146,8 @@ def map_add(
         if m.vocabulary is None or other != vocabulary_fingerprint(m.vocabulary):
             raise input_error(f"vocabulary {vocab} is not the one this map was built with", map_file)
     t = load_tours([tour], topic, every_s, every_m, pose_topic)[0]
-    with rich_progress(not quiet) as progress:
-        m.add_tour(t, cache_dir=cache_dir, progress=progress)
+    with open_executor(scheduler, scheduler_timeout) as executor, rich_progress(not quiet) as progress:
+        m.add_tour(t, cache_dir=cache_dir, progress=progress, executor=executor)
     m.save(map_file)
     typer.echo(json.dumps({"out": str(map_file), "places": len(m.place_ids),
                            "tours": [x["name"] for x in m.tours]}))
@@ -224,8 +236,14 @@ def localize(
     every_s: EverySOption = None,
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
+    scheduler: SchedulerOption = None,
+    scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
-    """Localise new images against a saved map: place, score, accepted, top places (and x, y) per frame."""
+    """Localise new images against a saved map: place, score, accepted, top places (and x, y) per frame.
+
+    With --scheduler the frames are described and scored in batches by the Dask workers (which open the
+    map file: it must be on a file system they share); the lines are the same, in the same order.
+    """
     from topoloc.cli.recordings import localize_frames
     from topoloc.maps import Map
 
@@ -237,10 +255,19 @@ def localize(
     t0 = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     # Written line by line: a run that is stopped keeps every frame done so far.
-    with open(out, "w", encoding="utf-8") as fh, rich_progress(not quiet) as progress:
+    with open_executor(scheduler, scheduler_timeout) as executor, open(out, "w", encoding="utf-8") as fh, \
+            rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)
         decode_s = 0.0
-        while True:  # bags and videos are streamed: one frame decoded at a time
+        if executor.name != "local":  # batches of frames scored on the cluster, lines in frame order
+            from topoloc.maps.batch import localize_on
+
+            for line, seconds in localize_on(executor, loc, frames):
+                decode_s += seconds
+                fh.write(json.dumps(line) + "\n")
+                fh.flush()
+                advance(1)
+        while executor.name == "local":  # bags and videos are streamed: one frame decoded at a time
             t1 = time.perf_counter()
             item = next(frames, None)
             decode_s += time.perf_counter() - t1
@@ -274,16 +301,29 @@ def cache_info(
     cache_dir: CacheOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object.")] = False,
 ) -> None:
-    """Files and bytes in each part of the cache."""
+    """Files and bytes in each part of the cache, and the feature stores of each feature setting."""
     from topoloc.features.cache import cache_usage, default_cache_dir
+    from topoloc.features.store import store_usage
 
     usage = cache_usage(cache_dir)
+    stores = store_usage(cache_dir)
+    per_setting: dict[str, dict[str, int]] = {}
+    for st in stores:
+        agg = per_setting.setdefault(st["settings"], {"traverses": 0, "images": 0, "bytes": 0})
+        agg["traverses"] += 1
+        agg["images"] += st["images"]
+        agg["bytes"] += st["bytes"]
     if as_json:
-        typer.echo(json.dumps({"cache_dir": str(cache_dir or default_cache_dir()), **usage}))
+        typer.echo(json.dumps({"cache_dir": str(cache_dir or default_cache_dir()), **usage,
+                               "feature_stores": per_setting, "stores": stores}))
         return
     typer.echo(f"cache: {cache_dir or default_cache_dir()}")
     for part, u in usage.items():
         typer.echo(f"  {part}: {u['files']} files, {u['bytes'] / 2**20:.1f} MiB")
+    if per_setting:
+        typer.echo("feature stores (one per traverse and setting):")
+    for key, agg in per_setting.items():
+        typer.echo(f"  {key}: {agg['traverses']} traverses, {agg['images']} images, {agg['bytes'] / 2**20:.1f} MiB")
 
 
 @cache_app.command("clean")
@@ -295,7 +335,7 @@ def cache_clean(
     older_than: Annotated[float | None, typer.Option(help="Remove entries not used for this many days.")] = None,
     all_: Annotated[bool, typer.Option("--all", help="Remove everything.")] = False,
 ) -> None:
-    """Remove cache entries (they are computed again when next needed)."""
+    """Remove cache entries, least recently used first: whole feature stores and files (computed again when needed)."""
     from topoloc.features.cache import clean_cache, parse_size
 
     if not all_ and max_size is None and older_than is None:

@@ -413,3 +413,53 @@ class CoocModel:
         model.tours = np.array(tours)
         model._index()
         return model
+
+
+def merge_models(parts: Sequence[CoocModel]) -> CoocModel:
+    """One model from the models of consecutive location ranges (map shards), locations in order.
+
+    ``M_i`` (Sec. II-B, II-E) depends only on the features of location ``i``
+    in every tour, so a model built per range of locations holds exactly the
+    generators of those locations; concatenating the ranges (part ``k``'s
+    location ``j`` becomes ``j`` plus the locations of parts ``0..k-1``) gives
+    the model built in one piece, array for array.  Every part must have the
+    same tours in the same time order (their bit in the tour masks).
+
+    Parameters
+    ----------
+    parts : sequence of CoocModel
+        Models of consecutive location ranges, in order.
+
+    Returns
+    -------
+    CoocModel
+
+    Raises
+    ------
+    TopolocError
+        For no part, or parts that differ in vocabulary size, grid, position
+        lattice, interpolation or tours.
+    """
+    if not parts:
+        raise TopolocError("coocmap: no model to merge")
+    first = parts[0]
+    for k, p in enumerate(parts[1:], start=1):
+        for what in ("n_words", "grid_x", "grid_y", "interpolate", "position_bits", "tour_names", "tour_hours",
+                     "vocabulary"):
+            if getattr(p, what) != getattr(first, what):
+                raise TopolocError(f"coocmap: shard model {k} has another {what} than shard model 0; "
+                                   "build every shard with the same settings and tours")
+    out = CoocModel(n_locations=sum(p.n_locations for p in parts), n_words=first.n_words, grid_x=first.grid_x,
+                    grid_y=first.grid_y, interpolate=first.interpolate, position_bits=first.position_bits)
+    out.tour_names = list(first.tour_names)
+    out.tour_hours = list(first.tour_hours)
+    out.vocabulary = dict(first.vocabulary)
+    out.built_from = dict(first.built_from)
+    offsets = np.cumsum([0] + [p.n_locations for p in parts[:-1]])
+    out._set_features(
+        np.concatenate([p.loc.astype(np.int64) + int(o) for p, o in zip(parts, offsets, strict=True)]),
+        np.concatenate([p.word.astype(np.int64) for p in parts]),
+        np.concatenate([np.asarray(p.xy, np.uint16).reshape(-1, 2) for p in parts]),
+        np.concatenate([p.tours.astype(np.uint64) for p in parts]),
+    )
+    return out

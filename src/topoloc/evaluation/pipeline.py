@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import (
     GroundTruth,
     ground_truth_from_file,
@@ -123,7 +124,8 @@ def make_ground_truth(
 
 
 def evaluate(
-    opts: EvaluateOptions | None = None, *, progress: ProgressFactory | None = None, **options: Any
+    opts: EvaluateOptions | None = None, *, progress: ProgressFactory | None = None,
+    executor: Executor | None = None, **options: Any
 ) -> dict[str, Any]:
     """Run ``opts.method`` and write every output file of ``docs/protocol.md`` under ``opts.out``.
 
@@ -134,6 +136,10 @@ def evaluate(
         ``evaluate(method="bow", maps=[...], query=..., out=..., vocab_train=[...])``.
     progress : ProgressFactory, optional
         Progress bars (the CLI passes rich's).
+    executor : Executor, optional
+        Where feature extraction and quantisation of image files run
+        (:func:`topoloc.cluster.connect`: a Dask cluster, or by default this
+        process's threads); the caller closes it.  S is the same either way.
 
     Returns
     -------
@@ -181,7 +187,7 @@ def evaluate(
                            f"{opts.query} has {len(query)}")
     map_xy = None
     if opts.map_file is not None:
-        method, resources, vocab_info, map_xy = _saved_map(opts, progress)
+        method, resources, vocab_info, map_xy = _saved_map(opts, progress, executor)
         max_side, fit_s = resources.extractor.config.max_side, 0.0
         map_labels = [str(opts.map_file)]
     else:
@@ -194,6 +200,7 @@ def evaluate(
             max_features=opts.max_features, max_side=max_side, preprocess=opts.preprocess,
             cache_dir=opts.cache_dir, seed=opts.seed,
             needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
+            executor=executor,
         )
         t0 = time.perf_counter()
         with progress_stage(prog, f"fit {method.name} on {sum(len(m) for m in maps)} map images"):
@@ -248,6 +255,8 @@ def evaluate(
                 "preprocess": resources.extractor.config.preprocess,
             },
             "vocabulary": vocab_info,
+            # "local", or the Dask scheduler the features were extracted and quantised on.
+            "executor": resources.executor.name if isinstance(resources, CachedResources) else "local",
             "fit_seconds": fit_s,
             "vocabulary_seconds": float(vocab_info.get("seconds_this_run", 0.0)),
             "ms_per_query_p95": float(np.percentile(ms_each, 95)) if len(ms_each) else 0.0,
@@ -284,7 +293,7 @@ def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> No
 
 
 def _saved_map(
-    opts: EvaluateOptions, progress: ProgressFactory | None
+    opts: EvaluateOptions, progress: ProgressFactory | None, executor: Executor | None = None
 ) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray]:
     """The recogniser, resources, vocabulary record and place positions of ``opts.map_file``.
 
@@ -300,7 +309,7 @@ def _saved_map(
     if opts.params or opts.vocab is not None or opts.vocab_train:
         raise TopolocError("a saved map fixes its parameters and vocabulary: --param, --vocab and --vocab-train "
                            f"cannot be used with --map-file {opts.map_file}")
-    res = saved._resources(cache_dir=opts.cache_dir, progress=progress)
+    res = saved._resources(cache_dir=opts.cache_dir, progress=progress, executor=executor)
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
         voc.update({"file": f"embedded in {opts.map_file}", **saved.vocabulary.provenance_})

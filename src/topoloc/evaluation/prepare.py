@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from topoloc.cluster import Executor
 from topoloc.datasets.traverse import Traverse, find_images, probe_image_sides, read_image
 from topoloc.errors import TopolocError
 from topoloc.methods import get_method
@@ -74,11 +75,13 @@ def make_resources(
     seed: int = 0,
     needs_vocabulary: str = "",
     progress: ProgressFactory | None = None,
+    executor: Executor | None = None,
 ) -> tuple[CachedResources, dict[str, Any]]:
     """Feature extractor and vocabulary for a run, with the vocabulary's provenance.
 
     ``needs_vocabulary`` names the user of the vocabulary (a method, a command);
-    when set, a missing ``vocab``/``vocab_train`` is an error.
+    when set, a missing ``vocab``/``vocab_train`` is an error.  ``executor``
+    runs the per-block work (default: this process's threads).
     """
     from topoloc.features import FeatureConfig, FeatureExtractor
 
@@ -107,7 +110,7 @@ def make_resources(
             t0 = time.perf_counter()
             voc, path = cached_vocabulary(
                 folders, extractor=extractor, n_words=vocab_words, seed=seed, cache_dir=cache_dir,
-                progress=progress,
+                progress=progress, executor=executor,
             )
             vocab_info.update({"used": True, "file": str(path), "n_words": int(voc.n_words_), **voc.provenance_,
                                "seconds_this_run": round(time.perf_counter() - t0, 3)})
@@ -118,7 +121,7 @@ def make_resources(
     elif needs_vocabulary:
         raise TopolocError(f"{needs_vocabulary} needs a vocabulary: pass --vocab FILE or --vocab-train DIR")
     res = CachedResources(extractor=extractor, vocabulary=vocabulary, progress=progress,
-                          training_images=training_images)
+                          training_images=training_images, executor=executor)
     return res, vocab_info
 
 

@@ -87,36 +87,92 @@ def parse_size(text: str) -> int:
     return int(value * mult)
 
 
+STORE_GLOB = "features/*/store/*"
+"""Where the feature stores live under the cache root (:mod:`topoloc.features.store`): one folder each."""
+
+
+def _cache_units(root: Path) -> list[tuple[float, int, int, Path]]:
+    """What cleaning removes whole: each feature store folder, and every other file.
+
+    Returns ``(last used, bytes, files, path)`` per unit; last use is the latest
+    access or modification time of its files (access times where the file
+    system records them).
+    """
+    units: list[tuple[float, int, int, Path]] = []
+    if not root.is_dir():
+        return units
+    stores = {d for d in root.glob(STORE_GLOB) if d.is_dir()}
+    for store in stores:
+        files = [f for f in store.rglob("*") if f.is_file()]
+        units.append((store_last_used(files), sum(f.stat().st_size for f in files), len(files), store))
+    for f in root.rglob("*"):
+        if f.is_file() and not any(parent in stores for parent in f.parents):
+            st = f.stat()
+            units.append((max(st.st_atime, st.st_mtime), st.st_size, 1, f))
+    return units
+
+
+def store_last_used(files: list[Path]) -> float:
+    """Last use of a feature store: the latest access or change of its block files.
+
+    Its manifest (``store.json``) counts by its modification time only: ``cache
+    info`` reads it, and looking at the cache must not make a store look used.
+    """
+    times = [0.0]
+    for f in files:
+        st = f.stat()
+        times.append(st.st_mtime if f.name == "store.json" else max(st.st_atime, st.st_mtime))
+    return max(times)
+
+
+def _remove_store(store: Path) -> None:
+    """Remove a feature store folder: renamed away first, so no half store is ever seen at its path."""
+    import shutil
+    import uuid
+
+    trash = store.with_name(f".{store.name}.removing-{uuid.uuid4().hex[:8]}")
+    try:
+        store.rename(trash)
+    except FileNotFoundError:
+        return
+    shutil.rmtree(trash, ignore_errors=True)
+
+
 def clean_cache(cache_dir: str | Path | None = None, *, max_bytes: int | None = None,
                 older_than_s: float | None = None) -> dict[str, int]:
-    """Remove cache files: those not used for ``older_than_s`` seconds, then the least recently used
+    """Remove cache entries: those not used for ``older_than_s`` seconds, then the least recently used
     until the cache holds at most ``max_bytes`` (both None: everything).
 
-    Entries are whole files written atomically, so removing any of them never
-    leaves a half entry; a removed entry is computed again when next needed.
+    An entry is a whole feature store (the features of one traverse, its
+    blocks and manifest, removed together: its folder is renamed away, then
+    deleted) or one single-image feature file, vocabulary or other file, each
+    written atomically; so cleaning never leaves a half entry, and a removed
+    entry is computed again when next needed.
 
     Returns
     -------
     dict
-        ``{"removed_files", "removed_bytes", "kept_files", "kept_bytes"}``.
+        ``{"removed_files", "removed_bytes", "removed_stores", "kept_files", "kept_bytes"}``.
     """
     import time
 
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    files = [f for f in root.rglob("*") if f.is_file()] if root.is_dir() else []
-    # Last use: reading an entry updates its access time where the file system records it.
-    info = sorted(((max(st.st_atime, st.st_mtime), st.st_size, f) for f in files
-                   for st in [f.stat()]), key=lambda x: x[0])
+    info = sorted(_cache_units(root), key=lambda x: x[0])
     now = time.time()
     remove_all = max_bytes is None and older_than_s is None
-    total = sum(size for _, size, _ in info)
-    removed = removed_bytes = 0
-    for used, size, f in info:
+    total = sum(size for _, size, _, _ in info)
+    total_files = sum(n for _, _, n, _ in info)
+    removed = removed_bytes = removed_stores = 0
+    for used, size, n, path in info:
         old = older_than_s is not None and now - used > older_than_s
         over = max_bytes is not None and total - removed_bytes > max_bytes
         if remove_all or old or over:
-            f.unlink(missing_ok=True)
-            removed += 1
+            if path.is_dir():
+                _remove_store(path)
+                removed_stores += 1
+            else:
+                path.unlink(missing_ok=True)
+            removed += n
             removed_bytes += size
-    return {"removed_files": removed, "removed_bytes": removed_bytes, "kept_files": len(info) - removed,
-            "kept_bytes": total - removed_bytes}
+    return {"removed_files": removed, "removed_bytes": removed_bytes, "removed_stores": removed_stores,
+            "kept_files": total_files - removed, "kept_bytes": total - removed_bytes}

@@ -50,7 +50,10 @@ FEATURES_SCHEMA = 1
 """Version of the feature computation and cache-entry layout; part of every cache key."""
 
 METHODS = ("sift", "rootsift", "orb", "akaze")
-PREPROCESS = ("none", "clahe", "equalize")
+PREPROCESS = ("none", "clahe", "equalize", "auto")
+
+AUTO_PREPROCESS_VERSION = 1
+"""Version of the per-image rule of ``preprocess="auto"`` (:func:`adaptive_equalize`); part of its cache key."""
 
 # method -> (descriptor columns, dtype name)
 _DESCRIPTORS: dict[str, tuple[int, str]] = {
@@ -85,13 +88,17 @@ class FeatureConfig:
         ORB FAST threshold (OpenCV default 20).
     akaze_threshold : float
         AKAZE detector response threshold (OpenCV default 0.001).
-    preprocess : {"none", "clahe", "equalize"}
+    preprocess : {"none", "clahe", "equalize", "auto"}
         Photometric normalisation of the gray image before detection.
         ``"clahe"`` is contrast-limited adaptive histogram equalisation (Zuiderveld
         1994; clip limit 2, 8 x 8 tiles): it lifts the dark, low-contrast regions of
         night images to the contrast of day images, so the detector fires on the
         same structures at every time of day instead of spending the keypoint budget
         on the few bright lamps.  ``"equalize"`` is global histogram equalisation.
+        ``"auto"`` decides per image how much CLAHE it needs (see
+        :func:`adaptive_equalize`): a dark or low-contrast image is equalised fully,
+        an image that already uses the whole grey range is left nearly as it is, and
+        the tiles shrink on small images.
     """
 
     method: str = "sift"
@@ -136,6 +143,9 @@ class FeatureConfig:
         if fields["preprocess"] == "none":
             # Settings from before ``preprocess`` existed keep their cache entries.
             del fields["preprocess"]
+        elif fields["preprocess"] == "auto":
+            # The per-image rule may be refined; its version keeps old entries from being reused.
+            fields["auto_version"] = AUTO_PREPROCESS_VERSION
         payload = json.dumps({"schema": FEATURES_SCHEMA, "opencv": cv2.__version__, **fields}, sort_keys=True)
         return f"{self.method}-{hashlib.sha1(payload.encode()).hexdigest()[:12]}"
 
@@ -303,7 +313,81 @@ def _normalise(gray: np.ndarray, preprocess: str) -> np.ndarray:
         return _cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(gray)
     if preprocess == "equalize":
         return cv2.equalizeHist(gray)
+    if preprocess == "auto":
+        return adaptive_equalize(gray)
     return gray
+
+
+#: Smallest CLAHE tile side of ``"auto"`` in pixels: 32 x 32 = 1,024 pixels, 4 per grey level,
+#: so a tile's histogram is not mostly empty bins.  Images of 256 px and more keep the 8 x 8
+#: tiles of ``"clahe"`` (the setting its gardens_point gains were measured with).
+_MIN_TILE_SIDE = 32
+
+
+def histogram_nonuniformity(gray: np.ndarray) -> float:
+    """How far an image's grey levels are from using the whole range evenly, in [0, 1).
+
+    The Kolmogorov-Smirnov distance between the image's grey-level distribution
+    and the uniform one on 0..255,
+
+        D = max_v | F(v) - (v + 1) / 256 |,
+
+    where ``F`` is the empirical cumulative histogram.  A histogram-equalised image
+    has D near 0; a dark image (mass at low levels), an over-exposed one (mass at
+    high levels) and a flat, low-contrast one (mass in a narrow band) have D near 1.
+
+    Parameters
+    ----------
+    gray : ndarray of uint8, shape (H, W)
+
+    Returns
+    -------
+    float
+    """
+    hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
+    cdf = np.cumsum(hist) / max(hist.sum(), 1.0)
+    return float(np.abs(cdf - np.arange(1, 257) / 256.0).max())
+
+
+def clahe_grid(shape: tuple[int, int]) -> tuple[int, int]:
+    """CLAHE tiles ``(columns, rows)`` for an image of ``shape = (H, W)``.
+
+    8 per side (OpenCV's default) as long as tiles keep at least
+    :data:`_MIN_TILE_SIDE` pixels a side, fewer on small images (a 64 x 32 frame
+    gets 2 x 1), never fewer than one.
+    """
+    h, w = shape
+    return max(1, min(8, w // _MIN_TILE_SIDE)), max(1, min(8, h // _MIN_TILE_SIDE))
+
+
+def adaptive_equalize(gray: np.ndarray) -> np.ndarray:
+    """Per-image contrast equalisation: as much CLAHE as the image's histogram asks for.
+
+    With ``D`` the :func:`histogram_nonuniformity` of the image and ``C`` its CLAHE
+    (clip limit 2, tiles of :func:`clahe_grid`), the result is the blend
+
+        out = (1 - D) * gray + D * C.
+
+    The weight comes from the image itself, not from a constant: a night frame
+    whose grey levels are crowded into the dark end (D near 1) gets full CLAHE, a
+    frame that is already equalised (D near 0, e.g. gardens_point's night_right
+    frames) is left almost unchanged, and a day frame with deep shadows or a bright
+    sky gets part of it.  ``benchmarks/bench_preprocess.py`` compares it with
+    ``"none"`` and ``"clahe"``; it is not the default because, like ``"clahe"``,
+    it loses on gardens_point day_left -> day_right there.
+
+    Parameters
+    ----------
+    gray : ndarray of uint8, shape (H, W)
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W)
+    """
+    d = histogram_nonuniformity(gray)
+    clahe = _cv2.createCLAHE(clipLimit=2.0, tileGridSize=clahe_grid(gray.shape)).apply(gray)
+    out = cv2.addWeighted(gray, 1.0 - d, clahe, d, 0.0)
+    return np.asarray(out, dtype=np.uint8)
 
 
 def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:

@@ -101,13 +101,37 @@ def adjacent_matches(
         Feature indices in frame ``i`` and ``i + 1`` of the epipolar inliers.
     """
     descs = normalised if normalised is not None else [normalise_descriptors(f.descriptors) for f in features]
-    out = []
-    for i in range(len(features) - 1):
-        ia, ib, _ = mutual_matches(descs[i], descs[i + 1], threshold)
-        ok = epipolar_inliers(features[i].xy[ia], features[i + 1].xy[ib],
-                              ransac_px=ransac_px, min_matches=min_matches, seed=i)
-        out.append((ia[ok], ib[ok]))
-    return out
+    return [pair_matches(features[i], features[i + 1], frame=i, threshold=threshold, ransac_px=ransac_px,
+                         min_matches=min_matches, normalised=(descs[i], descs[i + 1]))
+            for i in range(len(features) - 1)]
+
+
+def pair_matches(
+    a: FeatureSet,
+    b: FeatureSet,
+    *,
+    frame: int,
+    threshold: float = 0.45,
+    ransac_px: float = 3.0,
+    min_matches: int = 8,
+    normalised: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Verified matches between frame ``frame`` (``a``) and frame ``frame + 1`` (``b``) of a traverse.
+
+    One step of :func:`adjacent_matches`; the RANSAC seed is the frame index,
+    so a pair matched on its own (by the shard that holds frame ``frame``)
+    gives what matching the whole traverse gives.
+
+    Returns
+    -------
+    ia, ib : ndarray of int64, shape (m,)
+        Feature indices in ``a`` and ``b`` of the epipolar inliers.
+    """
+    da, db = normalised if normalised is not None else (normalise_descriptors(a.descriptors),
+                                                        normalise_descriptors(b.descriptors))
+    ia, ib, _ = mutual_matches(da, db, threshold)
+    ok = epipolar_inliers(a.xy[ia], b.xy[ib], ransac_px=ransac_px, min_matches=min_matches, seed=frame)
+    return ia[ok], ib[ok]
 
 
 def build_tracks(
@@ -137,14 +161,34 @@ def build_tracks(
     -------
     Tracks
     """
-    counts = np.array([len(f) for f in features], dtype=np.int64)
+    matches = adjacent_matches(features, threshold=threshold, ransac_px=ransac_px,
+                               min_matches=min_matches, normalised=normalised)
+    return chain_tracks(np.array([len(f) for f in features], dtype=np.int64), matches)
+
+
+def chain_tracks(counts: np.ndarray, matches: Sequence[tuple[np.ndarray, np.ndarray]]) -> Tracks:
+    """Tracks from the verified matches of every pair of consecutive frames (the chaining of Sec. III).
+
+    Parameters
+    ----------
+    counts : ndarray of int64, shape (n_frames,)
+        Features of each frame.
+    matches : sequence of (ia, ib), length ``n_frames - 1``
+        :func:`adjacent_matches`' output, or the same pairs matched apart
+        (:func:`pair_matches`, e.g. by the shards of a map) and put in frame order.
+
+    Returns
+    -------
+    Tracks
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    if len(matches) != max(len(counts) - 1, 0):
+        raise ValueError(f"{len(counts)} frames need {max(len(counts) - 1, 0)} adjacent matches, got {len(matches)}")
     offsets = np.r_[0, np.cumsum(counts)]
     n = int(offsets[-1])
     track_of = np.full(n, -1, np.int64)  # per global feature index
-    matches = adjacent_matches(features, threshold=threshold, ransac_px=ransac_px,
-                               min_matches=min_matches, normalised=normalised)
     next_id = 0
-    for i in range(len(features)):
+    for i in range(len(counts)):
         lo, hi = offsets[i], offsets[i + 1]
         if i > 0:
             ia, ib = matches[i - 1]
@@ -152,7 +196,7 @@ def build_tracks(
         fresh = np.flatnonzero(track_of[lo:hi] < 0) + lo
         track_of[fresh] = np.arange(next_id, next_id + len(fresh))
         next_id += len(fresh)
-    frame = np.repeat(np.arange(len(features), dtype=np.int64), counts)
+    frame = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
     feature = np.arange(n, dtype=np.int64) - offsets[frame]
     order = np.lexsort((frame, track_of))
     return Tracks(frame=frame[order], feature=feature[order], track=track_of[order],

@@ -22,14 +22,16 @@ from typing import Any
 
 import numpy as np
 
+from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse, probe_image_sides, read_image
 from topoloc.errors import TopolocError, input_error
 from topoloc.features import FeatureConfig, FeatureExtractor
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.methods import get_method
-from topoloc.methods.base import PlaceRecognizer
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.methods.resources import CachedResources, InMemoryResources, Resources
+from topoloc.methods.shards import build_from_shards
 from topoloc.progress import ProgressFactory
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
@@ -124,6 +126,8 @@ class Map:
         cache_dir: str | Path | None = None,
         progress: ProgressFactory | None = None,
         seed: int = 0,
+        shards: int = 1,
+        executor: Executor | None = None,
     ) -> Map:
         """Fit ``method`` on ``tours`` and return the map (not yet saved).
 
@@ -143,10 +147,19 @@ class Map:
         features : FeatureConfig, optional
             Default: SIFT, 1000 per image, at the smallest longer image side
             found among the tours (:func:`auto_max_side`).
+        shards : int
+            Build the map as this many partial models of contiguous place
+            ranges (one task each on ``executor``) and merge them; the map
+            equals the one built in one piece (``docs/map_shards.md``).
+        executor : Executor, optional
+            Where the shard tasks run (:func:`topoloc.cluster.connect`;
+            default: threads of this process).
         """
         maps = [t if isinstance(t, Traverse) else load_traverse(t) for t in tours]
         if not maps:
             raise TopolocError("a map needs at least one tour")
+        if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1:
+            raise TopolocError(f"shards must be a whole number >= 1, got {shards!r}")
         cls_ = get_method(method)
         rec = cls_(**(params or {}))
         rec.validate_params()  # before any feature is extracted
@@ -166,7 +179,7 @@ class Map:
 
             training_images = find_images([Path(f) for f in vocab_train])
             voc, _ = cached_vocabulary(list(vocab_train), extractor=extractor, n_words=vocab_words, seed=seed,
-                                       cache_dir=cache_dir, progress=progress)
+                                       cache_dir=cache_dir, progress=progress, executor=executor)
         if voc is not None:
             voc.check_compatible(config.descriptor_kind, source=vocabulary if isinstance(vocabulary, str | Path)
                                  else None)
@@ -174,13 +187,22 @@ class Map:
             raise TopolocError(f"method {method!r} needs a vocabulary: pass a vocabulary file or folders to "
                                "train one on")
         res = CachedResources(extractor=extractor, vocabulary=voc, progress=progress,
-                              training_images=training_images)
-        rec.fit(maps, resources=res)
+                              training_images=training_images, executor=executor)
+        if shards > 1:
+            # One partial model per range of places, as independent tasks, merged into the same map
+            # (topoloc.methods.shards; docs/map_shards.md says what is exact).
+            n_parts = min(shards, len(map_place_ids(maps)))
+            rec = build_from_shards(cls_, maps, params=params or {}, resources=res, n_shards=shards,
+                                    executor=executor if executor is not None else getattr(res, "executor", None),
+                                    advance=progress("map shards", n_parts)
+                                    if progress is not None else None)
+        else:
+            rec.fit(maps, resources=res)
         return cls(rec, features=config, vocabulary=voc, tours=[tour_record(t) for t in maps],
                    xy_sums=_xy_sums(maps, rec.place_ids_))
 
     def add_tour(self, tour: Traverse | str | Path, *, cache_dir: str | Path | None = None,
-                 progress: ProgressFactory | None = None) -> Map:
+                 progress: ProgressFactory | None = None, executor: Executor | None = None) -> Map:
         """Add a tour without revisiting the earlier images (each method's own update; see its ``_add_tour``).
 
         Raises
@@ -194,7 +216,8 @@ class Map:
             raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
                               self.path or t.root)
         old_ids = self.place_ids
-        self.recognizer.add_tour(t, resources=self._resources(cache_dir=cache_dir, progress=progress))
+        self.recognizer.add_tour(t, resources=self._resources(cache_dir=cache_dir, progress=progress,
+                                                              executor=executor))
         sums = _xy_sums([t], self.place_ids)
         sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
         self.xy_sums = sums
@@ -256,7 +279,12 @@ class Map:
                     raise input_error("map file's vocabulary does not match its fingerprint", path)
             state = {k.removeprefix(STATE_PREFIX): a for k, a in arrays.items() if k.startswith(STATE_PREFIX)}
             frame_res = InMemoryResources(feature_config=features, vocabulary=voc, memoise=False)
-            rec = cls_.from_state(dict(meta["params"]), meta["state"], state, resources=frame_res)
+            params = dict(meta["params"])
+            if "confidence" in cls_.param_names():
+                # A map saved before the confidence parameter existed scored, and was
+                # calibrated, on raw scores: it keeps them.
+                params.setdefault("confidence", "raw")
+            rec = cls_.from_state(params, meta["state"], state, resources=frame_res)
             place_ids = np.asarray(arrays["places/ids"])
             if not np.array_equal(place_ids, rec.place_ids_):
                 raise input_error("map file is inconsistent (place ids differ from the method's)", path)
@@ -306,11 +334,11 @@ class Map:
         }
 
     # -- querying ---------------------------------------------------------------------------
-    def _resources(self, *, cache_dir: str | Path | None = None,
-                   progress: ProgressFactory | None = None) -> CachedResources:
-        """Resources for whole traverses: the map's features (disk-cached) and vocabulary."""
+    def _resources(self, *, cache_dir: str | Path | None = None, progress: ProgressFactory | None = None,
+                   executor: Executor | None = None) -> CachedResources:
+        """Resources for whole traverses: the map's features (disk-cached) and vocabulary, run on ``executor``."""
         return CachedResources(extractor=FeatureExtractor(self.features, cache_dir=cache_dir),
-                               vocabulary=self.vocabulary, progress=progress)
+                               vocabulary=self.vocabulary, progress=progress, executor=executor)
 
     def similarity(self, query: Traverse | str | Path, *, resources: Resources | None = None,
                    cache_dir: str | Path | None = None) -> np.ndarray:
@@ -445,15 +473,27 @@ class Localizer:
             col = rec.score(list(self._items))[:, -1]
         else:
             col = rec.score(items)[:, 0]
+        return self.step_scores(col, name=name, time_s=time_s, ms_features=1e3 * (t1 - t0),
+                                ms_matching=1e3 * (time.perf_counter() - t1))
+
+    def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
+                    ms_features: float = 0.0, ms_matching: float = 0.0) -> dict[str, Any]:
+        """The result line of the next frame from its score column, shape (n_places,), computed elsewhere.
+
+        What :meth:`step` does after scoring (the sequence search over the last
+        columns, the top places, the threshold); a batch localisation scores
+        frames on a cluster (:mod:`topoloc.maps.batch`) and feeds the columns
+        here in frame order, so the lines are the same.
+        """
+        t2 = time.perf_counter()
         if self.sequence:
             from topoloc.sequence import sequence_similarity
 
             self._columns.append(np.asarray(col, np.float32))
             window = np.stack(self._columns, axis=1)
             col = sequence_similarity(window, ds=self.sequence, mode=self.sequence_mode)[:, -1]  # type: ignore[arg-type]
-        t2 = time.perf_counter()
-        self.ms_features.append(1e3 * (t1 - t0))
-        self.ms_matching.append(1e3 * (t2 - t1))
+        self.ms_features.append(ms_features)
+        self.ms_matching.append(ms_matching + 1e3 * (time.perf_counter() - t2))
         out = self._result(np.asarray(col, np.float64), name, time_s)
         self.frames += 1
         return out

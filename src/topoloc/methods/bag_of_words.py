@@ -28,11 +28,19 @@ import numpy as np
 import scipy.sparse as sp
 
 from topoloc._params import Constraint, Options
-from topoloc.bow.tfidf import cosine_scores, inverse_document_frequency, inverted_file, term_counts
+from topoloc.bow.tfidf import (
+    cosine_scores,
+    inverse_document_frequency,
+    inverted_file,
+    merge_documents,
+    term_counts,
+)
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
-from topoloc.io.state import object_state, restore_state
+from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart, merge_order
 
 
 class BagOfWords(PlaceRecognizer):
@@ -42,6 +50,12 @@ class BagOfWords(PlaceRecognizer):
     ----------
     merge : {"max", "sum"}
         How images of the same place are combined (see module docstring).
+    confidence : {"margin", "raw"}
+        ``"margin"`` (default): each query's column is shifted so that its
+        best score is its margin over the best place outside the best
+        place's peak, a confidence comparable across queries (same order
+        within a column; :mod:`topoloc.confidence`).
+        ``"raw"``: the cosine similarities.
 
     Attributes
     ----------
@@ -60,10 +74,13 @@ class BagOfWords(PlaceRecognizer):
 
     name: ClassVar[str] = "bow"
     uses_vocabulary: ClassVar[bool] = True
-    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {"merge": Options(("max", "sum"))}
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "merge": Options(("max", "sum")), "confidence": Options(CONFIDENCE_MODES),
+    }
 
-    def __init__(self, *, merge: str = "max") -> None:
+    def __init__(self, *, merge: str = "max", confidence: str = "margin") -> None:
         self.merge = merge
+        self.confidence = confidence
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         words = [w for m in maps for w in resources.words(m)]
@@ -80,6 +97,24 @@ class BagOfWords(PlaceRecognizer):
         counts = term_counts(resources.words(tour), self.n_words_)
         self.counts_ = sp.csr_matrix(sp.vstack([self.counts_, counts]))
         self.doc_places_ = np.concatenate([self.doc_places_, tour.places]).astype(np.int64)
+        self._index()
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The shard's documents (word counts of its images) and their places."""
+        part = BagOfWords(merge=self.merge)
+        part.n_words_ = int(resources.vocabulary.n_words_)
+        part.counts_ = term_counts([w for m in shard for w in resources.words(m)], part.n_words_)
+        part.doc_places_ = np.concatenate([m.places for m in shard]).astype(np.int64)
+        return object_state(part, only=["n_words_", "counts_", "doc_places_"])
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        """Documents in map order; idf and the inverted file recomputed from the merged counts."""
+        docs = [restore_state(new_object(BagOfWords), p.meta, p.arrays) for p in parts]
+        order = merge_order(parts, sum(len(m) for m in maps))
+        self.n_words_ = int(docs[0].n_words_)
+        self.counts_ = merge_documents([d.counts_ for d in docs], order)
+        self.doc_places_ = np.concatenate([d.doc_places_ for d in docs])[order].astype(np.int64)
         self._index()
 
     def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -115,8 +150,8 @@ class BagOfWords(PlaceRecognizer):
         return resources.words(query)
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Cosine similarity per place, shape (n_places, len(items))."""
+        """Cosine similarity per place (shifted by ``confidence``), shape (n_places, len(items))."""
         self.check_fitted()
         per_doc = cosine_scores(items, self.idf_, self.inverted_)
         S = np.maximum.reduceat(per_doc[self.doc_order_], self.place_start_, axis=0)
-        return self._check_block(S.astype(np.float32), len(items))
+        return self._check_block(self._confident(S.astype(np.float32)), len(items))

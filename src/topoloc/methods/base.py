@@ -20,6 +20,11 @@ A method is a class with keyword-only parameters, validated in one place
   times it query by query; methods that need the whole query sequence at once
   (SeqSLAM) set ``scores_whole_sequence = True`` and are timed as total / n.
 * ``similarity(query)`` is ``score(encode(query))``.
+* A keyword-only ``confidence`` parameter (``"margin"`` by default, or
+  ``"raw"``) says whether ``score`` returns the method's own scores or
+  shifts each query's column so that its best score is a confidence
+  comparable across queries (:mod:`topoloc.confidence`); a method applies
+  it with ``_confident(S)`` at the end of ``score``.
 
 Subclasses implement ``_fit``, ``_encode`` and ``score``.
 """
@@ -33,10 +38,12 @@ from typing import Any, ClassVar, Self
 import numpy as np
 
 from topoloc._params import Constraint, convert_param, keyword_defaults, validate_params
+from topoloc.confidence import apply_confidence
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.resources import InMemoryResources, Resources
+from topoloc.methods.shards import ShardPart, check_parts, shard_maps
 
 
 class PlaceRecognizer(ABC):
@@ -138,6 +145,65 @@ class PlaceRecognizer(ABC):
         rec.resources_ = resources if resources is not None else InMemoryResources()
         return rec
 
+    # -- maps built from shards (see topoloc.methods.shards) ---------------------------------
+    def fit_shard(self, maps: Sequence[Traverse] | Traverse, *, places: tuple[int, int], index: int = 0,
+                  resources: Resources | None = None) -> ShardPart:
+        """The partial model of one shard: every map tour cut to the place ids in ``[lo, hi)``.
+
+        An independent task (:func:`topoloc.methods.shards.build_from_shards`
+        runs one per shard); :meth:`from_shards` merges the parts.
+
+        Raises
+        ------
+        TopolocError
+            For a bad parameter, no map traverse, or a method that cannot be built from shards.
+        """
+        self.validate_params()
+        maps = [maps] if isinstance(maps, Traverse) else list(maps)
+        if not maps:
+            raise TopolocError(f"{self.name}: at least one map traverse is needed")
+        res = resources if resources is not None else InMemoryResources()
+        if self.uses_vocabulary and not res.has_vocabulary:
+            raise TopolocError(f"method {self.name!r} needs a visual vocabulary")
+        subs, positions = shard_maps(maps, places)
+        meta, arrays = self._fit_shard(maps, subs, positions, res)
+        return ShardPart(index=int(index), places=(int(places[0]), int(places[1])), positions=positions,
+                         meta=meta, arrays=arrays)
+
+    @classmethod
+    def from_shards(cls, parts: Sequence[ShardPart], maps: Sequence[Traverse] | Traverse, *,
+                    params: Mapping[str, Any] | None = None, resources: Resources | None = None) -> Self:
+        """One fitted recogniser from the shards' partial models, equal to fitting on ``maps`` in one piece.
+
+        Parameters
+        ----------
+        parts : sequence of ShardPart
+            One per shard (any order), from :meth:`fit_shard` on the same ``maps``.
+        maps : sequence of Traverse
+            The map tours (their places and image counts; landmarks and
+            FAB-MAP also finish their model from them here).
+        params : dict, optional
+            The method's parameters (those the shards were built with).
+        resources : Resources, optional
+            Kept for ``encode``, as in ``fit``.
+        """
+        rec = cls(**(params or {}))
+        rec.validate_params()
+        maps = [maps] if isinstance(maps, Traverse) else list(maps)
+        res = resources if resources is not None else InMemoryResources()
+        ordered = check_parts(parts, cls.name)
+        rec._merge_shards(ordered, maps, res)
+        rec.resources_ = res
+        return rec
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The shard's partial model from the tours cut to its places (``shard``); default: none."""
+        raise TopolocError(f"method {self.name!r} cannot be built from shards: build it in one piece")
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        raise TopolocError(f"method {self.name!r} cannot be built from shards: build it in one piece")
+
     def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """Default: every learned attribute (name ending in ``_``) that is JSON, an array or sparse."""
         names = [k for k in vars(self) if k.endswith("_") and not k.startswith("_") and k != "resources_"]
@@ -202,6 +268,16 @@ class PlaceRecognizer(ABC):
         """Raise :class:`NotFittedError` unless ``fit`` has been called."""
         if not hasattr(self, "place_ids_"):
             raise NotFittedError(f"{type(self).__name__} is not fitted yet: call fit() first")
+
+    def _confident(self, S: np.ndarray) -> np.ndarray:
+        """``S`` after the method's ``confidence`` mode (:func:`topoloc.confidence.apply_confidence`).
+
+        ``confidence="margin"`` shifts each column by the best score outside
+        the best place's peak (same order within a column, a best score that
+        thresholds across queries); ``"raw"`` (and a method without the
+        parameter) keeps the method's own scores.
+        """
+        return apply_confidence(S, getattr(self, "confidence", "raw"), owner=self.name)
 
     def _check_block(self, S: np.ndarray, n_items: int) -> np.ndarray:
         expected = (len(self.place_ids_), n_items)

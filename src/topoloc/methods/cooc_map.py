@@ -6,7 +6,9 @@ when every tour has capture times, else taken in the order given, and each
 place's word-co-occurrence model is built from all of them (Sec. II-B), with
 the virtual images of adjacent tours when ``interpolate`` (Sec. II-E).  A
 query is matched to every place at once (Sec. II-C, II-D); ``S[i, q]`` is the
-size of the spatially consistent group of place ``i``.
+size of the spatially consistent group of place ``i`` (``confidence="raw"``),
+by default shifted per query so that the best place's score is its margin
+over the best place outside its peak (:mod:`topoloc.confidence`).
 
 Places dropped early by the bounds of Sec. II-D report their bound at the
 time they were dropped (an upper bound on their score), strictly below the
@@ -31,6 +33,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from topoloc._params import Constraint, Interval, OfType, Options
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.coocmap.matching import (
     ConsistencyGraphs,
     MatchResult,
@@ -39,13 +42,14 @@ from topoloc.coocmap.matching import (
     match_lazy,
     match_simultaneous,
 )
-from topoloc.coocmap.model import CoocModel, Observation
+from topoloc.coocmap.model import CoocModel, Observation, merge_models
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer, extend_place_ids, map_place_ids
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 #: A query item: (word ids (n,), normalised positions (n, 2) uint16).
@@ -54,11 +58,15 @@ Item = tuple[np.ndarray, np.ndarray]
 
 def order_tours(maps: Sequence[Traverse]) -> list[Traverse]:
     """Tours in time-of-day order when all have times, else in the given order."""
+    return [maps[i] for i in tour_order(maps)]
+
+
+def tour_order(maps: Sequence[Traverse]) -> list[int]:
+    """Indices of the tours in :func:`order_tours`'s order."""
     hours = [m.median_time_of_day() for m in maps]
     if all(h is not None for h in hours):
-        idx = sorted(range(len(maps)), key=lambda i: (hours[i], i))
-        return [maps[i] for i in idx]
-    return list(maps)
+        return sorted(range(len(maps)), key=lambda i: (hours[i], i))
+    return list(range(len(maps)))
 
 
 class CoocMap(PlaceRecognizer):
@@ -109,6 +117,12 @@ class CoocMap(PlaceRecognizer):
     model_path : str
         If set: load the map from this file when it exists (it must have been
         built with the same vocabulary and places), else build and save it.
+    confidence : {"margin", "raw"}
+        ``"margin"`` (default): each query's column is shifted so that its
+        best score is its margin over the best place outside the best
+        place's peak, a confidence comparable across queries (same order
+        within a column; :mod:`topoloc.confidence`).
+        ``"raw"``: the consistent-group sizes.
 
     Attributes
     ----------
@@ -125,12 +139,13 @@ class CoocMap(PlaceRecognizer):
         "simultaneous": OfType(bool), "schedule": Options(("compiled", "lazy", "best_first", "rounds")),
         "top_k": Interval(int, 1), "max_features": Interval(int, 0), "seed": Interval(int),
         "spatial_tolerance": Interval(int, 0), "position_bits": Interval(int, 1, 16), "model_path": OfType(str),
+        "confidence": Options(CONFIDENCE_MODES),
     }
 
     def __init__(self, *, grid_x: int = 12, grid_y: int = 8, interpolate: bool = True,
                  simultaneous: bool = True, schedule: str = "compiled", top_k: int = 10, max_features: int = 0,
                  seed: int = 0, spatial_tolerance: int = 1, position_bits: int = 6,
-                 model_path: str = "") -> None:
+                 model_path: str = "", confidence: str = "margin") -> None:
         self.grid_x = grid_x
         self.grid_y = grid_y
         self.interpolate = interpolate
@@ -142,6 +157,7 @@ class CoocMap(PlaceRecognizer):
         self.spatial_tolerance = spatial_tolerance
         self.position_bits = position_bits
         self.model_path = model_path
+        self.confidence = confidence
 
     def validate_params(self) -> None:
         """The per-parameter constraints, and a ``model_path`` that is not a folder."""
@@ -191,6 +207,38 @@ class CoocMap(PlaceRecognizer):
         self.model_ = model
         self.tour_order_ = [t.name for t in tours]
         self.place_ids_ = place_ids
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The location models of the shard's places, from every tour in the whole tours' time order.
+
+        The tours' order and hours are those of the whole tours (a tour cut to
+        some places could have another median time of day).
+        """
+        if self.model_path:
+            raise TopolocError("coocmap: model_path cannot be used when the map is built from shards")
+        place_ids = np.unique(np.concatenate([t.places for t in shard]))
+        vocab = resources.vocabulary
+        model = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_), grid_x=self.grid_x,
+                          grid_y=self.grid_y, interpolate=self.interpolate, position_bits=self.position_bits)
+        for i in tour_order(maps):
+            rows = np.searchsorted(place_ids, shard[i].places)
+            obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
+                                      in zip(rows, self._observations(shard[i], resources), strict=True)]
+            model.add_tour(obs, name=maps[i].name, hour=maps[i].median_time_of_day())
+        model.vocabulary = vocabulary_fingerprint(vocab)
+        meta, arrays = object_state(model, prefix="model/", skip=[k for k in vars(model) if k.startswith("_")])
+        return {"model": meta}, {**arrays, "place_ids": place_ids}
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        """The shards' location models side by side (:func:`~topoloc.coocmap.model.merge_models`)."""
+        models = [restore_state(new_object(CoocModel), p.meta["model"], p.arrays, prefix="model/") for p in parts]
+        model = merge_models(models)
+        tours = order_tours(maps)
+        model.built_from = {"tours": [t.fingerprint() for t in tours], "features": resources.extractor.config.key()}
+        self.model_ = model
+        self.tour_order_ = [t.name for t in tours]
+        self.place_ids_ = np.concatenate([p.arrays["place_ids"] for p in parts]).astype(np.int64)
 
     def _add_tour(self, tour: Traverse, resources: Resources) -> None:
         """Every location model takes the tour's co-occurrences (Sec. II-B).
@@ -272,12 +320,12 @@ class CoocMap(PlaceRecognizer):
         return self.match(item)[1].scores
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Consistent-group sizes, shape (n_places, len(items)) (see module docstring)."""
+        """Consistent-group sizes (shifted by ``confidence``), shape (n_places, len(items)) (see module docstring)."""
         self.check_fitted()
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         for q, item in enumerate(items):
             S[:, q] = self._scores(item)
-        return self._check_block(S, len(items))
+        return self._check_block(self._confident(S), len(items))
 
 
 def _compiled(*args: Any, **kwargs: Any) -> tuple[MatchResult, np.ndarray]:

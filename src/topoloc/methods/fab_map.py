@@ -37,6 +37,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from topoloc._params import Constraint, Interval, OfType, Options
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.fabmap.model import DEFAULT_P_FN, DEFAULT_P_FP, FabMapModel
@@ -46,6 +47,7 @@ from topoloc.fabmap.posterior import location_posterior
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart, merge_order
 from topoloc.methods.slam import load_or_train_model
 
 OUTPUTS = ("loglik", "posterior")
@@ -92,6 +94,13 @@ class FabMap(PlaceRecognizer):
         webcam_daynight with all 12 tours, R@1 0.476 merged, 0.774 separate;
         gardens_point day_left + night_right -> day_right 0.42 merged, 0.47
         separate; day_left + day_right -> night_right 0.13 merged, 0.09 separate.
+    confidence : {"margin", "raw"}
+        ``"margin"`` (default): each query's column is shifted so that its
+        best score is its margin over the best place outside the best
+        place's peak, a confidence comparable across queries (same order
+        within a column; :mod:`topoloc.confidence`); with
+        ``output="posterior"`` the posterior is kept, it is FAB-MAP's own confidence.
+        ``"raw"``: what ``output`` says.
 
     Attributes
     ----------
@@ -109,7 +118,7 @@ class FabMap(PlaceRecognizer):
         "p_new": Interval(float, 0.0, 1.0, closed="left"), "smoothing": Interval(float, 0.0, 1.0, closed="right"),
         "p_fp": Interval(float, 0.0, 1.0, closed="neither"), "p_fn": Interval(float, 0.0, 1.0, closed="neither"),
         "bailout": OfType(bool), "p_bailout": Interval(float, 0.0, 1.0, closed="neither"), "seed": Interval(int),
-        "tours": Options(("merge", "separate")),
+        "tours": Options(("merge", "separate")), "confidence": Options(CONFIDENCE_MODES),
     }
 
     def __init__(
@@ -128,6 +137,7 @@ class FabMap(PlaceRecognizer):
         p_bailout: float = 1e-6,
         seed: int = 0,
         tours: str = "separate",
+        confidence: str = "margin",
     ) -> None:
         self.model_path = model_path
         self.output = output
@@ -142,6 +152,7 @@ class FabMap(PlaceRecognizer):
         self.p_bailout = p_bailout
         self.seed = seed
         self.tours = tours
+        self.confidence = confidence
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         """Train (or load) the model and build one appearance model per map place."""
@@ -166,6 +177,29 @@ class FabMap(PlaceRecognizer):
         self.obs_ptr_ = np.r_[self.obs_ptr_, ends].astype(np.int64)
         self.obs_words_ = np.concatenate([self.obs_words_, *words]).astype(np.int64)
         self.obs_places_ = np.concatenate([self.obs_places_, tour.places]).astype(np.int64)
+        self._build_places()
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The shard's observations (word ids of each image) and their places; no model is trained here."""
+        words = [np.asarray(w, np.int64) for tr in shard for w in resources.words(tr)]
+        return {}, {"ptr": np.r_[0, np.cumsum([len(w) for w in words])].astype(np.int64),
+                    "words": np.concatenate(words) if words else np.zeros(0, np.int64),
+                    "places": np.concatenate([tr.places for tr in shard]).astype(np.int64)}
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        """Observations back in map order, the model trained (or loaded) once, place models as in ``fit``."""
+        order = merge_order(parts, sum(len(m) for m in maps))
+        lists = [np.split(p.arrays["words"], p.arrays["ptr"][1:-1]) for p in parts]
+        words = [w for part in lists for w in part]
+        words = [words[i] for i in order]
+        model = load_or_train_model(self.model_path or None, resources)
+        if (model.p_fp, model.p_fn) != (self.p_fp, self.p_fn):
+            model = model.with_detector(p_fp=self.p_fp, p_fn=self.p_fn)
+        self.model_ = model
+        self.obs_ptr_ = np.r_[0, np.cumsum([len(w) for w in words])].astype(np.int64)
+        self.obs_words_ = np.concatenate(words) if words else np.zeros(0, np.int64)
+        self.obs_places_ = np.concatenate([p.arrays["places"] for p in parts])[order].astype(np.int64)
         self._build_places()
 
     def _build_places(self) -> None:
@@ -217,6 +251,18 @@ class FabMap(PlaceRecognizer):
         return [np.unique(np.asarray(w, dtype=np.int64)).astype(np.int32)
                 for w in resources.words(query)]
 
+    def _confident(self, S: np.ndarray) -> np.ndarray:
+        """The margin of log-likelihoods; a posterior (``output="posterior"``) is returned as it is.
+
+        A posterior is FAB-MAP's own confidence, a probability and so comparable
+        across queries; shifting probabilities that span dozens of orders of
+        magnitude would also round the small ones to ties in float32, which
+        changes which row is best once the metrics mask the best one.
+        """
+        if self.output == "posterior":
+            return S
+        return super()._confident(S)
+
     def score(self, items: Sequence[Any]) -> np.ndarray:
         """``S`` of shape (n_map_places, len(items)): log-likelihood or posterior."""
         self.check_fitted()
@@ -235,7 +281,7 @@ class FabMap(PlaceRecognizer):
             # Several models per place: the place's probability, or its best image's likelihood.
             reduce = np.add if self.output == "posterior" else np.maximum
             S = reduce.reduceat(S, self._starts, axis=0)
-        return self._check_block(S, len(items))
+        return self._check_block(self._confident(S), len(items))
 
 
 class FabMap2(FabMap):

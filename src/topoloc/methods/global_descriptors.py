@@ -37,11 +37,13 @@ from typing import Any, ClassVar
 import numpy as np
 
 from topoloc._params import Constraint, OfType, Options
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse, load_traverse, natural_key
 from topoloc.errors import TopolocError, input_error
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart, merge_order
 
 #: File names looked for in a traverse folder when no file is given.
 FOLDER_FILES = ("descriptors.npy", "descriptors.h5", "descriptors.hdf5")
@@ -150,6 +152,14 @@ class GlobalDescriptors(PlaceRecognizer):
         cosine: similarity of L2-normalised rows; l2: negative Euclidean distance.
     dataset : str
         HDF5 dataset name: per image group (hloc) or a plain 2-D dataset.
+    confidence : {"raw", "margin"}
+        ``"raw"`` (default): the cosine similarities (or negative
+        distances) of normalised descriptors, on one scale for every query;
+        it keeps ``--top-k`` on faiss without forming ``S`` (the margin needs
+        every column in full: docs/results/scale.md's 100,000 x 100,000 run).
+        ``"margin"``: each query's column shifted so that its best score is
+        its margin over the best place outside the best place's peak
+        (:mod:`topoloc.confidence`); ``top_k`` then scores dense blocks.
 
     Attributes
     ----------
@@ -163,14 +173,16 @@ class GlobalDescriptors(PlaceRecognizer):
     name: ClassVar[str] = "descriptors"
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "map": OfType(str), "query": OfType(str), "metric": Options(("cosine", "l2")), "dataset": OfType(str),
+        "confidence": Options(CONFIDENCE_MODES),
     }
 
     def __init__(self, *, map: str = "", query: str = "", metric: str = "cosine",
-                 dataset: str = "global_descriptor") -> None:
+                 dataset: str = "global_descriptor", confidence: str = "raw") -> None:
         self.map = map
         self.query = query
         self.metric = metric
         self.dataset = dataset
+        self.confidence = confidence
 
     # -- reading rows ------------------------------------------------------------------------
     def _rows(self, traverses: list[Traverse], file: str, what: str) -> np.ndarray:
@@ -236,6 +248,19 @@ class GlobalDescriptors(PlaceRecognizer):
         self.image_places_ = np.concatenate([self.image_places_, tour.places]).astype(np.int64)
         self._index()
 
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The shard's rows of the map descriptors (computed elsewhere: read, then cut to its images)."""
+        rows = self._prepare(self._rows(maps, self.map, "map"))
+        places = np.concatenate([m.places for m in maps]).astype(np.int64)
+        return {}, {"descriptors": rows[positions], "places": places[positions]}
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        order = merge_order(parts, sum(len(m) for m in maps))
+        self.descriptors_ = np.concatenate([p.arrays["descriptors"] for p in parts])[order]
+        self.image_places_ = np.concatenate([p.arrays["places"] for p in parts])[order]
+        self._index()
+
     def _get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         return object_state(self, only=["descriptors_", "image_places_"])
 
@@ -272,7 +297,7 @@ class GlobalDescriptors(PlaceRecognizer):
         return np.maximum.reduceat(per_image[self._order], self._starts, axis=0)
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Cosine similarity (or negative L2 distance) per place, shape (n_places, len(items))."""
+        """Cosine similarity (or negative L2 distance) per place, shifted by ``confidence``, (n_places, len(items))."""
         self.check_fitted()
         D = self.descriptors_
         if not len(items):
@@ -282,7 +307,7 @@ class GlobalDescriptors(PlaceRecognizer):
         if self.metric == "l2":
             sq = (D * D).sum(axis=1)[:, None] + (Q * Q).sum(axis=1)[None, :] - 2 * dots
             dots = -np.sqrt(np.maximum(sq, 0))
-        return self._check_block(self._per_place(dots).astype(np.float32), len(items))
+        return self._check_block(self._confident(self._per_place(dots).astype(np.float32)), len(items))
 
     # -- top K without S ---------------------------------------------------------------------
     def top_k(self, items: Sequence[Any], k: int, *, block: int = 16384) -> tuple[np.ndarray, np.ndarray]:
@@ -290,11 +315,14 @@ class GlobalDescriptors(PlaceRecognizer):
 
         A place's best image is among the first ``k * m`` images (``m``: most images
         of one place), so that many image neighbours are searched and merged per place.
+        With ``confidence="margin"`` every score depends on the whole column
+        (:mod:`topoloc.confidence`), so blocks of queries are scored densely
+        by :meth:`score` instead (same rows and scores, without faiss's speed-up).
 
         Returns
         -------
         rows : ndarray of int64, shape (len(items), k)
-            Rows of ``S`` (indices into ``place_ids_``), best first.
+            Rows of ``S`` (indices into ``place_ids_``), best first (ties: lower row first).
         scores : ndarray of float32, shape (len(items), k)
             Their scores (as :meth:`score` gives them).
         """
@@ -302,6 +330,8 @@ class GlobalDescriptors(PlaceRecognizer):
 
         self.check_fitted()
         k = min(int(k), len(self.place_ids_))
+        if self.confidence != "raw":
+            return self._dense_top_k(items, k)
         if self._faiss is None:
             dim = self.descriptors_.shape[1]
             index = faiss.IndexFlatIP(dim) if self.metric == "cosine" else faiss.IndexFlatL2(dim)
@@ -318,6 +348,18 @@ class GlobalDescriptors(PlaceRecognizer):
             sc = dist if self.metric == "cosine" else -np.sqrt(np.maximum(dist, 0))
             r, s = self._merge_places(self.image_rows_[idx], sc.astype(np.float32), k)
             rows[a:a + len(Q)], scores[a:a + len(Q)] = r, s
+        return rows, scores
+
+    def _dense_top_k(self, items: Sequence[Any], k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``top_k`` from dense blocks of :meth:`score` (about 64 MB of ``S`` at a time)."""
+        n = len(items)
+        rows = np.empty((n, k), np.int64)
+        scores = np.empty((n, k), np.float32)
+        step = max(1, 16_000_000 // max(len(self.place_ids_), 1))
+        for a in range(0, n, step):
+            S = self.score(list(items[a:a + step])).T
+            r = np.argsort(-S, axis=1, kind="stable")[:, :k]
+            rows[a:a + len(S)], scores[a:a + len(S)] = r, np.take_along_axis(S, r, axis=1)
         return rows, scores
 
     def _merge_places(self, place_rows: np.ndarray, sc: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

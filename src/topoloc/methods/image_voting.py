@@ -18,14 +18,18 @@ from typing import Any, ClassVar
 import faiss
 import numpy as np
 
-from topoloc._params import Constraint, Interval
+from topoloc._params import Constraint, Interval, Options
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
 from topoloc.geometry import normalise_descriptors
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart, merge_order
 from topoloc.voting import DescriptorIndex, build_index, image_votes
+from topoloc.voting.votes import merge_indexes
 
 
 class ImageVoting(PlaceRecognizer):
@@ -44,6 +48,12 @@ class ImageVoting(PlaceRecognizer):
     min_matches : int
         Images with fewer ratio-test matches get no RANSAC and score their
         match count divided by ``min_matches`` (< 1 inlier-vote).
+    confidence : {"margin", "raw"}
+        ``"margin"`` (default): each query's column is shifted so that its
+        best score is its margin over the best place outside the best
+        place's peak, a confidence comparable across queries (same order
+        within a column; :mod:`topoloc.confidence`).
+        ``"raw"``: the inlier votes.
 
     Attributes
     ----------
@@ -67,7 +77,7 @@ class ImageVoting(PlaceRecognizer):
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "ratio": Interval(float, 0.0, 1.0, closed="right"), "n_neighbours": Interval(int, 2),
         "n_verify": Interval(int, 1), "ransac_px": Interval(float, 0.0, closed="neither"),
-        "min_matches": Interval(int, 1),
+        "min_matches": Interval(int, 1), "confidence": Options(CONFIDENCE_MODES),
     }
 
     def __init__(
@@ -78,12 +88,14 @@ class ImageVoting(PlaceRecognizer):
         n_verify: int = 10,
         ransac_px: float = 3.0,
         min_matches: int = 8,
+        confidence: str = "margin",
     ) -> None:
         self.ratio = ratio
         self.n_neighbours = n_neighbours
         self.n_verify = n_verify
         self.ransac_px = ransac_px
         self.min_matches = min_matches
+        self.confidence = confidence
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         feats = [f for m in maps for f in resources.features(m)]
@@ -105,6 +117,28 @@ class ImageVoting(PlaceRecognizer):
         self.n_images_ += len(feats)
         self.place_ids_ = np.unique(places).astype(np.int64)
         self.image_place_ = np.searchsorted(self.place_ids_, places)
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The shard's images: normalised descriptors, positions and count of each, and its places."""
+        feats = [f for m in shard for f in resources.features(m)]
+        rows = [normalise_descriptors(f.descriptors) for f in feats if len(f)]
+        dim = rows[0].shape[1] if rows else 0
+        return {}, {"descriptors": np.concatenate(rows) if rows else np.zeros((0, dim), np.float32),
+                    "counts": np.array([len(f) for f in feats], np.int64),
+                    "xy": np.concatenate([f.xy for f in feats]).astype(np.float32) if feats else np.zeros((0, 2)),
+                    "places": np.concatenate([m.places for m in shard]).astype(np.int64)}
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        """One index over every shard's images, in map order (as ``fit`` indexes them)."""
+        order = merge_order(parts, sum(len(m) for m in maps))
+        with_rows = [p for p in parts if len(p.arrays["descriptors"])]
+        dims = {p.arrays["descriptors"].shape[1] for p in with_rows}
+        if len(dims) > 1:
+            raise TopolocError(f"voting: the shards' descriptors differ in length {sorted(dims)}")
+        index = merge_indexes([p.arrays["descriptors"] for p in with_rows], [p.arrays["counts"] for p in parts],
+                              [p.arrays["xy"] for p in parts], order)
+        self._set_index(index, np.concatenate([p.arrays["places"] for p in parts])[order])
 
     def _set_index(self, index: DescriptorIndex, places: np.ndarray) -> None:
         place_ids = np.unique(places).astype(np.int64)
@@ -144,10 +178,10 @@ class ImageVoting(PlaceRecognizer):
                            n_verify=self.n_verify, ransac_px=self.ransac_px, min_matches=self.min_matches)
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Inlier votes per place (max over the place's images), shape (n_places, len(items))."""
+        """Inlier votes per place (max over its images; shifted by ``confidence``), shape (n_places, len(items))."""
         self.check_fitted()
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         for j, fs in enumerate(items):
             v = self.image_votes(fs)
             np.maximum.at(S[:, j], self.image_place_, v.astype(np.float32))
-        return self._check_block(S, len(items))
+        return self._check_block(self._confident(S), len(items))

@@ -20,6 +20,7 @@ import faiss
 import numpy as np
 
 from topoloc._params import Constraint, Interval, OfType, Options
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
@@ -27,9 +28,10 @@ from topoloc.geometry import epipolar_inliers, normalise_descriptors
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.landmarks.model import LandmarkModel
 from topoloc.landmarks.similarity import node_similarity
-from topoloc.landmarks.tracking import build_tracks
+from topoloc.landmarks.tracking import build_tracks, chain_tracks, pair_matches
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart, merge_order
 
 
 class LandmarkMap(PlaceRecognizer):
@@ -72,6 +74,14 @@ class LandmarkMap(PlaceRecognizer):
         ``S(q, x)`` (False, default): same ranking per query, but the raw
         best value is an absolute match quality, which the PR curve needs
         (gardens_point day_right -> day_left AUC 0.455 raw vs 0.236 with eta).
+    confidence : {"raw", "margin"}
+        ``"raw"`` (default): the scores of Eq. 5, already a confidence on one
+        scale for every query: on gardens_point day_left -> day_right their
+        R@100P is 0.32 against 0.14 with the margin (docs/results/confidence.md,
+        ``benchmarks/bench_confidence.py``; chosen on that development pair).
+        ``"margin"``: each query's column shifted so that its best score is
+        its margin over the best place outside the best place's peak
+        (:mod:`topoloc.confidence`).
 
     Attributes
     ----------
@@ -92,6 +102,7 @@ class LandmarkMap(PlaceRecognizer):
         "n_candidates": Interval(int, 1), "min_track_length": Interval(int, 2), "index": Options(("flat", "hnsw")),
         "r_min": Interval(float, 0.0), "max_splits": Interval(int, 0), "online_supervised": OfType(bool),
         "verify_nodes": Interval(int, 0), "n_background": Interval(int, 1), "normalise": OfType(bool),
+        "confidence": Options(CONFIDENCE_MODES),
     }
 
     def __init__(
@@ -112,6 +123,7 @@ class LandmarkMap(PlaceRecognizer):
         verify_nodes: int = 0,
         n_background: int = 5000,
         normalise: bool = False,
+        confidence: str = "raw",
     ) -> None:
         self.match_threshold = match_threshold
         self.ransac_px = ransac_px
@@ -128,13 +140,24 @@ class LandmarkMap(PlaceRecognizer):
         self.verify_nodes = verify_nodes
         self.n_background = n_background
         self.normalise = normalise
+        self.confidence = confidence
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
+        self._build(maps, resources, None)
+
+    def _build(self, maps: list[Traverse], resources: Resources,
+               matches: list[tuple[np.ndarray, np.ndarray]] | None) -> None:
+        """Tracks of the first tour, the model, then online learning from the others (Sec. III-V).
+
+        ``matches``: the first tour's adjacent-frame matches when they were
+        computed apart (map shards), else None (matched here).
+        """
         place_ids = map_place_ids(maps)
         feats = resources.features(maps[0])
         normalised = [normalise_descriptors(f.descriptors) for f in feats]
-        tracks = build_tracks(feats, threshold=self.match_threshold, ransac_px=self.ransac_px,
-                              normalised=normalised)
+        tracks = (build_tracks(feats, threshold=self.match_threshold, ransac_px=self.ransac_px,
+                               normalised=normalised) if matches is None
+                  else chain_tracks(np.array([len(f) for f in feats], np.int64), matches))
         model = LandmarkModel(
             top_k=self.top_k_neighbours, radius_floor=self.radius_floor,
             distance_margin=self.distance_margin, angle_margin=self.angle_margin,
@@ -148,6 +171,56 @@ class LandmarkMap(PlaceRecognizer):
         self.weights_ = model.weights()
         for tour in maps[1:]:
             self.learn_tour(tour, resources=resources)
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """Matches of the first tour's frame pairs ``(i, i + 1)`` whose frame ``i`` is in the shard.
+
+        The shard reads frame ``i + 1`` even when it belongs to the next shard
+        (an overlap of one frame, the tracker's look-back), so every pair is
+        matched exactly once and the stitched tracks are those of one piece.
+        """
+        first = maps[0]
+        n0 = len(first)
+        mine = positions[positions < n0]  # this shard's frames of the first tour
+        pairs = mine[mine < n0 - 1]
+        need = np.union1d(pairs, pairs + 1).astype(np.int64)
+        sub = Traverse(root=first.root, images=tuple(first.images[i] for i in need), places=first.places[need],
+                       name=first.name, kind=first.kind,
+                       frames=None if first.frames is None else tuple(first.frames[i] for i in need))
+        feats = resources.features(sub)
+        at = {int(f): k for k, f in enumerate(need)}
+        ia, ib, ptr = [], [], [0]
+        for i in pairs:
+            a, b = pair_matches(feats[at[int(i)]], feats[at[int(i) + 1]], frame=int(i),
+                                threshold=self.match_threshold, ransac_px=self.ransac_px)
+            ia.append(a)
+            ib.append(b)
+            ptr.append(ptr[-1] + len(a))
+        return {}, {"pairs": pairs.astype(np.int64), "ptr": np.array(ptr, np.int64),
+                    "ia": np.concatenate(ia).astype(np.int64) if ia else np.zeros(0, np.int64),
+                    "ib": np.concatenate(ib).astype(np.int64) if ib else np.zeros(0, np.int64)}
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        """The pairs' matches in frame order, chained into tracks here; the model as ``fit`` builds it.
+
+        The model (background sample, neighbours, optional splitting) and the
+        online learning of later tours need the whole map at once, so they run
+        here, on the merged tracks.
+        """
+        merge_order(parts, sum(len(m) for m in maps))
+        n_pairs = max(len(maps[0]) - 1, 0)
+        matches: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n_pairs
+        for p in parts:
+            a = p.arrays
+            for k, i in enumerate(a["pairs"]):
+                s, e = int(a["ptr"][k]), int(a["ptr"][k + 1])
+                matches[int(i)] = (np.asarray(a["ia"][s:e]), np.asarray(a["ib"][s:e]))
+        missing = [i for i, m in enumerate(matches) if m is None]
+        if missing:
+            raise TopolocError(f"landmarks: no shard matched frames {missing[0]} and {missing[0] + 1} of the first "
+                               "tour: were the shards built from the same tours?")
+        self._build(maps, resources, [m for m in matches if m is not None])
 
     def learn_tour(self, tour: Traverse, *, resources: Resources) -> np.ndarray:
         """Online learning (Sec. V) from a later tour; returns the node each image was localised to.
@@ -236,11 +309,11 @@ class LandmarkMap(PlaceRecognizer):
         return out / total if total > 0 else np.full_like(out, 1.0 / len(out))
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Eq. 5 per place (max over the place's nodes), shape (n_places, len(items))."""
+        """Eq. 5 per place (max over its nodes; shifted by ``confidence``), shape (n_places, len(items))."""
         self.check_fitted()
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         for j, fs in enumerate(items):
             prob, f_idx, l_idx = self.model_.match_pairs(fs)
             s = self._node_scores(fs, prob, f_idx, l_idx)
             np.maximum.at(S[:, j], self.node_place_, s.astype(np.float32))
-        return self._check_block(S, len(items))
+        return self._check_block(self._confident(S), len(items))

@@ -7,9 +7,12 @@ features, the visual words or a per-image transform of a
 for the vocabulary and the vocabulary's training words.  Two implementations:
 
 * :class:`CachedResources` -- what ``topoloc evaluate`` uses: features of
-  image files are cached on disk (keyed by the image bytes and the settings),
-  per-image work runs on a thread pool, and the vocabulary may be trained on
-  first use;
+  a traverse of image files live in its feature store on disk
+  (:mod:`topoloc.features.store`: blocks of images, each block checked
+  against the SHA-1 of its images), filled block by block through an
+  executor (:mod:`topoloc.cluster`: threads of this process, or the workers
+  of a Dask cluster, which then also quantise the blocks into words), and
+  the vocabulary may be trained on first use;
 * :class:`InMemoryResources` -- nothing is read from or written to a cache:
   features of in-memory images (and of files, when given) are computed on the
   spot.  ``fit(maps)`` without resources uses one with default settings.
@@ -21,23 +24,28 @@ milliseconds of per-image work (``ms_features`` of the protocol).
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
 from topoloc._parallel import n_workers
+from topoloc.cluster import Executor, LocalExecutor, flatten
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.progress import ProgressFactory, no_progress
 
 if TYPE_CHECKING:
     from topoloc.features import FeatureExtractor, FeatureSet
+    from topoloc.features.store import BlockResult, BlockTask, FeatureStore
     from topoloc.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -190,8 +198,7 @@ class _MemoisedResources:
             feats = self._map(traverse, key, lambda k: ex.extract_image(frames[k]), f"features {traverse.name}",
                               timed)
         else:
-            feats = self._map(traverse, key, lambda k: ex.extract_path(traverse.images[k]),
-                              f"features {traverse.name}", timed)
+            feats = self._file_features(traverse, key, timed)
         empty = [k for k, f in enumerate(feats) if len(f) == 0]
         if empty and fresh and self.memoise:
             # One line per traverse: such images match nothing, and every method scores them as it can.
@@ -208,16 +215,26 @@ class _MemoisedResources:
                     raise TopolocError(f"traverse {traverse.name!r} has word ids >= the vocabulary's "
                                        f"{n_words} words")
             return words
-        feats = self.features(traverse, timed=timed)
         # Quantised once per traverse and run: fit, encode and show-match may all ask.
         memo_key = (traverse_key(traverse), "words:" + self.extractor.config.key())
         if memo_key in self._memo:
             return self._memo[memo_key]
-        voc = self.vocabulary
-        words = [voc.quantize(f.descriptors) for f in feats]
+        words = self._quantize(traverse, timed)
         if self.memoise:
             self._memo[memo_key] = words
         return words
+
+    def _file_features(self, traverse: Traverse, key: str, timed: bool) -> list[FeatureSet]:
+        """Features of a traverse of image files (here: per image, through the extractor's own cache)."""
+        ex = self.extractor
+        return self._map(traverse, key, lambda k: ex.extract_path(traverse.images[k]), f"features {traverse.name}",
+                         timed)
+
+    def _quantize(self, traverse: Traverse, timed: bool) -> list[np.ndarray]:
+        """Word ids of every image of a traverse of files or images (not memoised here)."""
+        feats = self.features(traverse, timed=timed)
+        voc = self.vocabulary
+        return [voc.quantize(f.descriptors) for f in feats]
 
     def training_words(self) -> list[np.ndarray]:
         """Visual-word ids of every training image (the vocabulary's training set).
@@ -249,6 +266,21 @@ class _MemoisedResources:
         vals = list(self.image_ms.values())
         return float(np.median(vals)) if vals else 0.0
 
+    def for_task(self, *, remote: bool = False) -> _MemoisedResources:
+        """A shallow copy for one task of an executor: no progress display.
+
+        With ``remote`` (the task is pickled to a worker process) the copy runs
+        its per-image work on the worker's own thread, not through a cluster
+        client (which cannot be pickled), and starts with empty memos: a
+        worker computes what its task needs, nothing memoised here is shipped.
+        """
+        out = copy.copy(self)
+        out.progress = no_progress
+        if remote:
+            out._memo = {}
+            out.image_ms = {}
+        return out
+
 
 class CachedResources(_MemoisedResources):
     """Resources of an evaluation run: features of image files cached on disk.
@@ -267,6 +299,19 @@ class CachedResources(_MemoisedResources):
         Images the vocabulary-dependent models learn word statistics from.
     training_images : sequence of path
         The same as image files (used when ``training`` is empty).
+    executor : Executor, optional
+        Where block tasks run (:func:`topoloc.cluster.connect`; default: ``n_jobs``
+        threads of this process).  On a Dask cluster the workers extract the
+        blocks of image-file traverses into the feature store and quantise
+        them; the cache folder must then be shared with the workers.
+    block_size : int, optional
+        Images per feature-store block (default
+        :data:`topoloc.features.store.BLOCK_IMAGES`).
+
+    Notes
+    -----
+    With an extractor whose cache is off (``use_cache=False``) nothing is
+    written: features of files are extracted per image on the threads.
     """
 
     def __init__(
@@ -278,14 +323,103 @@ class CachedResources(_MemoisedResources):
         n_jobs: int = -1,
         training: Sequence[Traverse] | Traverse | None = None,
         training_images: Sequence[Path] = (),
+        executor: Executor | None = None,
+        block_size: int | None = None,
     ) -> None:
         super().__init__(extractor=extractor, vocabulary=vocabulary, progress=progress, n_jobs=n_jobs,
                          training=training, training_images=training_images)
+        self.executor: Executor = executor if executor is not None else LocalExecutor(n_jobs)
+        self.block_size = block_size
+        self._fills: dict[tuple[str, str], tuple[FeatureStore, list[BlockResult]]] = {}
+        self._shared_checked = False
 
     def _default_extractor(self) -> FeatureExtractor:
         from topoloc.features import FeatureExtractor
 
         return FeatureExtractor()
+
+    @property
+    def distributed(self) -> bool:
+        """Whether block tasks run on a cluster (not on this process's threads)."""
+        return not isinstance(self.executor, LocalExecutor)
+
+    def for_task(self, *, remote: bool = False) -> CachedResources:
+        out = super().for_task(remote=remote)
+        assert isinstance(out, CachedResources)
+        if remote:
+            out.executor = LocalExecutor(1)
+            out._fills = {}
+        return out
+
+    def _fill(self, traverse: Traverse, key: str, timed: bool) -> tuple[FeatureStore, list[BlockResult]]:
+        """Complete the feature store of a file traverse through the executor (memoised per run)."""
+        from topoloc.features.store import BLOCK_IMAGES, FeatureStore, check_shared_cache
+
+        memo_key = (traverse_key(traverse), key)
+        if memo_key in self._fills:
+            return self._fills[memo_key]
+        ex = self.extractor
+        store = FeatureStore(ex.config, traverse.images, root=traverse.root, cache_dir=ex.cache_dir,
+                             block_size=self.block_size or BLOCK_IMAGES)
+        local = not self.distributed
+        if not local and not self._shared_checked:
+            check_shared_cache(self.executor, ex.cache_dir)
+            self._shared_checked = True
+        # Locally one block at a time on all the executor's threads: balanced to the last image of each
+        # block, as the per-image pool was (blocks on one thread each would leave threads idle while the
+        # last blocks finish).  On a cluster every worker thread takes a block.
+        runner: Executor = LocalExecutor(1) if local else self.executor
+        threads = self.executor.n_workers if local else 1
+        advance = self.progress(f"features {traverse.name}", len(traverse))
+        results = store.fill(runner, advance=advance, keep=local, threads=threads)
+        if timed and self.memoise:
+            tkey = memo_key[0]
+            ms = np.concatenate([r.extract_ms for r in results]) if results else np.empty(0)
+            for k, value in enumerate(ms):
+                self.image_ms[(f"{tkey}#{k}", key)] = float(value)
+        if self.memoise:
+            self._fills[memo_key] = (store, results)
+        return store, results
+
+    def _file_features(self, traverse: Traverse, key: str, timed: bool) -> list[FeatureSet]:
+        if not self.extractor.use_cache:
+            return super()._file_features(traverse, key, timed)
+        memo_key = (traverse_key(traverse), key)
+        if memo_key in self._memo:
+            return self._memo[memo_key]
+        store, results = self._fill(traverse, key, timed)
+        feats = store.read(results)
+        for r in results:
+            r.features = None  # held once, in the memo below
+        if self.memoise:
+            self._memo[memo_key] = feats
+        return feats
+
+    def _quantize(self, traverse: Traverse, timed: bool) -> list[np.ndarray]:
+        if traverse.kind == "files" and self.distributed and self.extractor.use_cache:
+            # The workers read their blocks from the store and quantise them: no descriptor crosses the network.
+            store, results = self._fill(traverse, "features:" + self.extractor.config.key(), timed)
+            ref = vocabulary_file(self.vocabulary, self.extractor.cache_dir)
+            tasks = [QuantizeTask(block=store.task(r.block), sha1=tuple(r.sha1), vocabulary=ref[0],
+                                  fingerprint=ref[1]) for r in results]
+            advance = self.progress(f"words {traverse.name}", len(traverse))
+            sizes = [len(t.block.images) for t in tasks]
+            done = [0]
+
+            def step(_: int) -> None:
+                advance(sizes[done[0]])
+                done[0] += 1
+
+            return flatten(self.executor.map(quantize_block, tasks, advance=step))
+        feats = self.features(traverse, timed=timed)
+        voc = self.vocabulary
+        local = self.executor if not self.distributed else LocalExecutor(self.n_jobs)
+        from topoloc.cluster import chunks
+        from topoloc.features.store import BLOCK_IMAGES
+
+        parts = local.map(lambda r: [voc.quantize(feats[k].descriptors) for k in r],
+                          chunks(len(feats), self.block_size or BLOCK_IMAGES))
+        return flatten(parts)
 
 
 class InMemoryResources(_MemoisedResources):
@@ -327,6 +461,72 @@ class InMemoryResources(_MemoisedResources):
         from topoloc.features import FeatureExtractor
 
         return FeatureExtractor(use_cache=False)
+
+
+@dataclass(frozen=True)
+class QuantizeTask:
+    """Quantise one feature-store block on a worker: the block, its images' SHA-1s, the vocabulary file."""
+
+    block: BlockTask
+    sha1: tuple[str, ...]
+    vocabulary: str
+    fingerprint: str
+
+
+_worker_vocabularies: dict[str, Vocabulary] = {}
+_worker_lock = threading.Lock()
+
+
+def vocabulary_file(vocabulary: Vocabulary, cache_dir: Path) -> tuple[str, str]:
+    """``(path, sha1)`` of the vocabulary saved under the cache for workers to load (written once).
+
+    Workers get the file's path, not the vocabulary: a faiss index does not
+    pickle, and one file read per worker process beats one copy per task.
+    """
+    from topoloc.vocabulary.vocab import vocabulary_fingerprint
+
+    sha1 = vocabulary_fingerprint(vocabulary)["sha1"]
+    path = Path(cache_dir).absolute() / "vocab" / f"words-{sha1[:20]}-{vocabulary.index}-{vocabulary.ef_search}.tlv"
+    if not path.is_file():
+        vocabulary.save(path)
+    with _worker_lock:  # this process already has it: a local worker need not read it back
+        _worker_vocabularies.setdefault(f"{path}|{sha1}", vocabulary)
+    return str(path), sha1
+
+
+def _load_worker_vocabulary(path: str, sha1: str) -> Vocabulary:
+    """The vocabulary of ``path``, loaded once per worker process (its index is then built once too)."""
+    from topoloc.vocabulary import Vocabulary
+    from topoloc.vocabulary.vocab import vocabulary_fingerprint
+
+    key = f"{path}|{sha1}"
+    with _worker_lock:
+        voc = _worker_vocabularies.get(key)
+        if voc is None:
+            voc = Vocabulary.load(path)
+            if vocabulary_fingerprint(voc)["sha1"] != sha1:
+                raise TopolocError(f"vocabulary file changed while the run used it: {path}")
+            _worker_vocabularies[key] = voc
+    return voc
+
+
+def quantize_block(task: QuantizeTask) -> list[np.ndarray]:
+    """Word ids of every image of one feature-store block (the unit of distributed quantisation).
+
+    The block is read and checked against its images' SHA-1s; one that fails
+    (changed since it was filled) is extracted again first.
+    """
+    from dataclasses import replace
+
+    from topoloc.features.store import fill_block, read_block
+
+    voc = _load_worker_vocabulary(task.vocabulary, task.fingerprint)
+    try:
+        sets = read_block(task.block.path, task.block.config, task.sha1)
+    except TopolocError as exc:
+        log.warning("feature block is unusable, extracting it again (%s)", exc)
+        sets = fill_block(replace(task.block, keep=True, force=True)).features or []
+    return [voc.quantize(fs.descriptors) for fs in sets]
 
 
 def traverse_key(traverse: Traverse) -> str:

@@ -46,6 +46,11 @@ Deliberate differences, and why:
   cost outside ``Rwindow``, a property of the best match only;
   ``uniqueness=10`` gives its per-cell analogue (best matches almost
   always unchanged, better thresholds: on Nordland R@100P 0.76 instead of 0).
+  By default (``confidence="margin"``, :mod:`topoloc.confidence`) each
+  column is then shifted so that its best score is its margin over the
+  best place outside the best place's peak, the release's test with a
+  window read from the column itself and with the order of every column
+  kept; ``confidence="raw"`` gives ``-cost``.
 * *Start of the route.*  A trajectory that would reach back before the
   first map place counts those frames with the query's mean difference over
   the map (no evidence) instead of waiting on place 0 (this project's
@@ -82,10 +87,12 @@ from typing import Any, ClassVar
 import numpy as np
 
 from topoloc._params import Check, Constraint, Interval, Options
+from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
+from topoloc.methods.shards import ShardPart, merge_order
 from topoloc.seqslam import difference_matrix, preprocess_image
 from topoloc.sequence.search import contrast_enhance, sequence_search, uniqueness_margin
 
@@ -129,6 +136,12 @@ class SeqSLAM(PlaceRecognizer):
         (:func:`~topoloc.sequence.search.uniqueness_margin`, the release's
         ``Rwindow`` test as a similarity; ``10`` as OpenSeqSLAM).  Same best
         matches, a confidence that thresholds better.
+    confidence : {"margin", "raw"}
+        ``"margin"`` (default): each query's column is shifted so that its
+        best score is its margin over the best place outside the best
+        place's peak, a confidence comparable across queries (same order
+        within a column; :mod:`topoloc.confidence`).
+        ``"raw"``: ``-cost`` (or the uniqueness margin).
 
     Attributes
     ----------
@@ -149,7 +162,7 @@ class SeqSLAM(PlaceRecognizer):
         "ds": Interval(int, 0), "v_min": Interval(float, 0.0), "v_max": Interval(float, 0.0),
         "v_step": Interval(float, 0.0, closed="neither"), "search": Options(("constant", "acceleration")),
         "max_skip": Interval(int, 0), "step_penalty": Interval(float, 0.0, float("inf"), closed="left"),
-        "uniqueness": Interval(int, 0),
+        "uniqueness": Interval(int, 0), "confidence": Options(CONFIDENCE_MODES),
     }
 
     map_vectors_: np.ndarray
@@ -171,6 +184,7 @@ class SeqSLAM(PlaceRecognizer):
         max_skip: int = 1,
         step_penalty: float = 0.0,
         uniqueness: int = 0,
+        confidence: str = "margin",
     ) -> None:
         self.width = width
         self.height = height
@@ -185,6 +199,7 @@ class SeqSLAM(PlaceRecognizer):
         self.max_skip = max_skip
         self.step_penalty = step_penalty
         self.uniqueness = uniqueness
+        self.confidence = confidence
 
     # -- parameters ---------------------------------------------------------------
     def validate_params(self) -> None:
@@ -240,6 +255,18 @@ class SeqSLAM(PlaceRecognizer):
         """The tour's preprocessed images join the map (a place's difference is the minimum over its images)."""
         self._set_images(np.concatenate([self.map_vectors_, self._vectors(tour, resources)]),
                          np.concatenate([self.place_ids_[self.map_rows_], tour.places]))
+
+    def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
+                   resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The shard's preprocessed images and their places (in tour order)."""
+        vecs = [self._vectors(m, resources) for m in shard]
+        return {}, {"vectors": np.concatenate(vecs), "places": np.concatenate([m.places for m in shard])}
+
+    def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
+        """The shards' images back in map order, then sorted by place as ``fit`` does."""
+        order = merge_order(parts, sum(len(m) for m in maps))
+        self._set_images(np.concatenate([p.arrays["vectors"] for p in parts])[order],
+                         np.concatenate([p.arrays["places"] for p in parts])[order].astype(np.int64))
 
     def _set_images(self, vectors: np.ndarray, places: np.ndarray) -> None:
         place_ids = np.unique(places).astype(np.int64)
@@ -304,7 +331,8 @@ class SeqSLAM(PlaceRecognizer):
 
         ``S[p, T] = -`` mean enhanced difference along the best trajectory over
         queries ``T - ds .. T`` ending at place ``p`` (constant velocity, or
-        forward-only for ``search="acceleration"``).  Long query sequences are
+        forward-only for ``search="acceleration"``), then shifted per column
+        by ``confidence``.  Long query sequences are
         processed in blocks of columns with a ``ds``-query overlap, which
         gives exactly the same result with bounded memory.
 
@@ -331,7 +359,7 @@ class SeqSLAM(PlaceRecognizer):
                 max_skip=int(self.max_skip), step_penalty=float(self.step_penalty),
             )
             S[:, c0:c1] = self._similarity(cost[:, h:])
-        return self._check_block(S, n_q)
+        return self._check_block(self._confident(S), n_q)
 
     def _similarity(self, cost: np.ndarray) -> np.ndarray:
         """``-cost``, or the uniqueness margin when ``uniqueness > 0``."""
@@ -349,7 +377,7 @@ class SingleImageSeqSLAM(SeqSLAM):
 
     Parameters
     ----------
-    width, height, patch_size, levels_per_std, enhance_window, uniqueness
+    width, height, patch_size, levels_per_std, enhance_window, uniqueness, confidence
         As for :class:`SeqSLAM`.
     """
 
@@ -365,6 +393,7 @@ class SingleImageSeqSLAM(SeqSLAM):
         levels_per_std: float = 16.0,
         enhance_window: int = 10,
         uniqueness: int = 0,
+        confidence: str = "margin",
     ) -> None:
         super().__init__(
             width=width,
@@ -373,6 +402,7 @@ class SingleImageSeqSLAM(SeqSLAM):
             levels_per_std=levels_per_std,
             enhance_window=enhance_window,
             uniqueness=uniqueness,
+            confidence=confidence,
         )
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
@@ -380,4 +410,4 @@ class SingleImageSeqSLAM(SeqSLAM):
         self.check_fitted()
         Q = self._query_matrix(items)
         S = self._similarity(self.enhanced_differences(Q))
-        return self._check_block(S, Q.shape[0])
+        return self._check_block(self._confident(S), Q.shape[0])

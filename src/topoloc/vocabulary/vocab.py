@@ -16,6 +16,7 @@ same way before search.  ``words_`` therefore has
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -38,6 +39,7 @@ from topoloc.io import read_container, write_container
 from topoloc.progress import stage
 
 if TYPE_CHECKING:
+    from topoloc.cluster import Executor
     from topoloc.features import FeatureExtractor
 
 log = logging.getLogger(__name__)
@@ -528,38 +530,107 @@ def _to_space(X: np.ndarray, *, binary: bool) -> np.ndarray:
 
 # -- training from image folders -----------------------------------------------------------
 
-_CHUNK_IMAGES = 256
+SAMPLE_BLOCK_IMAGES = 256
+"""Images per sampling task: the unit of work sent to a worker, and of the sample's seeds.
+
+Block ``b`` draws its descriptors' random keys from the seed ``(seed, b)``, so the
+sample is a function of the images, the seed and this block size only, never
+of how many workers (or threads) run the blocks."""
 
 
-def _sample_descriptors(
+def _block_sample(extractor: FeatureExtractor, images: Sequence[Path], seed: int, max_descriptors: int,
+                  block_images: int, block: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Keys and descriptors of the ``max_descriptors`` smallest keys of one block of images (a task).
+
+    Returns
+    -------
+    keys : ndarray of float64, shape (m,)
+    descriptors : ndarray, shape (m, d)
+        In the block's own order (image, then feature), ``m <= max_descriptors``.
+    n_total : int
+        Descriptors the block's images have.
+    """
+    part = images[block * block_images:(block + 1) * block_images]
+    sets = extractor.extract_paths(part)
+    descs = [fs.descriptors for fs in sets if len(fs)]
+    dim, dtype = extractor.config.descriptor_dim, extractor.config.descriptor_dtype
+    if not descs:
+        return np.empty(0, np.float64), np.empty((0, dim), dtype), 0
+    new = np.concatenate(descs)
+    keys = np.random.default_rng([int(seed), int(block)]).random(len(new))
+    if len(keys) > max_descriptors:
+        sel = np.sort(np.argpartition(keys, max_descriptors - 1)[:max_descriptors])
+        return keys[sel], new[sel], len(new)
+    return keys, new, len(new)
+
+
+def sample_descriptors(
     images: Sequence[Path],
     extractor: FeatureExtractor,
+    *,
     max_descriptors: int,
     seed: int,
-    progress: Callable[[str, int], Callable[[int], None]] | None,
+    executor: Executor | None = None,
+    progress: Callable[[str, int], Callable[[int], None]] | None = None,
+    block_images: int | None = None,
 ) -> tuple[np.ndarray, int]:
-    """Uniform seeded sample of at most ``max_descriptors`` descriptors of ``images``.
+    """Uniform seeded sample of at most ``max_descriptors`` descriptors of ``images``, drawn across workers.
 
-    Every descriptor gets a random key and the smallest keys are kept, chunk by
-    chunk, so memory stays bounded by ``max_descriptors`` plus one chunk and the
-    sample does not depend on the chunking.
+    Every descriptor gets a random key (block ``b`` of ``block_images``
+    images draws its keys from the seed ``(seed, b)``) and the
+    ``max_descriptors`` smallest keys over all images are kept: a uniform
+    sample without replacement.  Each block is one task of ``executor``
+    (:func:`topoloc.cluster.connect`: local threads or Dask workers, which
+    extract the features and send back only their block's smallest keys);
+    the client keeps the smallest keys as waves of blocks come back, so its
+    memory stays bounded by ``max_descriptors`` plus one wave, and k-means
+    then runs here, where the sample is.  The sample -- hence the vocabulary
+    -- is the same whichever executor and however many workers run it.
+
+    Parameters
+    ----------
+    images : sequence of Path
+        Image files, in a fixed order (:func:`~topoloc.datasets.traverse.find_images`).
+    extractor : FeatureExtractor
+        Local features (cached on disk; Dask workers need that folder shared).
+    max_descriptors, seed : int
+        Sample size and global seed.
+    executor : Executor, optional
+        Runs the blocks (default: one block at a time here).
+    progress : callable, optional
+        ``progress(description, total)`` returning ``advance(n)`` (images).
+    block_images : int, optional
+        Images per block (default :data:`SAMPLE_BLOCK_IMAGES`).
+
+    Returns
+    -------
+    sample : ndarray, shape (min(max_descriptors, n_total), d)
+        In image order (block, image, feature).
+    n_total : int
+        Descriptors of all images.
     """
+    from topoloc.cluster import LocalExecutor
+
+    # Locally one block at a time: each block already extracts its images on the extractor's threads.
+    ex = executor if executor is not None else LocalExecutor(1)
+    block_images = int(block_images or SAMPLE_BLOCK_IMAGES)
+    n_blocks = -(-len(images) // block_images)
     advance = progress("vocabulary features", len(images)) if progress is not None else None
-    shared = (lambda description, total: advance) if advance is not None else None
-    rng = np.random.default_rng(seed)
+    task = functools.partial(_block_sample, extractor, list(images), int(seed), int(max_descriptors),
+                             int(block_images))
     dim, dtype = extractor.config.descriptor_dim, extractor.config.descriptor_dtype
     keys = np.empty(0, np.float64)
     kept = np.empty((0, dim), dtype)
     n_total = 0
-    for start in range(0, len(images), _CHUNK_IMAGES):
-        sets = extractor.extract_paths(images[start:start + _CHUNK_IMAGES], progress=shared)
-        descs = [fs.descriptors for fs in sets if len(fs)]
-        if not descs:
-            continue
-        new = np.concatenate(descs)
-        n_total += len(new)
-        keys = np.concatenate([keys, rng.random(len(new))])
-        kept = np.concatenate([kept, new])
+    wave = max(1, 2 * ex.n_workers)  # blocks in flight at once: bounds the client's memory
+    for first in range(0, n_blocks, wave):
+        blocks = list(range(first, min(first + wave, n_blocks)))
+        for k, d, n in ex.map(task, blocks):
+            n_total += n
+            keys = np.concatenate([keys, k])
+            kept = np.concatenate([kept, d])
+        if advance is not None:
+            advance(len(images[first * block_images:(blocks[-1] + 1) * block_images]))
         if len(keys) > max_descriptors:
             sel = np.sort(np.argpartition(keys, max_descriptors - 1)[:max_descriptors])
             keys, kept = keys[sel], kept[sel]
@@ -601,6 +672,7 @@ def train_vocabulary(
     n_iter: int = DEFAULT_N_ITER,
     index: str = "hnsw",
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
+    executor: Executor | None = None,
 ) -> Vocabulary:
     """Train a vocabulary on every image found (recursively) under ``folders``.
 
@@ -614,6 +686,10 @@ def train_vocabulary(
         See :class:`Vocabulary`.
     progress : callable, optional
         ``progress(description, total)`` returning ``advance(n)``.
+    executor : Executor, optional
+        Where the descriptor sample is drawn (:func:`sample_descriptors`: blocks
+        of images on local threads or Dask workers); k-means runs here.  The
+        vocabulary is the same whatever runs the blocks.
 
     Returns
     -------
@@ -634,7 +710,8 @@ def train_vocabulary(
         n_words=n_words, n_iter=n_iter, max_descriptors=max_descriptors, seed=seed, index=index
     )  # validates the parameters before the long feature extraction
     images = find_images(paths)
-    sample, n_total = _sample_descriptors(images, extractor, max_descriptors, seed, progress)
+    sample, n_total = sample_descriptors(images, extractor, max_descriptors=max_descriptors, seed=seed,
+                                         executor=executor, progress=progress)
     if len(sample) < 2:
         raise input_error(
             f"found only {n_total} local features in {len(images)} images; cannot train a vocabulary",
@@ -673,7 +750,10 @@ def vocabulary_cache_key(
     h.update(
         json.dumps(
             {"schema": VOCAB_SCHEMA, "features": feature_key, "n_words": n_words, "seed": seed,
-             "n_iter": n_iter, "max_descriptors": max_descriptors},
+             "n_iter": n_iter, "max_descriptors": max_descriptors,
+             # The sample's seeds are per block of images (sample_descriptors): another block size or
+             # the earlier single-stream sampling gives another sample, so another cache entry.
+             "sample_blocks": SAMPLE_BLOCK_IMAGES},
             sort_keys=True,
         ).encode()
     )
@@ -690,6 +770,7 @@ def cached_vocabulary(
     max_descriptors: int = 500_000,
     n_iter: int = DEFAULT_N_ITER,
     progress: Callable[[str, int], Callable[[int], None]] | None = None,
+    executor: Executor | None = None,
 ) -> tuple[Vocabulary, Path]:
     """Train a vocabulary once and reuse it from the cache afterwards.
 
@@ -702,7 +783,7 @@ def cached_vocabulary(
     ----------
     cache_dir : path-like, optional
         Cache root (default: the extractor's ``cache_dir``).
-    folders, extractor, n_words, seed, max_descriptors, n_iter, progress
+    folders, extractor, n_words, seed, max_descriptors, n_iter, progress, executor
         See :func:`train_vocabulary`.
 
     Returns
@@ -728,7 +809,7 @@ def cached_vocabulary(
             log.warning("ignoring unusable cached vocabulary, training again (%s)", exc)
     vocab = train_vocabulary(
         paths, extractor=extractor, n_words=n_words, seed=seed, max_descriptors=max_descriptors,
-        n_iter=n_iter, progress=progress,
+        n_iter=n_iter, progress=progress, executor=executor,
     )
     try:
         vocab.save(file)

@@ -85,6 +85,41 @@ def build_index(descriptors: Sequence[np.ndarray], xy: Sequence[np.ndarray]) -> 
     return DescriptorIndex(index=index, desc_image=desc_image, desc_xy=desc_xy, n_images=len(descriptors))
 
 
+def merge_indexes(descriptors: Sequence[np.ndarray], counts: Sequence[np.ndarray], xy: Sequence[np.ndarray],
+                  order: np.ndarray) -> DescriptorIndex:
+    """One index from the indexed images of several partial maps (shards), images in map order.
+
+    Parameters
+    ----------
+    descriptors : sequence of ndarray of float32, shape (n_k, d)
+        Each part's unit-normalised descriptors, image after image.
+    counts : sequence of ndarray of int64, shape (m_k,)
+        Descriptors of each of the part's ``m_k`` images.
+    xy : sequence of ndarray of float32, shape (n_k, 2)
+        Their keypoint positions.
+    order : ndarray of int64, shape (sum m_k,)
+        Image ``j`` of the result is image ``order[j]`` of the parts' images in order.
+
+    Returns
+    -------
+    DescriptorIndex
+        Equal, row for row, to :func:`build_index` over the images in map order
+        (normalisation is per row, so it commutes with the reordering).
+    """
+    n = np.concatenate([np.asarray(c, np.int64) for c in counts])[order]
+    starts = np.r_[0, np.cumsum(np.concatenate([np.asarray(c, np.int64) for c in counts]))][:-1][order]
+    offsets = np.cumsum(n) - n
+    rows = np.repeat(starts - offsets, n) + np.arange(int(n.sum()), dtype=np.int64)
+    blocks = [np.asarray(d, np.float32) for d in descriptors if len(d)]
+    desc = np.concatenate(blocks) if blocks else np.zeros((0, 128), np.float32)
+    index = faiss.IndexFlatL2(desc.shape[1])
+    if len(rows):
+        index.add(np.ascontiguousarray(desc[rows]))
+    all_xy = np.concatenate([np.asarray(a, np.float32).reshape(-1, 2) for a in xy])
+    return DescriptorIndex(index=index, desc_image=np.repeat(np.arange(len(n), dtype=np.int64), n),
+                           desc_xy=all_xy[rows], n_images=len(n))
+
+
 def ratio_matches(
     index: DescriptorIndex, descriptors: np.ndarray, *, ratio: float = 0.8, n_neighbours: int = 16,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,0 +1,138 @@
+"""Batch localisation on a cluster: frames are described and scored by Dask workers, lines written in order.
+
+``topoloc localize MAP FRAMES --scheduler ADDRESS`` sends batches of frames to
+the workers; each worker opens the map file once (memory-mapped, so the map
+file must be on a file system the workers share, at the same path), extracts
+the frames' features and scores them against every place, and sends back one
+score column per frame.  The sequence search, the top places and the
+threshold then run here, in frame order, through
+:meth:`~topoloc.maps.map.Localizer.step_scores`, so every output line equals
+the line of a local run.  Methods that score whole sequences (SeqSLAM) keep
+their last frames in the localiser and run here, one frame at a time.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from itertools import islice
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoloc.cluster import Executor
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.maps.map import Localizer, Map
+from topoloc.methods.resources import InMemoryResources
+
+BATCH_FRAMES = 16
+"""Frames per task: SIFT describes 15.5 frames of 640 x 480 per second and thread
+(``docs/results/performance.md``, from ``benchmarks/bench_performance.py``), so a task is about a second,
+and the frames held in memory at once stay at ``2 x worker threads x 16``."""
+
+
+@dataclass(frozen=True)
+class FrameBatch:
+    """Frames to score on a worker: the map file (with its size and mtime, so a rewritten map is refused)."""
+
+    map_file: str
+    stamp: tuple[int, int]
+    first: int
+    frames: tuple[np.ndarray, ...]
+
+
+_maps: dict[tuple[str, tuple[int, int]], Map] = {}
+_maps_lock = threading.Lock()
+
+
+def _stamp(path: str | Path) -> tuple[int, int]:
+    st = os.stat(path)
+    return int(st.st_size), int(st.st_mtime_ns)
+
+
+def _worker_map(path: str, stamp: tuple[int, int]) -> Map:
+    """The map of ``path``, opened once per worker process."""
+    with _maps_lock:
+        m = _maps.get((path, stamp))
+        if m is None:
+            if _stamp(path) != stamp:
+                raise TopolocError(f"map file changed during the run (or is not shared with the workers): {path}")
+            m = _maps[(path, stamp)] = Map.load(path)
+    return m
+
+
+def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float]]:
+    """``(score column of shape (n_places,), ms features, ms matching)`` of each frame of a batch.
+
+    The same computation as :meth:`Localizer.step` before its sequence
+    search: features of the frame in memory, ``encode``, ``score``.
+    """
+    m = _worker_map(batch.map_file, batch.stamp)
+    rec = m.recognizer
+    res = InMemoryResources(feature_config=m.features, vocabulary=m.vocabulary, memoise=False, n_jobs=1)
+    out = []
+    for k, image in enumerate(batch.frames):
+        t0 = time.perf_counter()
+        items = rec.encode(Traverse.from_images([image], name=f"frame{batch.first + k}"), resources=res)
+        t1 = time.perf_counter()
+        col = np.asarray(rec.score(items)[:, 0])
+        out.append((col, 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1)))
+    return out
+
+
+def localize_on(executor: Executor, loc: Localizer,
+                frames: Iterator[tuple[str, float | None, np.ndarray]], *,
+                batch_frames: int = BATCH_FRAMES) -> Iterator[tuple[dict[str, Any], float]]:
+    """Result lines of ``frames`` in order, scored on ``executor``'s workers; with each, seconds spent decoding.
+
+    Parameters
+    ----------
+    executor : Executor
+        A Dask executor (a local one works too, on threads).
+    loc : Localizer
+        The localiser of a map loaded from a file (``Map.load``): the workers open that file.
+    frames : iterator of (name, time_s or None, image)
+        As :func:`topoloc.cli.recordings.localize_frames` yields them.
+    batch_frames : int
+        Frames per task.
+
+    Raises
+    ------
+    TopolocError
+        If the map was not loaded from a file.
+    """
+    m = loc.map
+    if m.path is None:
+        raise TopolocError("batch localisation on a cluster needs a map loaded from a file")
+    if m.recognizer.scores_whole_sequence:
+        while True:
+            t0 = time.perf_counter()
+            item = next(frames, None)
+            if item is None:
+                return
+            yield loc.step(item[2], name=item[0], time_s=item[1]), time.perf_counter() - t0
+    path = str(Path(m.path).resolve())
+    stamp = _stamp(path)
+    window = batch_frames * 2 * max(1, executor.n_workers)
+    first = 0
+    while True:
+        t0 = time.perf_counter()
+        chunk = list(islice(frames, window))
+        decode_s = time.perf_counter() - t0
+        if not chunk:
+            return
+        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]))
+                   for a in range(0, len(chunk), batch_frames)]
+        first += len(chunk)
+        scored = [c for part in executor.map(score_frames, batches) for c in part]
+        for k, ((name, time_s, _), (col, ms_f, ms_m)) in enumerate(zip(chunk, scored, strict=True)):
+            line = loc.step_scores(col, name=name, time_s=time_s, ms_features=ms_f, ms_matching=ms_m)
+            yield line, decode_s if k == 0 else 0.0
+
+
+__all__ = ["BATCH_FRAMES", "FrameBatch", "localize_on", "score_frames"]

@@ -1,0 +1,43 @@
+"""Saved maps keep the confidence they were built (and calibrated) with."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from topoloc.confidence import peak_margin
+from topoloc.maps import Map
+from topoloc.methods.bag_of_words import BagOfWords
+
+
+def _build(route: dict[str, Any], **params: Any) -> Map:
+    return Map.build(method="bow", tours=[route["map"]], params=params, vocabulary=route["vocabulary"],
+                     vocab_train=(), cache_dir=route["map"].root.parent / "cache")
+
+
+@pytest.mark.parametrize("confidence", ["raw", "margin"])
+def test_a_saved_map_keeps_its_confidence(confidence: str, tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    m = _build(tiny_route, confidence=confidence)
+    back = Map.load(m.save(tmp_path / "m.tlm"))
+    assert back.recognizer.confidence == confidence
+    np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))
+
+
+def test_a_map_saved_before_the_parameter_keeps_raw_scores(tiny_route: dict[str, Any], tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    raw = _build(tiny_route, confidence="raw").similarity(tiny_route["query"])
+    m = _build(tiny_route)
+    plain_get_params = BagOfWords.get_params
+    # As an older topoloc wrote it: parameters without "confidence".
+    monkeypatch.setattr(BagOfWords, "get_params", lambda self, deep=True: {
+        k: v for k, v in plain_get_params(self, deep).items() if k != "confidence"})
+    path = m.save(tmp_path / "old.tlm")
+    monkeypatch.undo()
+    back = Map.load(path)
+    assert back.recognizer.confidence == "raw"
+    np.testing.assert_allclose(back.similarity(tiny_route["query"]), raw, rtol=1e-6)
+    # A map built now scores the margin of those raw scores.
+    np.testing.assert_allclose(m.similarity(tiny_route["query"]), peak_margin(raw), rtol=1e-6, atol=1e-6)
