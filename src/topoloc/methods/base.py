@@ -59,6 +59,25 @@ class PlaceRecognizer(ABC):
     resources_: Resources
 
     # -- the contract ---------------------------------------------------------------------
+    def _checked_inputs(self, maps: Traverse | Sequence[Traverse],
+                        resources: Resources | None) -> tuple[list[Traverse], Resources]:
+        """Parameters validated, the map traverses as a list and the resources (in memory by default).
+
+        Raises
+        ------
+        TopolocError
+            For a bad parameter, no map traverse, or a method that needs a
+            vocabulary the resources lack.
+        """
+        self.validate_params()
+        maps = [maps] if isinstance(maps, Traverse) else list(maps)
+        if not maps:
+            raise TopolocError(f"{self.name}: at least one map traverse is needed")
+        res = resources if resources is not None else InMemoryResources()
+        if self.uses_vocabulary and not res.has_vocabulary:
+            raise TopolocError(f"method {self.name!r} needs a visual vocabulary")
+        return maps, res
+
     def fit(self, maps: Sequence[Traverse] | Traverse, *, resources: Resources | None = None) -> Self:
         """Learn the map from one or more traverses of the same places.
 
@@ -80,13 +99,7 @@ class PlaceRecognizer(ABC):
             For a bad parameter (one line naming it), no map traverse, or a
             method that needs a vocabulary the resources lack.
         """
-        self.validate_params()
-        maps = [maps] if isinstance(maps, Traverse) else list(maps)
-        if not maps:
-            raise TopolocError(f"{self.name}: at least one map traverse is needed")
-        res = resources if resources is not None else InMemoryResources()
-        if self.uses_vocabulary and not res.has_vocabulary:
-            raise TopolocError(f"method {self.name!r} needs a visual vocabulary")
+        maps, res = self._checked_inputs(maps, resources)
         self._fit(maps, res)
         self.resources_ = res
         return self
@@ -158,13 +171,7 @@ class PlaceRecognizer(ABC):
         TopolocError
             For a bad parameter, no map traverse, or a method that cannot be built from shards.
         """
-        self.validate_params()
-        maps = [maps] if isinstance(maps, Traverse) else list(maps)
-        if not maps:
-            raise TopolocError(f"{self.name}: at least one map traverse is needed")
-        res = resources if resources is not None else InMemoryResources()
-        if self.uses_vocabulary and not res.has_vocabulary:
-            raise TopolocError(f"method {self.name!r} needs a visual vocabulary")
+        maps, res = self._checked_inputs(maps, resources)
         subs, positions = shard_maps(maps, places)
         meta, arrays = self._fit_shard(maps, subs, positions, res)
         return ShardPart(index=int(index), places=(int(places[0]), int(places[1])), positions=positions,
