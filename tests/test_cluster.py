@@ -160,3 +160,18 @@ def test_local_executor_stops_on_interrupt() -> None:
     with pytest.raises(KeyboardInterrupt):
         LocalExecutor(n_jobs=2).map(work, list(range(50)))
     assert len(started) < 50
+
+
+def _in_task(_: int) -> bool:
+    from topoloc.cluster import in_worker_task
+
+    return in_worker_task()
+
+
+def test_code_knows_when_it_runs_in_a_worker_task(dask_scheduler: str) -> None:
+    from topoloc.cluster import in_worker_task
+
+    assert not in_worker_task()
+    assert LocalExecutor(n_jobs=1).map(_in_task, [0]) == [False]
+    with connect(dask_scheduler, timeout_s=20) as ex:
+        assert ex.map(_in_task, [0, 1]) == [True, True]

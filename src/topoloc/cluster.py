@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol, TypeVar, runtime_checkable
@@ -221,6 +222,24 @@ class DaskExecutor:
         return f"DaskExecutor({self.address!r}, timeout_s={self.timeout_s:g}, retries={self.retries})"
 
 
+def in_worker_task() -> bool:
+    """Whether this code runs as a task of a Dask worker (whose threads are already one per core).
+
+    Code that would start threads of its own (numba's parallel loops) runs
+    on one thread there: two worker processes each starting a thread per
+    core oversubscribe the machine.
+    """
+    if "distributed" not in sys.modules:  # never import Dask just to ask
+        return False
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return False
+    return True
+
+
 def require_distributed() -> Any:
     """The ``distributed`` module, or a one-line error naming the extra that provides it."""
     try:
@@ -286,5 +305,5 @@ def flatten(parts: Iterable[Sequence[T]]) -> list[T]:
 
 
 __all__ = ["DEFAULT_RETRIES", "DEFAULT_TIMEOUT_S", "SCHEDULER_ENV", "TIMEOUT_ENV", "DaskExecutor", "Executor",
-           "LocalExecutor", "chunks", "connect", "default_timeout_s", "flatten", "require_distributed",
-           "scheduler_address"]
+           "LocalExecutor", "chunks", "connect", "default_timeout_s", "flatten", "in_worker_task",
+           "require_distributed", "scheduler_address"]

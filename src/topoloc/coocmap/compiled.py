@@ -54,6 +54,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from topoloc.cluster import in_worker_task
 from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
 from topoloc.coocmap.spatial import NORM, NORM_BITS
@@ -539,7 +540,8 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     qy = xyq[:, 1].astype(np.int64)
     # Candidate ids follow ascending query feature index, as in consistency_graphs;
     # out-of-vocabulary features never become candidates (absent from by_word).
-    threads = numba.get_num_threads() if parallel else 1
+    # In a Dask worker task the worker's threads already use the cores (topoloc.cluster.in_worker_task).
+    threads = numba.get_num_threads() if parallel and not in_worker_task() else 1
     args = (order, n_cand, model.loc_ptr, model.word, model.xy, groups, words[by_word], by_word.astype(np.int64),
             qx, qy, int(top_k), int(spatial_tolerance), int(model.grid_x), int(model.grid_y),
             int(seed) & 0xFFFFFFFF, SEED_FIRST, BATCH_PER_THREAD * threads, scores, exact, stats, keep)
