@@ -85,7 +85,8 @@ class CoocMap(PlaceRecognizer):
         With ``simultaneous``, how the bounds of Sec. II-D are used; all give
         the same best place and exact ranks ``1..top_k``.  ``"compiled"`` (the
         default): ``"lazy"``'s order with the per-place loops compiled and
-        tighter bounds, ~10x faster
+        tighter bounds, ~14x faster on gardens_point (docs/results/coocmap_speed.md,
+        ``benchmarks/bench_coocmap_speed.py``)
         (:func:`~topoloc.coocmap.compiled.match_compiled`);  ``"rounds"``: the
         paper's one elimination per place per round
         (:func:`~topoloc.coocmap.matching.match_simultaneous`);
@@ -102,9 +103,11 @@ class CoocMap(PlaceRecognizer):
         Seed of the random tie-breaking of equal scores (Sec. II-C).
     spatial_tolerance : int
         0 = the paper (equal spatial words); ``t`` accepts squares up to ``t``
-        apart on each axis (our extension for viewpoint change; default 1:
-        Gardens Point day_left+night_right -> day_right AUC 0.16 -> 0.58,
-        webcam_daynight unchanged), see
+        apart on each axis (our extension for viewpoint change; default 1,
+        chosen on the development data: Gardens Point day_left+night_right ->
+        day_right AUC 0.16 -> 0.58, webcam_daynight unchanged, measured with
+        ``topoloc evaluate --method coocmap --param spatial_tolerance=0|1`` on
+        those pairs, without the margin confidence), see
         :func:`~topoloc.coocmap.matching.consistency_graphs`.
     position_bits : int
         Position lattice of the map (16 = as extracted; default 6: 64 x 64,
@@ -113,7 +116,9 @@ class CoocMap(PlaceRecognizer):
         feature by other tours then coincide and are stored once, which
         makes ``J`` of the right place 5-10x cheaper to build; accuracy on
         Gardens Point / webcam_daynight is unchanged (AUC 0.579 -> 0.590,
-        0.817 -> 0.815).
+        0.817 -> 0.815, measured with ``topoloc evaluate --method coocmap
+        --param position_bits=16|6`` on the pairs above, before the margin
+        confidence).
     model_path : str
         If set: load the map from this file when it exists (it must have been
         built with the same vocabulary and places), else build and save it.

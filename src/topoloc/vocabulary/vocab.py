@@ -73,7 +73,9 @@ SIFT vocabulary trained on ``webcam_daynight`` and 20,000 SIFT descriptors of
 same word as exact search and quantises 1,000 descriptors in ~5.5 ms median
 (exact flat search: ~18 ms).  Other settings: efSearch 8 -> 96.3%, ~3.7 ms;
 12 -> 98.3%, ~4.2 ms; 24 -> 99.8%, ~7.3 ms.  A mis-assigned descriptor goes to
-a word only ~2% farther than the nearest one.
+a word only ~2% farther than the nearest one.  (The efSearch 16 row is
+re-measured by ``benchmarks/bench_performance.py`` in docs/results/performance.md;
+the other settings were measured by hand when the default was chosen.)
 """
 
 _FLOAT_KINDS = ("float32",)
