@@ -159,7 +159,7 @@ def main() -> None:
         ext = extrapolate(data["measured"])
         data["extrapolated"] = ext
         (args.out / "cluster.json").write_text(json.dumps(data, indent=2, default=float) + "\n")
-        write_pages(data["meta"], data["measured"], ext, args.out)
+        write_pages(data["meta"], data["measured"], ext, args.out, recheck=data.get("localisation_recheck"))
         return
 
     import distributed
@@ -197,7 +197,8 @@ def main() -> None:
     print((args.out / "cluster.md").read_text())
 
 
-def write_pages(meta: dict[str, Any], measured: list[dict[str, Any]], ext: list[dict[str, Any]], out: Path) -> None:
+def write_pages(meta: dict[str, Any], measured: list[dict[str, Any]], ext: list[dict[str, Any]], out: Path, *,
+                recheck: dict[str, Any] | None = None) -> None:
     """docs/results/cluster.md (measured) and docs/cluster_scaling.md (the extrapolation)."""
     cmd = f".venv/bin/python -m benchmarks.bench_cluster --places {meta['places']}"
     lines = [
@@ -232,6 +233,12 @@ def write_pages(meta: dict[str, Any], measured: list[dict[str, Any]], ext: list[
                  "for the first cluster only: the others were started after this process had grown, and Linux "
                  "reports a parent's peak to the processes it starts. The client's peak is this whole process "
                  "(it holds every image's features of the route after the features stage).\n")
+    if recheck:
+        q = recheck["queries_per_s"]
+        lines.append("\nLocalisation re-measured after this run with `.venv/bin/python -m benchmarks."
+                     f"bench_cluster_localize` (same map and {recheck['queries']:,} queries, load average "
+                     f"{recheck['load_before']:.2f}): " + ", ".join(f"{rate:.1f} queries/s on {w} worker(s)"
+                                                                   for w, rate in q.items()) + ".\n")
     if meta.get("notes"):
         lines.append("\n" + meta["notes"] + "\n")
     (out / "cluster.md").write_text("".join(lines))
