@@ -39,7 +39,7 @@ import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Protocol, TypeVar, runtime_checkable
+from typing import Any, Protocol, Self, TypeVar, runtime_checkable
 
 from topoloc._parallel import n_workers
 from topoloc.errors import TopolocError
@@ -87,7 +87,20 @@ class Executor(Protocol):
         ...
 
 
-class LocalExecutor:
+class _Closing:
+    """``with executor:`` closes it at the end of the block."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LocalExecutor(_Closing):
     """Threads of this process (``n_jobs``: -1 = all cores, scikit-learn convention).
 
     Parameters
@@ -131,17 +144,11 @@ class LocalExecutor:
     def close(self) -> None:
         return None
 
-    def __enter__(self) -> LocalExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def __repr__(self) -> str:
         return f"LocalExecutor(n_jobs={self.n_jobs})"
 
 
-class DaskExecutor:
+class DaskExecutor(_Closing):
     """Tasks sent to a Dask distributed scheduler.
 
     Parameters
@@ -211,12 +218,6 @@ class DaskExecutor:
 
     def close(self) -> None:
         self.client.close()
-
-    def __enter__(self) -> DaskExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"DaskExecutor({self.address!r}, timeout_s={self.timeout_s:g}, retries={self.retries})"
