@@ -60,7 +60,7 @@ def run_pipeline(route: Any, workers: int, work: Path, *, n_words: int, max_feat
     from topoloc.datasets.traverse import load_traverse
     from topoloc.features import FeatureConfig, FeatureExtractor
     from topoloc.maps.batch import localize_on
-    from topoloc.maps.map import Map, _xy_sums, tour_record
+    from topoloc.maps.map import Map
     from topoloc.methods.cooc_map import CoocMap
     from topoloc.methods.resources import CachedResources
     from topoloc.methods.shards import build_from_shards
@@ -103,8 +103,7 @@ def run_pipeline(route: Any, workers: int, work: Path, *, n_words: int, max_feat
         stage("quantisation", len(map_t), lambda: res.words(map_t))
         rec = stage("map building", len(map_t), lambda: build_from_shards(
             CoocMap, [map_t], resources=res, n_shards=4 * workers, executor=ex))
-        m = Map(rec, features=config, vocabulary=voc, tours=[tour_record(map_t)],
-                xy_sums=_xy_sums([map_t], rec.place_ids_))
+        m = Map.from_fitted(rec, [map_t], features=config, vocabulary=voc)
         map_file = work / f"route_w{workers}.tlm"
         m.save(map_file)
         loc = Map.load(map_file).localizer(top_k=1)

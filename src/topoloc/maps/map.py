@@ -198,8 +198,14 @@ class Map:
                                     if progress is not None else None)
         else:
             rec.fit(maps, resources=res)
-        return cls(rec, features=config, vocabulary=voc, tours=[tour_record(t) for t in maps],
-                   xy_sums=_xy_sums(maps, rec.place_ids_))
+        return cls.from_fitted(rec, maps, features=config, vocabulary=voc)
+
+    @classmethod
+    def from_fitted(cls, recognizer: PlaceRecognizer, tours: Sequence[Traverse], *, features: FeatureConfig,
+                    vocabulary: Vocabulary | None) -> Map:
+        """The map of a recogniser already fitted on ``tours`` (with these feature settings and vocabulary)."""
+        return cls(recognizer, features=features, vocabulary=vocabulary, tours=[tour_record(t) for t in tours],
+                   xy_sums=_xy_sums(tours, recognizer.place_ids_))
 
     def add_tour(self, tour: Traverse | str | Path, *, cache_dir: str | Path | None = None,
                  progress: ProgressFactory | None = None, executor: Executor | None = None) -> Map:
