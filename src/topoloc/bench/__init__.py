@@ -7,5 +7,5 @@ here, above the methods (it may import any layer below the CLI):
 * :mod:`~topoloc.bench.fabmap_speed` -- FAB-MAP 2.0 index, bail-out and Chow-Liu timings;
 * :mod:`~topoloc.bench.landmark_density` -- map density against frame rate (landmarks, voting), and
   the densest map of each within a frame-rate budget on real data;
-* :mod:`~topoloc.bench.quantisation` -- vocabulary quantisation speed and agreement.
+* :mod:`~topoloc.bench.quantisation` -- vocabulary quantisation speed and agreement, k-means convergence.
 """

@@ -52,10 +52,13 @@ INDEXES = ("hnsw", "flat")
 DEFAULT_N_ITER = 10
 """Default k-means iterations.
 
-On 2 cores, one iteration over 300,000 SIFT descriptors with k=10,000 takes
-~4-6 s on an idle machine and ~12 s when the cores are shared (20 iterations:
-124 s idle, 241-269 s shared).  After 10 iterations the k-means objective is
-within 0.6% of its value after 20, so 10 halves training time at almost no cost.
+Measured by ``benchmarks/bench_vocabulary.py`` (docs/results/vocabulary.md) on the
+development machine (2 cores shared with other jobs, 1-minute load average ~5-6,
+faiss 1.15): 10,000 words on the 137,561 SIFT descriptors of ``webcam_daynight/map``
+(the training set of the gardens_point results; all of them, below the default cap
+of 500,000).  After 10 iterations the k-means objective is 0.15% above its value
+after 20, and 10 iterations take 137 s instead of 250 s (median 11.4 s per
+iteration), so 10 about halves training time at almost no cost.
 """
 
 HNSW_M = 32
@@ -67,15 +70,18 @@ HNSW_EF_CONSTRUCTION = 80
 DEFAULT_EF_SEARCH = 16
 """Search beam width of the HNSW index (with ``HNSW_M`` = 32, ``HNSW_EF_CONSTRUCTION`` = 80).
 
-Measured on the development machine (2 cores, faiss 1.15) with a 10,000-word
-SIFT vocabulary trained on ``webcam_daynight`` and 20,000 SIFT descriptors of
-``gardens_point`` as queries: efSearch=16 assigns 99.2% of descriptors to the
-same word as exact search and quantises 1,000 descriptors in ~5.5 ms median
-(exact flat search: ~18 ms).  Other settings: efSearch 8 -> 96.3%, ~3.7 ms;
-12 -> 98.3%, ~4.2 ms; 24 -> 99.8%, ~7.3 ms.  A mis-assigned descriptor goes to
-a word only ~2% farther than the nearest one.  (The efSearch 16 row is
-re-measured by ``benchmarks/bench_performance.py`` in docs/results/performance.md;
-the other settings were measured by hand when the default was chosen.)
+Measured by ``benchmarks/bench_vocabulary.py`` (docs/results/vocabulary.md) on the
+development machine (2 cores shared with other jobs, 1-minute load average ~4.5,
+faiss 1.15) with the default 10,000-word SIFT vocabulary of ``webcam_daynight/map``
+and 20,000 SIFT descriptors of ``gardens_point`` as queries: efSearch=16 assigns
+99.1% of descriptors to the same word as exact search and quantises 1,000
+descriptors in 32 ms median, 0.16x the time of exact flat search (200 ms; absolute
+times on the loaded machine, timed in turns in one process).  Other settings:
+efSearch 8 -> 96.0%, 0.12x; 12 -> 98.1%, 0.16x; 24 -> 99.6%, 0.20x; 32 -> 99.8%,
+0.24x (the agreements are deterministic; the times are noisy).  A mis-assigned
+descriptor goes to a word a median 2.0% farther than the nearest one (3.1% at
+efSearch 8).  The default row is also re-measured by
+``benchmarks/bench_performance.py`` in docs/results/performance.md.
 """
 
 _FLOAT_KINDS = ("float32",)
@@ -135,6 +141,8 @@ class Vocabulary:
     provenance_ : dict
         JSON-serialisable record of how it was made (``n_descriptors``,
         ``n_descriptors_used``, ``train_seconds``, ``created``, ``faiss_version``,
+        the k-means ``objective`` (sum of squared distances) with its
+        ``objective_per_iteration`` and ``iteration_seconds`` (lists of ``n_iter``),
         plus what the caller passed, e.g. image folders and ``n_images``).
     """
 
@@ -302,6 +310,8 @@ class Vocabulary:
         km.train(train)
         seconds = time.perf_counter() - t0
         objective = km.obj  # k-means loss per iteration
+        # faiss reports the time since the start of training at the end of each iteration.
+        elapsed = [float(st["time"]) for st in getattr(km, "iteration_stats", [])]
         self.words_ = np.ascontiguousarray(km.centroids, dtype=np.float32)
         self.n_words_ = k
         self.descriptor_kind_ = str(descriptor_kind)
@@ -311,6 +321,11 @@ class Vocabulary:
             "n_descriptors_used": len(train),
             "train_seconds": round(seconds, 3),
             "objective": float(objective[-1]) if objective is not None and len(objective) else None,
+            # Convergence record (benchmarks/bench_vocabulary.py reads it): sum of squared
+            # distances after each iteration and each iteration's seconds (the first includes
+            # the initialisation).
+            "objective_per_iteration": [float(o) for o in objective] if objective is not None else [],
+            "iteration_seconds": [round(b - a, 4) for a, b in zip([0.0, *elapsed], elapsed, strict=False)],
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "faiss_version": faiss.__version__,
         }
