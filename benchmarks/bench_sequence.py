@@ -23,6 +23,7 @@ VARIANTS: list[tuple[str, str, dict[str, str]]] = [
     ("seqslam-single", "seqslam-single", {}),
     ("seqslam-accel", "seqslam", {"search": "acceleration"}),
     ("seqslam-noenh", "seqslam", {"enhance_window": "0"}),
+    ("seqslam-release", "seqslam", {"levels_per_std": "1", "uniqueness": "10"}),
 ]
 
 
@@ -55,7 +56,8 @@ def main() -> None:
         "Rows: `seqslam` with OpenSeqSLAM's defaults (64x32, patch 8, enhancement window 10, ds 10, ",
         "v 0.8-1.2 step 0.1, causal window), `seqslam-single` (no sequence search), ",
         "`search=acceleration` (Cooc-Map II-F forward path), `enhance_window=0` (no local contrast ",
-        "enhancement). ms/query = difference matrix + enhancement + search, total / n queries.\n\n",
+        "enhancement), `levels_per_std=1, uniqueness=10` (the release's quantisation and its uniqueness score, ",
+        "the closest to OpenSeqSLAM). ms/query = difference matrix + enhancement + search, total / n queries.\n\n",
     ]
     for i, (title, ds) in enumerate(sections):
         body = report_table(ds, RESULTS / f"seqslam_{i}", title)

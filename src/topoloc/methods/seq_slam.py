@@ -38,14 +38,17 @@ Deliberate differences, and why:
   patch (``|z| <= 3`` for almost every pixel).  We keep ``levels_per_std = 16`` levels per standard deviation
   (``levels_per_std=1`` reproduces the original); the uint8 storage is kept
   because it lets OpenCV compute the sums of absolute differences with SIMD
-  SAD instructions (about 0.1 ms per query for 1,788 places).
+  SAD instructions (about 0.1 ms per query for 1,788 places, difference,
+  enhancement and search together: ``benchmarks/bench_seqslam.py``,
+  ``docs/results/seqslam_speed.json``).
 * *Similarity, not the uniqueness ratio.*  The protocol needs a similarity per
   (place, query), so ``S`` is the negated trajectory cost (the mean
   contrast-enhanced difference along the best trajectory ending at the
   place).  The release thresholds the ratio of the best cost to the lowest
   cost outside ``Rwindow``, a property of the best match only;
   ``uniqueness=10`` gives its per-cell analogue (best matches almost
-  always unchanged, better thresholds: on Nordland R@100P 0.76 instead of 0).
+  always unchanged, better thresholds: on Nordland R@100P 0.76 instead of 0,
+  ``benchmarks/bench_seqslam.py``, ``docs/results/seqslam_speed.json``).
   By default (``confidence="margin"``, :mod:`topoloc.confidence`) each
   column is then shifted so that its best score is its margin over the
   best place outside the best place's peak, the release's test with a
@@ -56,9 +59,10 @@ Deliberate differences, and why:
   the map (no evidence) instead of waiting on place 0 (this project's
   earlier rule); otherwise one structureless first image (a tunnel,
   a blanked camera: nearer to every query than its true place after patch
-  normalisation) is the best match of almost every query (issue #12, R@1
-  0.23 instead of 0.83 on Nordland with such a first frame).  See
-  :mod:`topoloc.sequence.search`.
+  normalisation) is the best match of almost every query (R@1 0.23 instead
+  of 0.83 on Nordland with such a first frame, as measured in issue #12 with
+  the old rule; the ``seqslam_dark_frame`` row of ``../shared/scorecard``
+  measures the current one).  See :mod:`topoloc.sequence.search`.
 * *Several map traverses.*  The difference of a query to a place is the
   minimum over all map images of that place (from any traverse), so a winter
   query can match the winter tour; averaging normalised images instead would
@@ -68,12 +72,26 @@ Deliberate differences, and why:
 forward-only paths (Section II-F), see
 :func:`~topoloc.sequence.search.acceleration_search`.
 
-The contrast enhancement window is the release's and suits routes sampled
-like Nordland (a frame every few tens of metres).  On densely sampled routes,
-where the ±5 neighbouring places look almost the same as the true one, it
-removes the signal it should sharpen: Gardens Point day_left -> day_right
-gives AUC 0.11 with ``enhance_window=10`` and 0.92 with ``enhance_window=0``
-(Nordland needs it: 0.82 with, 0.005 without).
+The contrast enhancement window is the release's.  Nordland needs it (AUC
+0.82 with, 0.001 without), while Gardens Point day_left -> day_right gives
+0.19 with ``enhance_window=10`` and 0.92 with ``enhance_window=0``, and
+corridor loses with it too (``docs/results/seqslam.md``,
+``benchmarks/bench_sequence.py``).  Density of the route does not explain
+it: a window makes a place's enhanced difference at most
+``(n - 1) / sqrt(n)`` below its neighbours' (3.0 for 11 rows), so every local
+minimum of a column ends near the same value and the true place must win
+on the sequence alone; on Nordland the sequence does that, on Gardens Point
+it does not.  We found no property of the map that predicts which (a measure
+of slow appearance drift along the map separates the datasets but not
+Nordland's own sections, all of which gain from the window), so the default
+stays the release's and ``enhance_window=0`` is the documented choice for
+routes like Gardens Point.  The release itself scores 0.31 AUC on that pair
+with the same window (issue #12); ``levels_per_std=1, uniqueness=10`` (its
+quantisation and its uniqueness score) brings ours from 0.19 to
+0.24 (the ``seqslam (levels_per_std=1.0, uniqueness=10)`` rows of
+``docs/results/seqslam.md``); the rest of the gap is not explained (the
+release centres its window on the query, using the 5 frames after it,
+where ours is causal).
 
 :class:`SingleImageSeqSLAM` (``seqslam-single``) is the same pipeline without
 the sequence search: ``S = -`` contrast-enhanced difference.
