@@ -1,4 +1,8 @@
-"""Shared helpers of the benchmark scripts: where the data is, running evaluate, tables."""
+"""Shared helpers of the benchmark scripts: where the data is, running evaluate, tables, and prose.
+
+The prose under a results table (:func:`prose`) is written from the runs' metrics.json and
+``anchors.json``, so it changes with the numbers and is never typed by hand.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +11,9 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
-from topoloc.evaluation.report import build_report
+from topoloc.evaluation.report import build_report, run_title
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TOPOLOC_DATA", REPO.parent / "shared" / "data")).resolve()
@@ -45,8 +50,8 @@ def run(method: str, maps: list[Path], query: Path, out: Path, *, vocab_train: l
         cmd += ["--map", str(m)]
     for v in vocab_train:
         cmd += ["--vocab-train", str(v)]
-    for k, v in (params or {}).items():
-        cmd += ["--param", f"{k}={v}"]
+    for k, value in (params or {}).items():
+        cmd += ["--param", f"{k}={value}"]
     if sequence:
         cmd += ["--sequence", str(sequence)]
     if ground_truth is not None:
@@ -58,14 +63,166 @@ def run(method: str, maps: list[Path], query: Path, out: Path, *, vocab_train: l
     return out
 
 
-def anchors_table() -> str:
-    a = json.loads((REPO / "benchmarks" / "anchors.json").read_text())
-    lines = ["| system | " + " | ".join(f"{c} AUC / R@1" for c in a["columns"]) + " |\n",
+def load_anchors() -> dict[str, Any]:
+    return dict(json.loads((REPO / "benchmarks" / "anchors.json").read_text()))
+
+
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:g}"
+
+
+def _anchor_values(row: dict[str, Any], k: int) -> tuple[float | None, float | None, float | None]:
+    """(AUC, R@100P, R@1) of anchor ``row`` on column ``k``; None where no source gives it."""
+    auc, r1 = row["auc_r1"][k]
+    r100p = (row.get("r100p") or [None] * len(row["auc_r1"]))[k]
+    return auc, r100p, r1
+
+
+def anchors_table(anchors: dict[str, Any] | None = None) -> str:
+    a = anchors or load_anchors()
+    lines = ["| system | " + " | ".join(f"{c} AUC / R@100P / R@1" for c in a["columns"]) + " |\n",
              "| --- |" + " --- |" * len(a["columns"]) + "\n"]
     for row in a["rows"]:
-        cells = " | ".join(f"{auc:g} / {r1:g}" for auc, r1 in row["auc_r1"])
+        cells = " | ".join(" / ".join(_num(v) for v in _anchor_values(row, k)) for k in range(len(a["columns"])))
         lines.append(f"| {row['system']} | {cells} |\n")
-    return f"{a['source']}\n\n" + "".join(lines)
+    return f"{a['source']} {a.get('r100p_source', '')}".strip() + "\n\n" + "".join(lines)
+
+
+#: The anchors are quoted to two decimals, so a difference under half their last digit is no difference.
+TIE = 0.005
+METRICS = (("AUC", "auc"), ("R@100P", "recall_at_100_precision"), ("R@1", "recall_at_1"))
+Values = tuple[float | None, ...]
+
+
+def _label(m: dict[str, Any]) -> str:
+    """The run's row label in the tables (method and the parameters that differ from its defaults)."""
+    return "`" + run_title(m).rsplit(": ", 1)[0] + "`"
+
+
+def _where(m: dict[str, Any]) -> tuple[str, tuple[str, ...], str]:
+    """(dataset, map tour names, query name) of a run, from its metrics.json."""
+    run = m.get("run", {})
+    query = Path(run.get("query", "?"))
+    return query.parent.name, tuple(Path(x).name for x in run.get("map", [])), query.name
+
+
+def _maps_text(maps: tuple[str, ...], query: str) -> str:
+    tours = " + ".join(maps) if len(maps) <= 3 else f"{len(maps)} map tours {maps[0]} + ... + {maps[-1]}"
+    return f"{tours} -> {query}"
+
+
+def _and(words: list[str]) -> str:
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
+
+
+def _fmt(values: Values, digits: int) -> str:
+    return " / ".join("-" if v is None else f"{v:.{digits}f}" for v in values)
+
+
+def compare_sentence(who: str, other: str, where: str, ours: Values, theirs: Values, *, digits: int = 3) -> str:
+    """One plain sentence: does ``who`` beat or lose to ``other`` in AUC / R@100P / R@1 (None: not known)?
+
+    A metric counts as beaten or lost when the two differ by at least :data:`TIE`.
+    """
+    verdict: dict[str, list[str]] = {"beats": [], "loses": [], "ties": []}
+    for (name, _), a, b in zip(METRICS, ours, theirs, strict=True):
+        if a is None or b is None:
+            continue
+        verdict["beats" if a - b >= TIE else "loses" if b - a >= TIE else "ties"].append(name)
+    won, lost, tied = verdict["beats"], verdict["loses"], verdict["ties"]
+    if won and lost:
+        head = f"{who} beats {other} on {where} in {_and(won)} but loses in {_and(lost)}"
+    elif lost:
+        head = f"{who} loses to {other} on {where}"
+    elif won:
+        head = f"{who} beats {other} on {where}"
+    else:
+        head = f"{who} ties with {other} on {where}"
+    if tied and (won or lost):
+        head += f" (equal in {_and(tied)})"
+    return f"{head}: AUC / R@100P / R@1 {_fmt(ours, 3)} against {_fmt(theirs, digits)}."
+
+
+def best_anchor(anchors: dict[str, Any], column: int) -> tuple[Values, str]:
+    """The best anchor value of each metric on ``column`` and who holds it.
+
+    One system when it holds every best value, else each metric's holders; a named system is
+    preferred to an aggregate row (the scorecard's best) holding the same value.
+    """
+    rows = anchors["rows"]
+    values: list[float | None] = []
+    holders: list[list[str]] = []
+    for k in range(len(METRICS)):
+        known = [(float(v), r) for r in rows if (v := _anchor_values(r, column)[k]) is not None]
+        if not known:
+            values.append(None)
+            continue
+        top = max(v for v, _ in known)
+        at_top = [r for v, r in known if v == top]
+        values.append(top)
+        holders.append([r["name"] for r in ([r for r in at_top if not r.get("aggregate")] or at_top)])
+    everywhere = [name for name in (holders[0] if holders else []) if all(name in h for h in holders)]
+    if everywhere:
+        return tuple(values), everywhere[0]
+    known_names = [name for (name, _), v in zip(METRICS, values, strict=True) if v is not None]
+    held = "; ".join(f"{name}: {_and(h)}" for name, h in zip(known_names, holders, strict=True))
+    return tuple(values), f"the best anchors ({held})"
+
+
+def prose(metrics: list[dict[str, Any]], anchors: dict[str, Any]) -> str:
+    """Where each run of a table wins and loses, in sentences made from the runs' metrics (no typed numbers).
+
+    A run with one map tour on a pair the anchors cover is compared with the best anchor of that
+    pair; every other run (several map tours, or frames no anchor was measured on) only with the
+    other runs on the same maps and query, led by the one with the highest AUC.
+
+    Parameters
+    ----------
+    metrics : list of dict
+        The ``metrics.json`` of each run, in table order.
+    anchors : dict
+        ``benchmarks/anchors.json``: ``dataset``, ``columns`` ("map -> query") and ``rows``.
+
+    Returns
+    -------
+    str
+        A markdown bullet list (empty when ``metrics`` is).
+    """
+    columns = {tuple(c.split(" -> ")): k for k, c in enumerate(anchors["columns"])}
+    anchored: list[str] = []
+    groups: dict[tuple[str, tuple[str, ...], str], list[dict[str, Any]]] = {}
+    for m in metrics:
+        dataset, maps, query = _where(m)
+        ours = tuple(float(m[key]) for _, key in METRICS)
+        k = columns.get((*maps, query)) if len(maps) == 1 and dataset == anchors["dataset"] else None
+        if k is None:
+            groups.setdefault((dataset, maps, query), []).append(m)
+            continue
+        theirs, who = best_anchor(anchors, k)
+        anchored.append(compare_sentence(_label(m), who, f"{dataset} {_maps_text(maps, query)}", ours, theirs,
+                                         digits=2))
+    lines = [f"- {s}\n" for s in anchored]
+    for (dataset, maps, query), rows in groups.items():
+        where = f"{dataset} {_maps_text(maps, query)}"
+        why = ("several map tours: not comparable with the single-tour anchors"
+               if len(maps) > 1 and dataset == anchors["dataset"] else "no anchor measured on these frames")
+        if len(rows) == 1:
+            lines.append(f"- {_label(rows[0])} is the only row on {where} ({why}).\n")
+            continue
+        lead = max(rows, key=lambda r: float(r["auc"]))
+        lv = tuple(float(lead[key]) for _, key in METRICS)
+        lines.append(f"- On {where} ({why}; compared only with the other rows on the same maps) the highest AUC "
+                     f"is {_label(lead)}'s: AUC / R@100P / R@1 {_fmt(lv, 3)}.\n")
+        for m in rows:
+            if m is not lead:
+                ours = tuple(float(m[key]) for _, key in METRICS)
+                lines.append(f"- {compare_sentence(_label(m), _label(lead), where, ours, lv)}\n")
+    return "".join(lines)
+
+
+def prose_for(run_dirs: list[Path]) -> str:
+    """:func:`prose` of the ``evaluate`` folders ``run_dirs`` against ``benchmarks/anchors.json``."""
+    return prose([json.loads((Path(d) / "metrics.json").read_text()) for d in run_dirs], load_anchors())
 
 
 def report(run_dirs: list[Path], out: Path, title: str) -> Path:
@@ -78,6 +235,7 @@ def report_table(run_dirs: list[Path], out: Path, title: str) -> str:
 
 
 def gardens_section(run_dirs: list[Path], name: str, title: str) -> str:
-    """Table of gardens_point runs, their PR-curve PNG (under ``docs/results/<name>``) and the anchors."""
+    """Table of gardens_point runs, their PR-curve PNG (under ``docs/results/<name>``), the anchors and the prose."""
     return (report_table(run_dirs, RESULTS / name, title) + f"\n![PR curves]({name}/pr_curves.png)\n\n"
-            + "### Anchors on the same data\n\n" + anchors_table())
+            + "### Anchors on the same data\n\n" + anchors_table()
+            + "\n### Where each row wins and loses (written from the runs' metrics.json)\n\n" + prose_for(run_dirs))

@@ -1,0 +1,95 @@
+"""The prose of the results pages (benchmarks/common.py): sentences made from metrics, never typed."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+from topoloc.evaluation.report import DEFAULT_PREPROCESS
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def common() -> ModuleType:
+    # benchmarks/ is not an installed package: load the file itself, however pytest was started.
+    spec = importlib.util.spec_from_file_location("bench_common_under_test", REPO / "benchmarks" / "common.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+ANCHORS: dict[str, Any] = {
+    "dataset": "gp",
+    "columns": ["a -> b", "b -> c"],
+    "rows": [
+        {"name": "SysA", "auc_r1": [[0.30, 0.40], [0.05, 0.20]], "r100p": [0.10, None]},
+        {"name": "SysB", "auc_r1": [[0.20, 0.40], [0.15, 0.20]]},
+        {"name": "Card", "aggregate": True, "auc_r1": [[0.30, 0.40], [0.15, 0.20]], "r100p": [0.10, 0.04]},
+    ],
+}
+
+
+def _m(method: str, maps: list[str], query: str, auc: float, r100p: float, r1: float,
+       dataset: str = "gp", **params: Any) -> dict[str, Any]:
+    return {"method": method, "auc": auc, "recall_at_100_precision": r100p, "recall_at_1": r1, "params": params,
+            "run": {"map": [f"/data/{dataset}/{x}" for x in maps], "query": f"/data/{dataset}/{query}",
+                    "features": {"method": "sift", "preprocess": DEFAULT_PREPROCESS}}}
+
+
+def test_a_single_tour_row_below_the_anchor_on_every_metric_loses_to_it(common: ModuleType) -> None:
+    text = common.prose([_m("bow", ["a"], "b", 0.1, 0.0, 0.2)], ANCHORS)
+    assert text == ("- `bow` loses to SysA on gp a -> b: AUC / R@100P / R@1 0.100 / 0.000 / 0.200 "
+                    "against 0.30 / 0.10 / 0.40.\n")
+
+
+def test_a_row_better_in_one_metric_and_worse_in_another_says_both(common: ModuleType) -> None:
+    text = common.prose([_m("coocmap", ["a"], "b", 0.5, 0.02, 0.6)], ANCHORS)
+    assert "`coocmap` beats SysA on gp a -> b in AUC and R@1 but loses in R@100P:" in text
+    assert "0.500 / 0.020 / 0.600 against 0.30 / 0.10 / 0.40" in text
+
+
+def test_differences_under_the_tie_margin_are_ties_and_better_everywhere_beats(common: ModuleType) -> None:
+    text = common.prose([_m("bow", ["a"], "b", 0.303, 0.2, 0.5)], ANCHORS)
+    assert text.startswith("- `bow` beats SysA on gp a -> b (equal in AUC):")
+    assert common.prose([_m("bow", ["a"], "b", 0.302, 0.098, 0.4)], ANCHORS).startswith("- `bow` ties with SysA")
+
+
+def test_the_best_anchor_is_taken_per_metric_and_named_systems_come_before_aggregates(common: ModuleType) -> None:
+    values, who = common.best_anchor(ANCHORS, 1)
+    assert values == (0.15, 0.04, 0.20)
+    assert who == "the best anchors (AUC: SysB; R@100P: Card; R@1: SysA and SysB)"
+    text = common.prose([_m("seqslam", ["b"], "c", 0.2, 0.0, 0.1)], ANCHORS)
+    assert "`seqslam` beats the best anchors (AUC: SysB; R@100P: Card; R@1: SysA and SysB) on gp b -> c in AUC " \
+           "but loses in R@100P and R@1" in text
+
+
+def test_several_map_tours_are_compared_only_with_rows_on_the_same_maps(common: ModuleType) -> None:
+    rows = [_m("bow", ["a", "c"], "b", 0.4, 0.1, 0.5), _m("coocmap", ["a", "c"], "b", 0.6, 0.05, 0.7),
+            _m("coocmap", ["a", "c"], "b", 0.3, 0.0, 0.4, spatial_tolerance=0)]
+    text = common.prose(rows, ANCHORS)
+    assert "SysA" not in text and "SysB" not in text
+    assert ("On gp a + c -> b (several map tours: not comparable with the single-tour anchors; compared only "
+            "with the other rows on the same maps) the highest AUC is `coocmap`'s: AUC / R@100P / R@1 "
+            "0.600 / 0.050 / 0.700.") in text
+    assert "`bow` beats `coocmap` on gp a + c -> b in R@100P but loses in AUC and R@1" in text
+    assert "`coocmap (spatial_tolerance=0)` loses to `coocmap` on gp a + c -> b:" in text
+
+
+def test_frames_without_anchors_say_so(common: ModuleType) -> None:
+    text = common.prose([_m("bow", ["a"], "b", 0.4, 0.1, 0.5, dataset="webcam")], ANCHORS)
+    assert text == "- `bow` is the only row on webcam a -> b (no anchor measured on these frames).\n"
+    assert common.prose([], ANCHORS) == ""
+
+
+def test_the_anchors_file_gives_the_scorecard_anchor_of_the_day_pair(common: ModuleType) -> None:
+    anchors = common.load_anchors()
+    k = anchors["columns"].index("day_left -> day_right")
+    assert common.best_anchor(anchors, k) == ((0.31, 0.13, 0.41), "OpenSeqSLAM")
+    table = common.anchors_table(anchors)
+    assert "| 0.31 / 0.13 / 0.41 |" in table and "../shared/scorecard" in table
