@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 import typer
 
-from topoloc.cli.main import (
+from topoloc.cli.app import (
     FeaturesOption,
     MaxFeaturesOption,
     PreprocessOption,
