@@ -12,8 +12,8 @@ same preprocessing, so it changes with it.  Rows:
 - ``gp_day_2tours``: day_left + night_right -> day_right
 - ``webcam``: the 12 map tours of webcam_daynight -> its queries (tolerance 0:0)
 
-These are the development data on which the default ``preprocess="auto"`` was
-chosen.  Runs are written under docs/results/runs/preprocess_*.
+These are the development data on which the choice of the default preprocessing
+is made.  Runs are written under docs/results/runs/preprocess_*.
 """
 
 from __future__ import annotations
