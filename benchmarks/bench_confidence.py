@@ -25,35 +25,24 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (
-    GP,
-    RESULTS,
-    VOCAB_FOR_GP,
-    VOCAB_FOR_WEBCAM,
-    WEBCAM,
-    WEBCAM_TOURS,
-    require_data,
-    run,
-)
+from benchmarks.common import PAIRS, RESULTS, require_data, run
 from topoloc.confidence import apply_confidence
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.evaluation.metrics import compute_metrics
 from topoloc.methods import get_method
 
 METHODS = ("coocmap", "bow", "fabmap", "fabmap2", "landmarks", "voting", "seqslam", "seqslam-single")
-# row -> (map folders, query folder, vocabulary training folders, tolerance, description)
-ROWS: dict[str, tuple[list[Path], Path, list[Path], str, str]] = {
-    "gp_day": ([GP / "day_left"], GP / "day_right", VOCAB_FOR_GP, "0:8", "day_left -> day_right"),
-    "gp_night_2tours": ([GP / "day_left", GP / "day_right"], GP / "night_right", VOCAB_FOR_GP, "0:8",
-                        "day_left + day_right -> night_right"),
-    "gp_day_2tours": ([GP / "day_left", GP / "night_right"], GP / "day_right", VOCAB_FOR_GP, "0:8",
-                      "day_left + night_right -> day_right"),
-    "webcam": (WEBCAM_TOURS, WEBCAM / "queries", VOCAB_FOR_WEBCAM, "0:0", "12 map tours -> queries"),
+# row (benchmarks.common.PAIRS) -> its description in the page
+DESCRIPTIONS = {
+    "gp_day": "day_left -> day_right",
+    "gp_night_2tours": "day_left + day_right -> night_right",
+    "gp_day_2tours": "day_left + night_right -> day_right",
+    "webcam": "12 map tours -> queries",
 }
+ROWS = {row: (*PAIRS[row], text) for row, text in DESCRIPTIONS.items()}
 DEFAULT_ROWS = ("gp_day", "gp_night_2tours", "gp_day_2tours")
 METRICS = ("auc", "recall_at_100_precision", "recall_at_1")
 MODES = ("raw", "margin")

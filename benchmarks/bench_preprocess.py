@@ -20,29 +20,15 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
-from benchmarks.common import (
-    GP,
-    RESULTS,
-    VOCAB_FOR_GP,
-    VOCAB_FOR_WEBCAM,
-    WEBCAM,
-    WEBCAM_TOURS,
-    require_data,
-    run,
-)
+from benchmarks.common import PAIRS, RESULTS, require_data, run
 from topoloc.features import FeatureConfig
 
 MODES = ("none", "clahe", "auto")
-# row -> (map folders, query folder, vocabulary training folders, tolerance, kind of query)
-ROWS: dict[str, tuple[list[Path], Path, list[Path], str, str]] = {
-    "gp_day": ([GP / "day_left"], GP / "day_right", VOCAB_FOR_GP, "0:8", "day"),
-    "gp_night": ([GP / "day_right"], GP / "night_right", VOCAB_FOR_GP, "0:8", "night"),
-    "gp_night_2tours": ([GP / "day_left", GP / "day_right"], GP / "night_right", VOCAB_FOR_GP, "0:8", "night"),
-    "gp_day_2tours": ([GP / "day_left", GP / "night_right"], GP / "day_right", VOCAB_FOR_GP, "0:8", "day"),
-    "webcam": (WEBCAM_TOURS, WEBCAM / "queries", VOCAB_FOR_WEBCAM, "0:0", "day and night"),
-}
+# row (benchmarks.common.PAIRS) -> the kind of its queries
+KINDS = {"gp_day": "day", "gp_night": "night", "gp_night_2tours": "night", "gp_day_2tours": "day",
+         "webcam": "day and night"}
+ROWS = {row: (*PAIRS[row], kind) for row, kind in KINDS.items()}
 METRICS = ("auc", "recall_at_100_precision", "recall_at_1")
 
 

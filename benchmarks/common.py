@@ -31,6 +31,16 @@ VOCAB_FOR_WEBCAM = [GP]
 
 GP_PAIRS = [("day_left", "day_right"), ("day_right", "night_right"), ("day_left", "night_right")]
 
+#: The evaluation pairs several benchmarks share, by name (also the names of ../shared/scorecard's rows):
+#: (map folders, query folder, vocabulary training folders, tolerance).
+PAIRS: dict[str, tuple[list[Path], Path, list[Path], str]] = {
+    "gp_day": ([GP / "day_left"], GP / "day_right", VOCAB_FOR_GP, "0:8"),
+    "gp_night": ([GP / "day_right"], GP / "night_right", VOCAB_FOR_GP, "0:8"),
+    "gp_night_2tours": ([GP / "day_left", GP / "day_right"], GP / "night_right", VOCAB_FOR_GP, "0:8"),
+    "gp_day_2tours": ([GP / "day_left", GP / "night_right"], GP / "day_right", VOCAB_FOR_GP, "0:8"),
+    "webcam": (WEBCAM_TOURS, WEBCAM / "queries", VOCAB_FOR_WEBCAM, "0:0"),
+}
+
 
 def require_data() -> None:
     if not GP.is_dir() or not WEBCAM.is_dir():
