@@ -81,11 +81,10 @@ it: a window makes a place's enhanced difference at most
 ``(n - 1) / sqrt(n)`` below its neighbours' (3.0 for 11 rows), so every local
 minimum of a column ends near the same value and the true place must win
 on the sequence alone; on Nordland the sequence does that, on Gardens Point
-it does not.  We found no property of the map that predicts which (a measure
-of slow appearance drift along the map separates the datasets but not
-Nordland's own sections, all of which gain from the window), so the default
-stays the release's and ``enhance_window=0`` is the documented choice for
-routes like Gardens Point.  The release itself scores 0.31 AUC on that pair
+it does not.  We have no measured property of the map that predicts which
+(no benchmark in this repository tests one), so the default stays the
+release's and ``enhance_window=0`` is the documented choice for routes like
+Gardens Point and corridor.  The release itself scores 0.31 AUC on that pair
 with the same window (issue #12); ``levels_per_std=1, uniqueness=10`` (its
 quantisation and its uniqueness score) brings ours from 0.19 to
 0.24 (the ``seqslam (levels_per_std=1.0, uniqueness=10)`` rows of
