@@ -1,6 +1,6 @@
 """Regenerate docs/results/preprocess.md (+ .json): photometric preprocessing none / clahe / auto.
 
-    .venv/bin/python -m benchmarks.bench_preprocess [--methods coocmap,bow] [--no-webcam]
+    .venv/bin/python -m benchmarks.bench_preprocess [--methods coocmap,bow] [--no-webcam] [--page-only]
 
 Every row is one ``topoloc evaluate`` run with the method's defaults and only
 ``--preprocess`` changed; the vocabulary is trained on the other dataset with the
@@ -95,7 +95,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--methods", default="coocmap,bow", help="comma-separated methods (default coocmap,bow)")
     ap.add_argument("--no-webcam", action="store_true", help="skip the (slow) webcam_daynight row")
+    ap.add_argument("--page-only", action="store_true",
+                    help="rewrite preprocess.md from preprocess.json without running anything")
     args = ap.parse_args()
+    if args.page_only:
+        (RESULTS / "preprocess.md").write_text(render(json.loads((RESULTS / "preprocess.json").read_text())))
+        print(f"wrote {RESULTS / 'preprocess.md'}")
+        return
     require_data()
     rows = [r for r in ROWS if not (args.no_webcam and r == "webcam")]
     results = measure([m.strip() for m in args.methods.split(",") if m.strip()], rows)

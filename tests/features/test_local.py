@@ -61,7 +61,7 @@ def test_config_key_is_stable_and_depends_on_every_field() -> None:
         FeatureConfig(fast_threshold=10).key(),
         FeatureConfig(preprocess="clahe").key(),
         FeatureConfig(preprocess="equalize").key(),
-        FeatureConfig(preprocess="auto").key(),
+        FeatureConfig(preprocess="none").key(),
     }
     assert len(keys) == 9
     assert base.key().startswith("sift-")

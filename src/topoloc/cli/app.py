@@ -94,8 +94,9 @@ SchedulerTimeoutOption = Annotated[float | None, typer.Option(
     "--scheduler-timeout", help="Seconds to wait for the scheduler and a worker before a one-line error "
                                 "(default $TOPOLOC_SCHEDULER_TIMEOUT, else 10).")]
 PreprocessOption = Annotated[str, typer.Option(
-    help="Photometric preprocessing: none, clahe, equalize, auto (CLAHE weighted per image by how far its "
-         "histogram is from uniform).")]
+    help="Photometric preprocessing: auto (default; CLAHE weighted per image by how far its "
+         "histogram is from uniform, so dark night frames are equalised and well-exposed ones barely "
+         "touched), none, clahe, equalize.")]
 
 
 def open_executor(scheduler: str | None, timeout: float | None) -> Any:

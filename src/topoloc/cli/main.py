@@ -69,7 +69,7 @@ def evaluate(
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
-    preprocess: PreprocessOption = "none",
+    preprocess: PreprocessOption = "auto",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
     html: Annotated[Path | None, typer.Option(
@@ -169,7 +169,7 @@ def vocab_train_cmd(
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideOption = 0,
-    preprocess: PreprocessOption = "none",
+    preprocess: PreprocessOption = "auto",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     cache_dir: Annotated[Path | None, typer.Option(help="Feature cache folder.")] = None,
     scheduler: SchedulerOption = None,
@@ -288,7 +288,7 @@ def show_match_cmd(
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
-    preprocess: PreprocessOption = "none",
+    preprocess: PreprocessOption = "auto",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
 ) -> None:
     """Localise one image and draw it beside the map place it matched, labelled, correspondences coloured.
@@ -339,7 +339,7 @@ def slam(
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideOption = 0,
-    preprocess: PreprocessOption = "none",
+    preprocess: PreprocessOption = "auto",
     cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
     html: Annotated[Path | None, typer.Option(

@@ -73,7 +73,7 @@ def map_build(
     max_side: Annotated[str, typer.Option(
         help="Downscale images to this longer side; 'auto' = the smallest among the map's tours "
              "(queries are then described at the map's scale).")] = "auto",
-    preprocess: PreprocessOption = "none",
+    preprocess: PreprocessOption = "auto",
     cache_dir: CacheOption = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
     topic: TopicOption = None,

@@ -79,7 +79,7 @@ class EvaluateOptions:
     features: str = "sift"
     max_features: int = 1000
     max_side: str = "auto"
-    preprocess: str = "none"
+    preprocess: str = "auto"
     cache_dir: Path | None = None
     seed: int = 0
     map_file: Path | None = None

@@ -70,7 +70,7 @@ def make_resources(
     features: str = "sift",
     max_features: int = 1000,
     max_side: int = 0,
-    preprocess: str = "none",
+    preprocess: str = "auto",
     cache_dir: Path | None = None,
     seed: int = 0,
     needs_vocabulary: str = "",

@@ -16,11 +16,12 @@ import numpy as np
 from topoloc._params import keyword_defaults
 from topoloc.errors import TopolocError
 from topoloc.evaluation.plots import plot_pr_curves
+from topoloc.features import FeatureConfig
 from topoloc.io.container import atomic_write_bytes
 from topoloc.methods import get_method
 
-#: Photometric preprocessing of ``evaluate`` when none is asked for (runs written before it existed had none).
-DEFAULT_PREPROCESS = "none"
+#: Photometric preprocessing of ``evaluate`` when none is asked for (the feature default).
+DEFAULT_PREPROCESS = FeatureConfig.preprocess
 
 
 def _short(path: str) -> str:

@@ -273,7 +273,8 @@ class Map:
         meta, arrays = read_map_file(path, mmap=mmap)
         try:
             cls_ = get_method(str(meta["method"]))
-            features = FeatureConfig(**meta["features"])
+            # Maps written before ``preprocess`` existed were extracted without any.
+            features = FeatureConfig(**{"preprocess": "none", **meta["features"]})
             voc = None
             if meta["vocabulary"] is not None:
                 v = meta["vocabulary"]
