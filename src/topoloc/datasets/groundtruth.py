@@ -13,17 +13,16 @@ Euclidean distances in metres.
 
 from __future__ import annotations
 
-import io
-import pickle
 import zipfile
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 from scipy import sparse
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError, input_error
+from topoloc.io.npy import load_npy_safely
 
 
 class GroundTruth:
@@ -219,49 +218,8 @@ def xy_neighbours(
     return rows[order], cols[order], d[order]
 
 
-class _NumpyOnlyUnpickler(pickle.Unpickler):
-    """Unpickles NumPy arrays and plain containers, nothing that could run code."""
-
-    _ALLOWED: ClassVar[set[tuple[str, str]]] = {
-        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-        ("numpy", "ndarray"), ("numpy", "dtype"), ("builtins", "list"), ("builtins", "tuple"),
-    }
-
-    def find_class(self, module: str, name: str) -> Any:
-        if (module, name) not in self._ALLOWED:
-            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a ground-truth file")
-        return super().find_class(module, name)
-
-
-def _load_npy_safely(source: Path | bytes) -> np.ndarray:
-    """A ``.npy`` file (or its bytes): plain arrays directly; object arrays (VPR-Bench) through
-    :class:`_NumpyOnlyUnpickler`.
-
-    VPR-Bench stores its ground truth as a pickled object array; ``np.load(..., allow_pickle=True)``
-    would run any code a hostile file carries, so pickles are read with an unpickler that only
-    rebuilds NumPy arrays and lists.  A plain array's header must announce exactly the bytes that
-    follow it, so a damaged header cannot make the reader allocate more than the file holds.
-    """
-    data = source if isinstance(source, bytes) else source.read_bytes()
-    fh = io.BytesIO(data)
-    major, _ = np.lib.format.read_magic(fh)
-    read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
-    shape, fortran, dtype = read_header(fh)
-    if dtype.hasobject:
-        arr = _NumpyOnlyUnpickler(fh).load()
-        if not isinstance(arr, np.ndarray):
-            raise ValueError("not an array")
-        return arr
-    needed = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    if needed != len(data) - fh.tell():
-        raise ValueError(f"header announces {needed} bytes of data, the file holds {len(data) - fh.tell()}")
-    arr = np.frombuffer(data, dtype=dtype, count=int(np.prod(shape, dtype=np.int64)), offset=fh.tell())
-    return arr.reshape(shape, order="F" if fortran else "C")
-
-
 def _load_npz_safely(path: Path) -> dict[str, np.ndarray]:
-    """GThard and GTsoft of a ``.npz`` (a zip of ``.npy`` files), each read by :func:`_load_npy_safely`."""
+    """GThard and GTsoft of a ``.npz`` (a zip of ``.npy`` files), each read by :func:`load_npy_safely`."""
     out = {}
     with zipfile.ZipFile(path) as z:
         names = set(z.namelist())
@@ -272,7 +230,7 @@ def _load_npz_safely(path: Path) -> dict[str, np.ndarray]:
             if info.file_size > max(path.stat().st_size, 1) * 1100:
                 # Booleans compress about 8x; a far larger claim is a damaged or hostile archive.
                 raise ValueError(f"{key} claims {info.file_size} bytes")
-            out[key] = _load_npy_safely(z.read(info))
+            out[key] = load_npy_safely(z.read(info))
     return out
 
 
@@ -303,7 +261,7 @@ def ground_truth_from_file(
                     f"ground truth has shape {hard.shape}, expected (places, queries) = {shape}", path
                 )
             return GroundTruth(hard, soft, f"file {path.name}")
-        rows = _load_npy_safely(path)
+        rows = load_npy_safely(path)
     except TopolocError:
         raise
     except Exception as exc:
