@@ -32,6 +32,7 @@ from benchmarks.common import PAIRS, RESULTS, require_data, run
 from topoloc.confidence import apply_confidence
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.evaluation.metrics import compute_metrics
+from topoloc.features import FeatureConfig
 from topoloc.methods import get_method
 
 METHODS = ("coocmap", "bow", "fabmap", "fabmap2", "landmarks", "voting", "seqslam", "seqslam-single")
@@ -93,7 +94,8 @@ def render(results: dict[str, dict[str, dict[str, dict[str, float]]]]) -> str:
         "column, so R@1 (and R@5, R@10) cannot change; only the PR curve, which thresholds the best score of "
         "each query across queries, does.  Vocabulary trained on webcam_daynight/map (gardens_point rows) or "
         "gardens_point (webcam); features are `evaluate`'s defaults when the rows were run (each run's "
-        "`metrics.json` under `docs/results/runs/confidence_*` records them).\n\n",
+        "`metrics.json` under `docs/results/runs/confidence_*` records them); the `preprocessing` column says "
+        f"which photometric preprocessing that was (today's default: `{FeatureConfig().preprocess}`).\n\n",
         "The margin's form (a difference rather than Lowe's ratio, the half maximum, the descent to the dips) "
         "was chosen on these rows, all on the development split (`../shared/data`: gardens_point "
         "Image000-099); `webcam` (tolerance 0:0, unrelated places) checks that it does not only work on "
@@ -108,15 +110,25 @@ def render(results: dict[str, dict[str, dict[str, dict[str, float]]]]) -> str:
         lines += [f"## {row}: {ROWS[row][4]}\n\n"]
         if row in ANCHORS:
             lines.append(f"Anchor (issue #12): {ANCHORS[row]}.\n\n")
-        lines += ["| method | raw | margin | R@100P raw -> margin | default |\n", "| --- | --- | --- | --- | --- |\n"]
+        lines += ["| method | preprocessing | raw | margin | R@100P raw -> margin | default |\n",
+                  "| --- | --- | --- | --- | --- | --- |\n"]
         for method, modes in methods.items():
-            lines.append(f"| {method} | {_cell(modes['raw'])} | {_cell(modes['margin'])} | "
+            lines.append(f"| {method} | {_preprocessing(method, row)} | {_cell(modes['raw'])} | "
+                         f"{_cell(modes['margin'])} | "
                          f"{modes['raw']['recall_at_100_precision']:.2f} -> "
                          f"{modes['margin']['recall_at_100_precision']:.2f} | "
                          f"{get_method(method).default_params()['confidence']} |\n")
         lines.append("\n")
     lines += ["## Where the margin loses\n\n", *_losses(results), "\n"]
     return "".join(lines)
+
+
+def _preprocessing(method: str, row: str) -> str:
+    """The ``--preprocess`` the run of (method, row) used, from its metrics.json ("?" without the run)."""
+    f = RESULTS / "runs" / f"confidence_{method}_{row}" / "metrics.json"
+    if not f.is_file():
+        return "?"
+    return str(json.loads(f.read_text())["run"].get("features", {}).get("preprocess", "none"))
 
 
 def _losses(results: dict[str, dict[str, dict[str, dict[str, float]]]]) -> list[str]:
