@@ -107,7 +107,7 @@ class CoocMap(PlaceRecognizer):
         chosen on the development data: Gardens Point day_left+night_right ->
         day_right AUC 0.16 -> 0.58, webcam_daynight unchanged, measured with
         ``topoloc evaluate --method coocmap --param spatial_tolerance=0|1`` on
-        those pairs, without the margin confidence), see
+        those pairs with ``--preprocess none``, without the margin confidence), see
         :func:`~topoloc.coocmap.matching.consistency_graphs`.
     position_bits : int
         Position lattice of the map (16 = as extracted; default 6: 64 x 64,
@@ -117,8 +117,8 @@ class CoocMap(PlaceRecognizer):
         makes ``J`` of the right place 5-10x cheaper to build; accuracy on
         Gardens Point / webcam_daynight is unchanged (AUC 0.579 -> 0.590,
         0.817 -> 0.815, measured with ``topoloc evaluate --method coocmap
-        --param position_bits=16|6`` on the pairs above, before the margin
-        confidence).
+        --param position_bits=16|6 --preprocess none`` on the pairs above,
+        before the margin confidence).
     model_path : str
         If set: load the map from this file when it exists (it must have been
         built with the same vocabulary and places), else build and save it.
