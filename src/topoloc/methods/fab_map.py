@@ -90,10 +90,12 @@ class FabMap(PlaceRecognizer):
         images of a place, from every map tour, update one appearance model
         (Eq. 11), which averages day and night away.  Identical when every
         place has one map image.  Default chosen on the development data
-        (``benchmarks/bench_fabmap.py``, docs/results/fabmap.md): fabmap2 on
-        webcam_daynight with all 12 tours, R@1 0.476 merged, 0.774 separate;
-        gardens_point day_left + night_right -> day_right 0.42 merged, 0.47
-        separate; day_left + day_right -> night_right 0.13 merged, 0.09 separate.
+        (``benchmarks/bench_fabmap.py``, docs/results/fabmap.md, default
+        features and confidence): fabmap2 on webcam_daynight with all 12
+        tours, R@1 0.519 merged, 0.807 separate; gardens_point day_left +
+        night_right -> day_right R@1 0.50 merged, 0.45 separate, but R@100P
+        0.00 merged, 0.18 separate; day_left + day_right -> night_right R@1
+        0.15 merged, 0.16 separate.
     confidence : {"margin", "raw"}
         ``"margin"`` (default): each query's column is shifted so that its
         best score is its margin over the best place outside the best
