@@ -184,3 +184,18 @@ def test_separate_tours_score_a_place_by_its_best_image(world: dict[str, Any], c
     assert (post >= 0).all() and (post.sum(axis=0) <= 1 + 1e-5).all()
     hits = (world["ids"][np.argmax(S, axis=0)] == world["truth"]).mean()
     assert hits >= 0.9
+
+
+@pytest.mark.parametrize("cls", [FabMap, FabMap2])
+def test_logodds_output_is_the_logit_of_the_posterior(world: dict[str, Any], cls: type[FabMap]) -> None:
+    res = world["res"]
+    a, b = world["maps"]
+    post_m = cls(tours="separate", output="posterior", confidence="raw").fit([a, b], resources=res)
+    items = post_m.encode(world["query"], resources=res)
+    post = post_m.score(items).astype(np.float64)
+    logit = cls(tours="separate", output="logodds").fit([a, b], resources=res).score(items).astype(np.float64)
+    assert logit.shape == post.shape
+    # Same ranking within every query, and the same probabilities wherever float32 can still tell.
+    np.testing.assert_array_equal(np.argmax(logit, axis=0), np.argmax(post, axis=0))
+    mid = (post > 1e-4) & (post < 1 - 1e-4)
+    np.testing.assert_allclose(1 / (1 + np.exp(-logit[mid])), post[mid], rtol=1e-3, atol=1e-6)

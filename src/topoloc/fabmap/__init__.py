@@ -43,7 +43,7 @@ from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.normaliser import SampledNormaliser, mean_field_log_likelihood
 from topoloc.fabmap.observation import ObservationModel
 from topoloc.fabmap.places import PlaceModels
-from topoloc.fabmap.posterior import location_posterior
+from topoloc.fabmap.posterior import location_log_odds, location_posterior
 from topoloc.fabmap.slam import FabMapSlam, SlamResult, write_slam_outputs
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
@@ -57,6 +57,7 @@ __all__ = [
     "SampledNormaliser",
     "SlamResult",
     "chow_liu_tree",
+    "location_log_odds",
     "location_posterior",
     "log_likelihood_bailout",
     "mean_field_log_likelihood",

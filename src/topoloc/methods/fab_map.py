@@ -22,6 +22,10 @@
     mean-field, and the smoothing of Eq. 6 (``smoothing``).  Columns sum to
     ``1 - p(new place)``: a query unlike every map place scores low everywhere,
     which makes one acceptance threshold meaningful across queries.
+  - ``output="logodds"``: the same posterior as ``log p / (1 - p)`` of each
+    place, computed in the log domain: a probability rounds to exactly 1 once
+    the best place leads the rest by a few dozen nats, so confident queries
+    tie at the top of a PR curve; the log-odds keep them apart.
 
 Parameters (keyword-only, ``--param KEY=VALUE``): ``model_path``, ``output``,
 ``naive_bayes`` (ignore the Chow-Liu tree), ``normaliser``, ``n_samples``,
@@ -43,14 +47,16 @@ from topoloc.errors import TopolocError
 from topoloc.fabmap.model import DEFAULT_P_FN, DEFAULT_P_FP, FabMapModel
 from topoloc.fabmap.observation import Observation, ObservationModel
 from topoloc.fabmap.place_map import DenseMap, IndexMap, make_map
-from topoloc.fabmap.posterior import location_posterior
+from topoloc.fabmap.posterior import location_log_odds, location_posterior
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
 from topoloc.methods.slam import load_or_train_model
 
-OUTPUTS = ("loglik", "posterior")
+OUTPUTS = ("loglik", "posterior", "logodds")
+#: Outputs that are FAB-MAP's own confidence (Eq. 3) and are returned without the margin.
+_POSTERIORS = ("posterior", "logodds")
 
 
 class FabMap(PlaceRecognizer):
@@ -61,7 +67,7 @@ class FabMap(PlaceRecognizer):
     model_path : str
         Load a trained :class:`~topoloc.fabmap.model.FabMapModel` instead of
         training on ``resources.training_words()``.
-    output : {"loglik", "posterior"}
+    output : {"loglik", "posterior", "logodds"}
         What ``S`` holds (module docstring).
     naive_bayes : bool
         Naive-Bayes likelihood instead of the Chow-Liu tree.
@@ -101,7 +107,7 @@ class FabMap(PlaceRecognizer):
         best score is its margin over the best place outside the best
         place's peak, a confidence comparable across queries (same order
         within a column; :mod:`topoloc.confidence`); with
-        ``output="posterior"`` the posterior is kept, it is FAB-MAP's own confidence.
+        ``output="posterior"`` or ``"logodds"`` the posterior is kept, it is FAB-MAP's own confidence.
         ``"raw"``: what ``output`` says.
 
     Attributes
@@ -230,7 +236,7 @@ class FabMap(PlaceRecognizer):
             pmap.build(per_place)
         else:
             _build_dense(pmap, om, per_place)
-        if self.output == "posterior":
+        if self.output in _POSTERIORS:
             pmap.prepare_normaliser()  # not inside the timed queries
         self.obs_model_ = om
         self.map_ = pmap
@@ -261,7 +267,7 @@ class FabMap(PlaceRecognizer):
         magnitude would also round the small ones to ties in float32, which
         changes which row is best once the metrics mask the best one.
         """
-        if self.output == "posterior":
+        if self.output in _POSTERIORS:
             return S
         return super()._confident(S)
 
@@ -269,6 +275,15 @@ class FabMap(PlaceRecognizer):
         """``S`` of shape (n_map_places, len(items)): log-likelihood or posterior."""
         self.check_fitted()
         n_models = len(self.model_row_)
+        if self.output == "logodds":
+            grouped = n_models != len(self.place_ids_)
+            L = np.empty((len(self.place_ids_), len(items)), dtype=np.float32)
+            for j, words in enumerate(items):
+                obs = self.obs_model_.observe(words)
+                L[:, j] = location_log_odds(self.map_.log_likelihood(obs)[:n_models], None,
+                                            self.map_.new_place_log_likelihood(obs), p_new=self.p_new,
+                                            smoothing=self.smoothing, starts=self._starts if grouped else None)
+            return self._check_block(self._confident(L), len(items))
         S = np.empty((n_models, len(items)), dtype=np.float32)
         for j, words in enumerate(items):
             obs = self.obs_model_.observe(words)
