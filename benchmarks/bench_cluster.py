@@ -56,7 +56,7 @@ def run_pipeline(route: Any, workers: int, work: Path, *, n_words: int, max_feat
     """Every stage on a fresh local cluster of ``workers`` processes; timings, memory and disk per stage."""
     import distributed
 
-    from topoloc.cluster import connect
+    from topoloc.cluster import DaskExecutor, connect
     from topoloc.datasets.traverse import load_traverse
     from topoloc.features import FeatureConfig, FeatureExtractor
     from topoloc.maps.batch import localize_on
@@ -73,6 +73,7 @@ def run_pipeline(route: Any, workers: int, work: Path, *, n_words: int, max_feat
     rows: list[dict[str, Any]] = []
     try:
         ex = connect(cluster.scheduler_address, timeout_s=60)
+        assert isinstance(ex, DaskExecutor)  # an address always gives the Dask executor
         client = ex.client
 
         def worker_peak_mb() -> float:

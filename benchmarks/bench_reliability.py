@@ -92,7 +92,7 @@ def main() -> None:
     from topoloc.synth import RouteConfig, generate_route
 
     rng = np.random.default_rng(SEED)
-    rows = []
+    rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         route = work / "route"
