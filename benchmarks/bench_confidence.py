@@ -31,6 +31,7 @@ import numpy as np
 from benchmarks.common import PAIRS, RESULTS, require_data, run
 from topoloc.confidence import apply_confidence
 from topoloc.datasets.groundtruth import GroundTruth
+from topoloc.evaluation.columns import run_columns
 from topoloc.evaluation.metrics import compute_metrics
 from topoloc.features import FeatureConfig
 from topoloc.methods import get_method
@@ -128,7 +129,7 @@ def _preprocessing(method: str, row: str) -> str:
     f = RESULTS / "runs" / f"confidence_{method}_{row}" / "metrics.json"
     if not f.is_file():
         return "?"
-    return str(json.loads(f.read_text())["run"].get("features", {}).get("preprocess", "none"))
+    return run_columns(json.loads(f.read_text()))["preprocess"]
 
 
 def _losses(results: dict[str, dict[str, dict[str, dict[str, float]]]]) -> list[str]:

@@ -275,26 +275,23 @@ class FabMap(PlaceRecognizer):
         """``S`` of shape (n_map_places, len(items)): log-likelihood or posterior."""
         self.check_fitted()
         n_models = len(self.model_row_)
-        if self.output == "logodds":
-            grouped = n_models != len(self.place_ids_)
-            L = np.empty((len(self.place_ids_), len(items)), dtype=np.float32)
-            for j, words in enumerate(items):
-                obs = self.obs_model_.observe(words)
-                L[:, j] = location_log_odds(self.map_.log_likelihood(obs)[:n_models], None,
-                                            self.map_.new_place_log_likelihood(obs), p_new=self.p_new,
-                                            smoothing=self.smoothing, starts=self._starts if grouped else None)
-            return self._check_block(self._confident(L), len(items))
-        S = np.empty((n_models, len(items)), dtype=np.float32)
+        grouped = n_models != len(self.place_ids_)
+        # Log-odds are formed per place (a place's images summed in the log domain), the others per model.
+        S = np.empty((len(self.place_ids_) if self.output == "logodds" else n_models, len(items)), dtype=np.float32)
         for j, words in enumerate(items):
             obs = self.obs_model_.observe(words)
             ll = self.map_.log_likelihood(obs)
+            if self.output == "loglik":
+                S[:, j] = ll
+                continue
+            new_ll = self.map_.new_place_log_likelihood(obs)
             if self.output == "posterior":
-                new_ll = self.map_.new_place_log_likelihood(obs)
                 S[:, j] = location_posterior(ll, None, new_ll, p_new=self.p_new,
                                              smoothing=self.smoothing)[:n_models]
             else:
-                S[:, j] = ll
-        if n_models != len(self.place_ids_):
+                S[:, j] = location_log_odds(ll, None, new_ll, p_new=self.p_new, smoothing=self.smoothing,
+                                            starts=self._starts if grouped else None)
+        if grouped and self.output != "logodds":
             # Several models per place: the place's probability, or its best image's likelihood.
             reduce = np.add if self.output == "posterior" else np.maximum
             S = reduce.reduceat(S, self._starts, axis=0)
