@@ -18,7 +18,8 @@ check that ``score`` and the function agree), scored by
 
 These are the development data on which the peak margin and its constant
 (the half maximum) were chosen.  Runs are written under docs/results/runs/confidence_*;
-rows measured by one call replace the same rows of ``confidence.json`` and keep the others.
+the (row, method) cells measured by one call replace the same cells of ``confidence.json``
+and keep the others.
 """
 
 from __future__ import annotations
@@ -164,10 +165,12 @@ def main() -> None:
     if bad:
         raise SystemExit(f"unknown rows {bad}: choose from {', '.join(ROWS)}")
     results = measure([m.strip() for m in args.methods.split(",") if m.strip()], rows)
-    # Rows measured now replace those of an earlier run; the others are kept (e.g. --rows webcam alone).
+    # Cells (row, method) measured now replace those of an earlier run; the others are kept
+    # (e.g. --rows webcam or --methods landmarks alone), in the order of METHODS.
     earlier = json.loads(stored.read_text()) if stored.is_file() else {}
-    results = {row: results[row] if row in results else earlier[row] for row in ROWS
-               if row in results or row in earlier}
+    merged = {row: {**earlier.get(row, {}), **results.get(row, {})} for row in ROWS}
+    results = {row: {m: cells[m] for m in sorted(cells, key=lambda m: METHODS.index(m) if m in METHODS else 99)}
+               for row, cells in merged.items() if cells}
     stored.write_text(json.dumps(results, indent=1) + "\n")
     (RESULTS / "confidence.md").write_text(render(results))
     print(f"wrote {RESULTS / 'confidence.md'}")

@@ -9,7 +9,7 @@ import scipy.sparse as sp
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
 from topoloc.landmarks.model import LandmarkModel
-from topoloc.landmarks.similarity import node_similarity
+from topoloc.landmarks.similarity import node_prior, node_similarity
 from topoloc.landmarks.tracking import Tracks
 
 W_IMG, H_IMG = 640, 480
@@ -130,6 +130,22 @@ def test_node_similarity_eq5_by_hand() -> None:
     np.testing.assert_allclose(node_similarity(w, p), raw / raw.sum())
     np.testing.assert_allclose(node_similarity(w, np.zeros(3)), [0.5, 0.5])
     assert node_similarity(w, np.c_[p, p]).shape == (2, 2)
+
+
+def test_node_similarity_shrinkage_by_hand() -> None:
+    # Weight sums 2.0, 1.5 and 0.25 (a node of one worn-down landmark): median 1.5.
+    w = sp.csr_matrix(np.array([[1.0, 1.0, 0.0, 0.0], [0.0, 0.5, 1.0, 0.0], [0.0, 0.0, 0.0, 0.25]]))
+    p = np.array([0.8, 0.0, 0.6, 0.9])
+    assert node_prior(np.array([2.0, 1.5, 0.25, 0.0])) == 1.5  # empty nodes do not count
+    c = 0.5
+    shrunk = np.array([0.8 / (2.0 + c * 1.5), 0.6 / (1.5 + c * 1.5), 0.9 * 0.25 / (0.25 + c * 1.5)])
+    np.testing.assert_allclose(node_similarity(w, p, normalise=False, shrinkage=c), shrunk)
+    # Without shrinkage the one-landmark node wins on a single match; with it, the node
+    # whose many landmarks matched does.
+    assert np.argmax(node_similarity(w, p, normalise=False)) == 2
+    assert np.argmax(node_similarity(w, p, normalise=False, shrinkage=c)) == 0
+    np.testing.assert_allclose(node_similarity(w, p, normalise=False, shrinkage=0.0),
+                               node_similarity(w, p, normalise=False))
 
 
 def test_online_learning() -> None:

@@ -41,3 +41,25 @@ def test_a_map_saved_before_the_parameter_keeps_raw_scores(tiny_route: dict[str,
     np.testing.assert_allclose(back.similarity(tiny_route["query"]), raw, rtol=1e-6)
     # A map built now scores the margin of those raw scores.
     np.testing.assert_allclose(m.similarity(tiny_route["query"]), peak_margin(raw), rtol=1e-6, atol=1e-6)
+
+
+def test_a_landmark_map_saved_before_shrinkage_keeps_eq5(tiny_route: dict[str, Any], tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from topoloc.methods.landmark_map import LandmarkMap
+
+    def build(**params: Any) -> Map:
+        return Map.build(method="landmarks", tours=[tiny_route["map"]], params=params, vocabulary=None,
+                         vocab_train=(), cache_dir=tiny_route["map"].root.parent / "cache")
+
+    eq5 = build(shrinkage=0.0).similarity(tiny_route["query"])
+    m = build()
+    assert m.recognizer.shrinkage > 0
+    plain_get_params = LandmarkMap.get_params
+    monkeypatch.setattr(LandmarkMap, "get_params", lambda self, deep=True: {
+        k: v for k, v in plain_get_params(self, deep).items() if k != "shrinkage"})
+    path = m.save(tmp_path / "old.tlm")
+    monkeypatch.undo()
+    back = Map.load(path)
+    assert back.recognizer.shrinkage == 0.0
+    np.testing.assert_allclose(back.similarity(tiny_route["query"]), eq5, rtol=1e-6)
+    assert not np.allclose(m.similarity(tiny_route["query"]), eq5)  # the default does change the scores

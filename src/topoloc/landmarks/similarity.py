@@ -8,6 +8,16 @@ where ``P(L=1 | E_L=1)`` is the match probability of landmark ``l`` in the
 query (Eq. 1; 0 where no query feature gave evidence for ``l``) and
 ``p(L=1 | x)`` the learned co-occurrence of ``l`` and node ``x`` (Sec. V).
 Finally ``eta`` normalises ``S`` to sum to 1 over the nodes.
+
+Not in the paper: ``shrinkage = c > 0`` adds ``c`` times the median over
+nodes of ``sum_{l in I_x} p(L=1 | x)`` to every node's denominator, a
+pseudo-count of unmatched landmarks.  Eq. 5 is a weighted mean of match
+probabilities, so a node with a handful of landmarks (few tracked features,
+or weights worn down by online learning) reaches a high mean from a few
+generic matches and captures queries from everywhere; the pseudo-count
+shrinks such small nodes towards 0 and leaves well-populated ones nearly as
+they were.  Scaling by the median makes ``c`` independent of the map's
+feature count.
 """
 
 from __future__ import annotations
@@ -16,7 +26,8 @@ import numpy as np
 import scipy.sparse as sp
 
 
-def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise: bool = True) -> np.ndarray:
+def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise: bool = True,
+                    shrinkage: float = 0.0) -> np.ndarray:
     """Eq. 5 for every node and query, normalised over nodes.
 
     Parameters
@@ -28,6 +39,9 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise
         ``P(L=1 | E_L=1)`` of every landmark in each query.
     normalise : bool
         Apply ``eta`` (False returns the raw ``S(q, x)`` of Eq. 5).
+    shrinkage : float
+        Pseudo-count of unmatched landmarks per node, as a multiple of the
+        median node weight sum (0: Eq. 5 exactly); see the module docstring.
 
     Returns
     -------
@@ -40,6 +54,7 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise
     P = p[:, None] if vector else p
     num = np.asarray(weights @ P)
     den = np.asarray(weights.sum(axis=1)).reshape(-1, 1)
+    den = den + shrinkage * node_prior(den.ravel())
     S = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
     if not normalise:
         return S[:, 0] if vector else S
@@ -47,3 +62,15 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise
     n_nodes = S.shape[0]
     S = np.where(total > 0, S / np.where(total > 0, total, 1.0), 1.0 / max(n_nodes, 1))
     return S[:, 0] if vector else S
+
+
+def node_prior(weight_sums: np.ndarray) -> float:
+    """Median over nodes with any landmark of ``sum_{l in I_x} p(L=1 | x)``: the unit of ``shrinkage``.
+
+    Parameters
+    ----------
+    weight_sums : ndarray, shape (n_nodes,)
+    """
+    w = np.asarray(weight_sums, np.float64)
+    w = w[w > 0]
+    return float(np.median(w)) if len(w) else 0.0

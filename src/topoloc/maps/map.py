@@ -291,6 +291,8 @@ class Map:
                 # A map saved before the confidence parameter existed scored, and was
                 # calibrated, on raw scores: it keeps them.
                 params.setdefault("confidence", "raw")
+            for key, value in cls_.legacy_defaults.items():
+                params.setdefault(key, value)
             rec = cls_.from_state(params, meta["state"], state, resources=frame_res)
             place_ids = np.asarray(arrays["places/ids"])
             if not np.array_equal(place_ids, rec.place_ids_):

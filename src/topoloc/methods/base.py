@@ -54,6 +54,9 @@ class PlaceRecognizer(ABC):
     scores_whole_sequence: ClassVar[bool] = False
     #: What each keyword-only parameter accepts (see :mod:`topoloc._params`).
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {}
+    #: Parameters added after maps were first saved, with the value that reproduces
+    #: how such a map scored before (a saved map without them loads with these).
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {}
 
     place_ids_: np.ndarray
     resources_: Resources
