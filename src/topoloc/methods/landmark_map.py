@@ -46,9 +46,9 @@ class LandmarkMap(PlaceRecognizer):
         Epipolar RANSAC threshold (pixels) when tracking, and for ``verify_nodes``.
     top_k_neighbours : int
         Neighbour landmarks tried per landmark (most frequent co-occurrence).
-    radius_floor, distance_margin, angle_margin : float
-        Widening of the descriptor and spatial ranges (0, 0, 0 = the paper's
-        exact ranges); see :class:`topoloc.landmarks.LandmarkModel`.  The
+    radius_floor : float
+        Not in the paper (0: its exact range): the smallest descriptor range
+        of a landmark; see :class:`topoloc.landmarks.LandmarkModel`.  The
         floor (0.6, on unit-normalised descriptors, so independent of image
         size and brightness) lets a landmark tracked over two or three day
         frames still take evidence from a night or shifted view; the
@@ -56,6 +56,9 @@ class LandmarkMap(PlaceRecognizer):
         with ``shrinkage`` on gardens_point Image000-099 and corridor
         (``docs/results/landmarks.md``, section "Departures from the paper",
         ``benchmarks/bench_landmarks.py``).
+    distance_margin, angle_margin : float
+        Widening of the spatial ranges (0, 0 = the paper's exact ranges);
+        see :class:`topoloc.landmarks.LandmarkModel`.
     n_candidates : int
         Nearest landmarks looked up per query feature in the faiss index.
     min_track_length : int
