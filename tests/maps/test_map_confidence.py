@@ -18,6 +18,18 @@ def _build(route: dict[str, Any], **params: Any) -> Map:
                      vocab_train=(), cache_dir=route["map"].root.parent / "cache")
 
 
+def _save_as_older(m: Map, param: str, path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Save ``m`` as an older topoloc wrote it: its parameters without ``param``."""
+    cls = type(m.recognizer)
+    plain_get_params = cls.get_params
+    monkeypatch.setattr(cls, "get_params", lambda self, deep=True: {
+        k: v for k, v in plain_get_params(self, deep).items() if k != param})
+    try:
+        return m.save(path)
+    finally:
+        monkeypatch.undo()
+
+
 @pytest.mark.parametrize("confidence", ["raw", "margin"])
 def test_a_saved_map_keeps_its_confidence(confidence: str, tiny_route: dict[str, Any], tmp_path: Path) -> None:
     m = _build(tiny_route, confidence=confidence)
@@ -30,12 +42,8 @@ def test_a_map_saved_before_the_parameter_keeps_raw_scores(tiny_route: dict[str,
                                                             monkeypatch: pytest.MonkeyPatch) -> None:
     raw = _build(tiny_route, confidence="raw").similarity(tiny_route["query"])
     m = _build(tiny_route)
-    plain_get_params = BagOfWords.get_params
-    # As an older topoloc wrote it: parameters without "confidence".
-    monkeypatch.setattr(BagOfWords, "get_params", lambda self, deep=True: {
-        k: v for k, v in plain_get_params(self, deep).items() if k != "confidence"})
-    path = m.save(tmp_path / "old.tlm")
-    monkeypatch.undo()
+    assert isinstance(m.recognizer, BagOfWords)
+    path = _save_as_older(m, "confidence", tmp_path / "old.tlm", monkeypatch)
     back = Map.load(path)
     assert back.recognizer.confidence == "raw"
     np.testing.assert_allclose(back.similarity(tiny_route["query"]), raw, rtol=1e-6)
@@ -53,12 +61,8 @@ def test_a_landmark_map_saved_before_shrinkage_keeps_eq5(tiny_route: dict[str, A
 
     eq5 = build(shrinkage=0.0).similarity(tiny_route["query"])
     m = build()
-    assert m.recognizer.shrinkage > 0
-    plain_get_params = LandmarkMap.get_params
-    monkeypatch.setattr(LandmarkMap, "get_params", lambda self, deep=True: {
-        k: v for k, v in plain_get_params(self, deep).items() if k != "shrinkage"})
-    path = m.save(tmp_path / "old.tlm")
-    monkeypatch.undo()
+    assert isinstance(m.recognizer, LandmarkMap) and m.recognizer.shrinkage > 0
+    path = _save_as_older(m, "shrinkage", tmp_path / "old.tlm", monkeypatch)
     back = Map.load(path)
     assert back.recognizer.shrinkage == 0.0
     np.testing.assert_allclose(back.similarity(tiny_route["query"]), eq5, rtol=1e-6)
