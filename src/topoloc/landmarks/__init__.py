@@ -16,7 +16,7 @@ from topoloc.landmarks.probability import (
     posterior,
     spatial_false_positive,
 )
-from topoloc.landmarks.similarity import node_prior, node_similarity
+from topoloc.landmarks.similarity import node_denominators, node_prior, node_similarity
 from topoloc.landmarks.splitting import node_ratios
 from topoloc.landmarks.tracking import Tracks, adjacent_matches, build_tracks, mutual_matches
 
@@ -28,6 +28,7 @@ __all__ = [
     "evidence_false_positive",
     "mutual_matches",
     "neighbour_presence",
+    "node_denominators",
     "node_prior",
     "node_ratios",
     "node_similarity",

@@ -53,8 +53,7 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise
     vector = p.ndim == 1
     P = p[:, None] if vector else p
     num = np.asarray(weights @ P)
-    den = np.asarray(weights.sum(axis=1)).reshape(-1, 1)
-    den = den + shrinkage * node_prior(den.ravel())
+    den = node_denominators(weights, shrinkage).reshape(-1, 1)
     S = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
     if not normalise:
         return S[:, 0] if vector else S
@@ -74,3 +73,20 @@ def node_prior(weight_sums: np.ndarray) -> float:
     w = np.asarray(weight_sums, np.float64)
     w = w[w > 0]
     return float(np.median(w)) if len(w) else 0.0
+
+
+def node_denominators(weights: sp.csr_matrix, shrinkage: float = 0.0) -> np.ndarray:
+    """Denominator of Eq. 5 per node, ``sum_{l in I_x} p(L=1 | x)`` plus the shrinkage pseudo-count.
+
+    Parameters
+    ----------
+    weights : scipy.sparse.csr_matrix, shape (n_nodes, n_landmarks)
+    shrinkage : float
+        As in :func:`node_similarity`.
+
+    Returns
+    -------
+    ndarray of float64, shape (n_nodes,)
+    """
+    den = np.asarray(weights.sum(axis=1), dtype=np.float64).ravel()
+    return den + shrinkage * node_prior(den) if shrinkage else den

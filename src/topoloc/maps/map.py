@@ -287,12 +287,10 @@ class Map:
             state = {k.removeprefix(STATE_PREFIX): a for k, a in arrays.items() if k.startswith(STATE_PREFIX)}
             frame_res = InMemoryResources(feature_config=features, vocabulary=voc, memoise=False)
             params = dict(meta["params"])
-            if "confidence" in cls_.param_names():
-                # A map saved before the confidence parameter existed scored, and was
-                # calibrated, on raw scores: it keeps them.
-                params.setdefault("confidence", "raw")
+            names = cls_.param_names()
             for key, value in cls_.legacy_defaults.items():
-                params.setdefault(key, value)
+                if key in names:
+                    params.setdefault(key, value)
             rec = cls_.from_state(params, meta["state"], state, resources=frame_res)
             place_ids = np.asarray(arrays["places/ids"])
             if not np.array_equal(place_ids, rec.place_ids_):

@@ -55,8 +55,10 @@ class PlaceRecognizer(ABC):
     #: What each keyword-only parameter accepts (see :mod:`topoloc._params`).
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {}
     #: Parameters added after maps were first saved, with the value that reproduces
-    #: how such a map scored before (a saved map without them loads with these).
-    legacy_defaults: ClassVar[Mapping[str, Any]] = {}
+    #: how such a map scored before (a saved map without them loads with these; a key
+    #: the method does not have is ignored).  A map saved before ``confidence``
+    #: existed scored, and was calibrated, on raw scores.
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {"confidence": "raw"}
 
     place_ids_: np.ndarray
     resources_: Resources

@@ -27,7 +27,7 @@ from topoloc.features import FeatureSet
 from topoloc.geometry import epipolar_inliers, normalise_descriptors
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.landmarks.model import LandmarkModel
-from topoloc.landmarks.similarity import node_prior, node_similarity
+from topoloc.landmarks.similarity import node_denominators, node_similarity
 from topoloc.landmarks.tracking import build_tracks, chain_tracks, pair_matches
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.methods.resources import Resources
@@ -114,7 +114,7 @@ class LandmarkMap(PlaceRecognizer):
 
     name: ClassVar[str] = "landmarks"
     # Maps saved before ``shrinkage`` existed scored with Eq. 5 exactly.
-    legacy_defaults: ClassVar[Mapping[str, Any]] = {"shrinkage": 0.0}
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "shrinkage": 0.0}
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "match_threshold": Interval(float, 0.0, 2.0, closed="right"),
         "ransac_px": Interval(float, 0.0, closed="neither"),
@@ -315,8 +315,7 @@ class LandmarkMap(PlaceRecognizer):
         if self.verify_nodes <= 0 or len(f_idx) == 0:
             return s
         m = self.model_
-        den = np.asarray(self.weights_.sum(axis=1)).ravel()
-        den = den + self.shrinkage * node_prior(den)
+        den = node_denominators(self.weights_, self.shrinkage)
         out = np.zeros_like(s)
         for x in np.argsort(-s, kind="stable")[: self.verify_nodes]:
             obs = m.observation(l_idx, int(x))
