@@ -67,3 +67,15 @@ def test_a_landmark_map_saved_before_shrinkage_keeps_eq5(tiny_route: dict[str, A
     assert back.recognizer.shrinkage == 0.0
     np.testing.assert_allclose(back.similarity(tiny_route["query"]), eq5, rtol=1e-6)
     assert not np.allclose(m.similarity(tiny_route["query"]), eq5)  # the default does change the scores
+
+
+def test_a_landmark_map_saved_before_tours_says_it_learned_them_online(
+        tiny_route: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    m = Map.build(method="landmarks", tours=[tiny_route["map"], tiny_route["training"]],
+                  params={"tours": "first"}, vocabulary=None, vocab_train=(),
+                  cache_dir=tiny_route["map"].root.parent / "cache")
+    back = Map.load(_save_as_older(m, "tours", tmp_path / "old.tlm", monkeypatch))
+    # Such a map's nodes are its first tour's images, which the loaded parameters must say.
+    assert back.recognizer.get_params()["tours"] == "first"
+    assert len(back.recognizer.node_place_) == len(tiny_route["map"])
+    np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))

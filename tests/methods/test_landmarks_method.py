@@ -58,15 +58,41 @@ def test_localises_shifted_tour() -> None:
 
 def test_later_tour_feeds_online_learning() -> None:
     res, tr = _resources()
-    m = LandmarkMap().fit([tr["map"], tr["tour2"]], resources=res)
+    m = LandmarkMap(tours="first").fit([tr["map"], tr["tour2"]], resources=res)
     # Each of tour2's 8 images was localised to a node and counted there.
     assert m.model_.node_count_.sum() == N_FRAMES + N_FRAMES
     w = m.weights_.data
     assert (w <= 1.0).all() and (w < 1.0).any()  # some landmarks were not re-matched
-    sup = LandmarkMap(online_supervised=True).fit([tr["map"], tr["tour2"]], resources=res)
+    sup = LandmarkMap(online_supervised=True, tours="first").fit([tr["map"], tr["tour2"]], resources=res)
     np.testing.assert_array_equal(sup.model_.node_count_, 2.0)  # each node matched once more
     S = sup.score(sup.encode(tr["query"], resources=res))
     assert np.mean(np.argmax(S, axis=0) == np.arange(N_FRAMES)) >= 0.75
+
+
+def test_separate_tours_are_nodes_and_order_free() -> None:
+    res, tr = _resources()
+    one = LandmarkMap().fit([tr["map"]], resources=res)
+    m = LandmarkMap().fit([tr["map"], tr["tour2"]], resources=res)
+    # Every image of both tours is a node of its place; nothing learned online.
+    assert m.model_.n_nodes_ == 2 * N_FRAMES
+    assert m.node_place_.tolist() == 2 * list(range(N_FRAMES))
+    np.testing.assert_array_equal(m.model_.node_count_, 1.0)
+    # No track crosses from the last image of one tour to the first of the next.
+    lm_nodes = m.model_.obs_node_
+    first_tour = lm_nodes < N_FRAMES
+    crosses = np.bincount(m.model_.obs_lm_[first_tour], minlength=m.model_.n_landmarks_) * np.bincount(
+        m.model_.obs_lm_[~first_tour], minlength=m.model_.n_landmarks_)
+    assert not crosses.any()
+    assert m.model_.n_landmarks_ > one.model_.n_landmarks_
+    q = m.encode(tr["query"], resources=res)
+    S = m.score(q)
+    assert np.mean(np.argmax(S, axis=0) == np.arange(N_FRAMES)) >= 0.75
+    # The order of the tours does not change the scores (the paper's mode does).
+    swapped = LandmarkMap().fit([tr["tour2"], tr["map"]], resources=res)
+    np.testing.assert_allclose(swapped.score(q), S, rtol=1e-5, atol=1e-6)
+    first = LandmarkMap(tours="first").fit([tr["map"], tr["tour2"]], resources=res)
+    first_swapped = LandmarkMap(tours="first").fit([tr["tour2"], tr["map"]], resources=res)
+    assert not np.allclose(first.score(q), first_swapped.score(q))
 
 
 def test_splitting_and_verification_options() -> None:

@@ -65,14 +65,16 @@ def test_shard_positions_index_the_concatenated_tours(tiny_route: dict[str, Any]
     np.testing.assert_array_equal(np.sort(np.concatenate(seen)), np.arange(sum(len(m) for m in maps)))
 
 
-@pytest.mark.parametrize("name", available_methods())
-def test_three_shards_equal_the_one_piece_map(name: str, tiny_route: dict[str, Any]) -> None:
+@pytest.mark.parametrize(("name", "extra"), [(name, {}) for name in available_methods()]
+                         + [("landmarks", {"tours": "first"})])
+def test_three_shards_equal_the_one_piece_map(name: str, extra: dict[str, Any], tiny_route: dict[str, Any]) -> None:
     cls = get_method(name)
     res = _res(tiny_route)
+    params = {**FAST.get(name, {}), **extra}
     # Two tours, the second visiting the places out of order: positions, not place order, rebuild the map.
     maps = [tiny_route["map"], _shuffled(tiny_route["training"], 0)]
-    whole = cls(**FAST.get(name, {})).fit(maps, resources=res)
-    merged = build_from_shards(cls, maps, params=FAST.get(name, {}), resources=res, n_shards=3,
+    whole = cls(**params).fit(maps, resources=res)
+    merged = build_from_shards(cls, maps, params=params, resources=res, n_shards=3,
                                executor=LocalExecutor(n_jobs=1))
     assert_same_state(merged, whole)
     np.testing.assert_array_equal(merged.place_ids_, whole.place_ids_)

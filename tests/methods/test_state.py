@@ -43,19 +43,35 @@ def test_state_round_trips_through_a_memory_mapped_container(name: str, tiny_rou
     np.testing.assert_array_equal(back.similarity(tiny_route["query"]), S)
 
 
+# A landmark map adds a tour by online learning (Sec. V), which is what fitting does with
+# tours="first"; with its default tours="separate" fitting makes the tour's images nodes instead.
+ADD_TOUR_PARAMS: dict[str, dict[str, Any]] = {**FAST, "landmarks": {"tours": "first"}}
+
+
 @pytest.mark.parametrize("name", available_methods())
 def test_adding_a_tour_equals_fitting_on_both(name: str, tiny_route: dict[str, Any], tmp_path: Path) -> None:
     cls = get_method(name)
     res = _res(tiny_route)
     a, b = tiny_route["map"], tiny_route["training"]  # noon, then the morning tour
-    both = cls(**FAST.get(name, {})).fit([a, b], resources=res)
+    both = cls(**ADD_TOUR_PARAMS.get(name, {})).fit([a, b], resources=res)
     # Through a saved state, as `topoloc map add` does.
-    meta, arrays = cls(**FAST.get(name, {})).fit([a], resources=res).get_state()
+    meta, arrays = cls(**ADD_TOUR_PARAMS.get(name, {})).fit([a], resources=res).get_state()
     write_container(tmp_path / "a.bin", "test-state", 1, arrays, meta)
     meta, arrays = read_container(tmp_path / "a.bin", "test-state", 1, mmap=True)
     later = cls.from_state(both.get_params(), meta, arrays, resources=res).add_tour(b)
     np.testing.assert_array_equal(later.place_ids_, both.place_ids_)
     np.testing.assert_array_equal(later.similarity(tiny_route["query"]), both.similarity(tiny_route["query"]))
+
+
+def test_a_landmark_map_of_separate_tours_adds_a_tour_by_online_learning(tiny_route: dict[str, Any]) -> None:
+    cls = get_method("landmarks")
+    res = _res(tiny_route)
+    m = cls().fit([tiny_route["map"]], resources=res)
+    nodes = m.node_place_.copy()
+    m.add_tour(tiny_route["training"])
+    # No new nodes (that would rebuild the landmarks); every image was counted at a node.
+    np.testing.assert_array_equal(m.node_place_, nodes)
+    assert m.model_.node_count_.sum() == len(tiny_route["map"]) + len(tiny_route["training"])
 
 
 @pytest.mark.parametrize("name", sorted(set(available_methods()) - {"landmarks"}))

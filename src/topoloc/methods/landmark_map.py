@@ -1,11 +1,14 @@
 """Dense continuous topological map of tracked landmarks (Johns & Yang, ICRA 2011).
 
-The first map traverse builds the map: every image is a node, SIFT features
-are tracked through adjacent images into landmarks (Sec. III), and a query
-image's features are matched to landmarks through the Bayesian network of
-Fig. 3 (Sec. IV); nodes are scored by Eq. 5 (Sec. VI).  Further map traverses
-are later tours: each of their images is localised and the co-occurrence
-``p(L=1 | x)`` of the matched node is updated (online learning, Sec. V).
+Every image of a map-building traverse is a node, SIFT features are tracked
+through adjacent images into landmarks (Sec. III), and a query image's
+features are matched to landmarks through the Bayesian network of Fig. 3
+(Sec. IV); nodes are scored by Eq. 5 (Sec. VI) and a place scores its best
+node.  With ``tours="first"`` (the paper) only the first map traverse builds
+nodes; the others are later tours: each of their images is localised and the
+co-occurrence ``p(L=1 | x)`` of the matched node is updated (online learning,
+Sec. V).  With ``tours="separate"`` every traverse builds nodes and landmarks
+of its own (tracks never cross from one traverse to the next).
 ``r_min > 0`` splits landmarks until every node's true/false similarity ratio
 exceeds it (Sec. VII).  See :mod:`topoloc.landmarks.model` for the equations
 and the parameters that depart from the paper.
@@ -28,7 +31,7 @@ from topoloc.geometry import epipolar_inliers, normalise_descriptors
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.landmarks.model import LandmarkModel
 from topoloc.landmarks.similarity import node_denominators, node_similarity
-from topoloc.landmarks.tracking import build_tracks, chain_tracks, pair_matches
+from topoloc.landmarks.tracking import adjacent_matches, chain_tracks, pair_matches
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
@@ -72,6 +75,18 @@ class LandmarkMap(PlaceRecognizer):
     online_supervised : bool
         Later tours update ``p(L=1 | x)`` at the node they are localised to
         (False, the paper) or at the best node of their known place (True).
+    tours : {"separate", "first"}
+        How several map traverses are used.  ``"first"`` (the paper): the
+        first builds the nodes and landmarks, the others are learned online
+        (Sec. V), so the map depends on the order the traverses are given.
+        ``"separate"`` (default, not in the paper): every traverse's images
+        become nodes, each traverse tracked into landmarks of its own, and a
+        place scores its best node, so the order does not matter (but for the
+        random background sample); the map is
+        as large as all traverses together.  Identical with one traverse.
+        Tours added to a fitted map (``add_tour``) are learned online in
+        either mode.  Chosen on gardens_point Image000-099 (development
+        split, ``docs/results/landmarks.md``, ``benchmarks/bench_landmarks.py``).
     verify_nodes : int
         Not in the paper: if > 0, the landmark matches of the ``verify_nodes``
         best nodes are checked by epipolar RANSAC against the landmarks'
@@ -94,10 +109,11 @@ class LandmarkMap(PlaceRecognizer):
         ``"raw"`` (default): the scores of Eq. 5, already a confidence on one
         scale for every query.  Summed over the three gardens_point pairs of
         ``docs/results/confidence.md`` (``benchmarks/bench_confidence.py``,
-        development split) its R@100P is higher than the margin's (0.63
-        against 0.55): the margin wins a little on day_left -> day_right
-        (0.44 against 0.41) and loses on day_left + night_right -> day_right
-        (0.10 against 0.22).
+        development split) its R@100P is higher than the margin's (0.68
+        against 0.65): the margin wins a little on day_left -> day_right
+        (0.44 against 0.41) and on day_left + day_right -> night_right (0.01
+        against 0.00), and loses on day_left + night_right -> day_right
+        (0.20 against 0.27).
         ``"margin"``: each query's column shifted so that its best score is
         its margin over the best place outside the best place's peak
         (:mod:`topoloc.confidence`).
@@ -107,14 +123,17 @@ class LandmarkMap(PlaceRecognizer):
     place_ids_ : ndarray of int64, shape (n_places,)
     model_ : LandmarkModel
     node_place_ : ndarray of int64, shape (n_nodes,)
-        Row of ``S`` of every node (image of the first map traverse).
+        Row of ``S`` of every node (an image of the first map traverse, or
+        of every map traverse with ``tours="separate"``).
     splits_ : list of int
         Landmarks split by the optimisation.
     """
 
     name: ClassVar[str] = "landmarks"
-    # Maps saved before ``shrinkage`` existed scored with Eq. 5 exactly.
-    legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "shrinkage": 0.0}
+    # Maps saved before ``shrinkage`` and ``tours`` existed scored with Eq. 5
+    # exactly and built their nodes from the first tour only.
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "shrinkage": 0.0,
+                                                    "tours": "first"}
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "match_threshold": Interval(float, 0.0, 2.0, closed="right"),
         "ransac_px": Interval(float, 0.0, closed="neither"),
@@ -122,6 +141,7 @@ class LandmarkMap(PlaceRecognizer):
         "distance_margin": Interval(float, 0.0), "angle_margin": Interval(float, 0.0),
         "n_candidates": Interval(int, 1), "min_track_length": Interval(int, 2), "index": Options(("flat", "hnsw")),
         "r_min": Interval(float, 0.0), "max_splits": Interval(int, 0), "online_supervised": OfType(bool),
+        "tours": Options(("separate", "first")),
         "verify_nodes": Interval(int, 0), "n_background": Interval(int, 1), "shrinkage": Interval(float, 0.0),
         "normalise": OfType(bool),
         "confidence": Options(CONFIDENCE_MODES),
@@ -142,6 +162,7 @@ class LandmarkMap(PlaceRecognizer):
         r_min: float = 0.0,
         max_splits: int = 1000,
         online_supervised: bool = False,
+        tours: str = "separate",
         verify_nodes: int = 0,
         n_background: int = 5000,
         shrinkage: float = 0.25,
@@ -160,6 +181,7 @@ class LandmarkMap(PlaceRecognizer):
         self.r_min = r_min
         self.max_splits = max_splits
         self.online_supervised = online_supervised
+        self.tours = tours
         self.verify_nodes = verify_nodes
         self.n_background = n_background
         self.shrinkage = shrinkage
@@ -169,19 +191,33 @@ class LandmarkMap(PlaceRecognizer):
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         self._build(maps, resources, None)
 
+    def _node_tours(self, maps: list[Traverse]) -> list[Traverse]:
+        """The traverses whose images are nodes: the first, or all with ``tours="separate"``."""
+        return list(maps) if self.tours == "separate" else list(maps[:1])
+
     def _build(self, maps: list[Traverse], resources: Resources,
                matches: list[tuple[np.ndarray, np.ndarray]] | None) -> None:
-        """Tracks of the first tour, the model, then online learning from the others (Sec. III-V).
+        """Tracks of the node tours, the model, then online learning from the others (Sec. III-V).
 
-        ``matches``: the first tour's adjacent-frame matches when they were
-        computed apart (map shards), else None (matched here).
+        ``matches``: the node tours' adjacent-frame matches in node order when
+        they were computed apart (map shards), else None (matched here).  The
+        pair joining the last frame of one tour to the first of the next has
+        no matches, so no track crosses it.
         """
         place_ids = map_place_ids(maps)
-        feats = resources.features(maps[0])
+        node_tours = self._node_tours(maps)
+        feats = [f for tour in node_tours for f in resources.features(tour)]
         normalised = [normalise_descriptors(f.descriptors) for f in feats]
-        tracks = (build_tracks(feats, threshold=self.match_threshold, ransac_px=self.ransac_px,
-                               normalised=normalised) if matches is None
-                  else chain_tracks(np.array([len(f) for f in feats], np.int64), matches))
+        if matches is None:
+            matches, at = [], 0
+            for tour in node_tours:
+                n = len(tour)
+                if matches:
+                    matches.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))
+                matches += adjacent_matches(feats[at:at + n], threshold=self.match_threshold,
+                                            ransac_px=self.ransac_px, normalised=normalised[at:at + n])
+                at += n
+        tracks = chain_tracks(np.array([len(f) for f in feats], np.int64), matches)
         model = LandmarkModel(
             top_k=self.top_k_neighbours, radius_floor=self.radius_floor,
             distance_margin=self.distance_margin, angle_margin=self.angle_margin,
@@ -190,38 +226,43 @@ class LandmarkMap(PlaceRecognizer):
         ).build(feats, tracks, normalised)
         self.splits_ = model.optimise(self.r_min, max_splits=self.max_splits) if self.r_min > 0 else []
         self.model_ = model
-        self.node_place_ = np.searchsorted(place_ids, maps[0].places)
+        self.node_place_ = np.searchsorted(place_ids, np.concatenate([t.places for t in node_tours]))
         self.place_ids_ = place_ids
         self.weights_ = model.weights()
-        for tour in maps[1:]:
+        for tour in maps[len(node_tours):]:
             self.learn_tour(tour, resources=resources)
 
     def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
                    resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-        """Matches of the first tour's frame pairs ``(i, i + 1)`` whose frame ``i`` is in the shard.
+        """Matches of the node tours' frame pairs ``(i, i + 1)`` whose frame ``i`` is in the shard.
 
         The shard reads frame ``i + 1`` even when it belongs to the next shard
         (an overlap of one frame, the tracker's look-back), so every pair is
         matched exactly once and the stitched tracks are those of one piece.
+        ``pairs`` are positions of frame ``i`` among all map images; the
+        RANSAC seed is ``i``'s index in its own tour, as in ``fit``.
         """
-        first = maps[0]
-        n0 = len(first)
-        mine = positions[positions < n0]  # this shard's frames of the first tour
-        pairs = mine[mine < n0 - 1]
-        need = np.union1d(pairs, pairs + 1).astype(np.int64)
-        sub = Traverse(root=first.root, images=tuple(first.images[i] for i in need), places=first.places[need],
-                       name=first.name, kind=first.kind,
-                       frames=None if first.frames is None else tuple(first.frames[i] for i in need))
-        feats = resources.features(sub)
-        at = {int(f): k for k, f in enumerate(need)}
-        ia, ib, ptr = [], [], [0]
-        for i in pairs:
-            a, b = pair_matches(feats[at[int(i)]], feats[at[int(i) + 1]], frame=int(i),
-                                threshold=self.match_threshold, ransac_px=self.ransac_px)
-            ia.append(a)
-            ib.append(b)
-            ptr.append(ptr[-1] + len(a))
-        return {}, {"pairs": pairs.astype(np.int64), "ptr": np.array(ptr, np.int64),
+        all_pairs, ia, ib, ptr = [], [], [], [0]
+        start = 0
+        for tour in self._node_tours(maps):
+            n = len(tour)
+            local = positions[(positions >= start) & (positions < start + n)] - start
+            pairs = local[local < n - 1]
+            need = np.union1d(pairs, pairs + 1).astype(np.int64)
+            sub = Traverse(root=tour.root, images=tuple(tour.images[i] for i in need), places=tour.places[need],
+                           name=tour.name, kind=tour.kind,
+                           frames=None if tour.frames is None else tuple(tour.frames[i] for i in need))
+            feats = resources.features(sub)
+            at = {int(f): k for k, f in enumerate(need)}
+            for i in pairs:
+                a, b = pair_matches(feats[at[int(i)]], feats[at[int(i) + 1]], frame=int(i),
+                                    threshold=self.match_threshold, ransac_px=self.ransac_px)
+                all_pairs.append(start + int(i))
+                ia.append(a)
+                ib.append(b)
+                ptr.append(ptr[-1] + len(a))
+            start += n
+        return {}, {"pairs": np.array(all_pairs, np.int64), "ptr": np.array(ptr, np.int64),
                     "ia": np.concatenate(ia).astype(np.int64) if ia else np.zeros(0, np.int64),
                     "ib": np.concatenate(ib).astype(np.int64) if ib else np.zeros(0, np.int64)}
 
@@ -233,8 +274,11 @@ class LandmarkMap(PlaceRecognizer):
         here, on the merged tracks.
         """
         merge_order(parts, sum(len(m) for m in maps))
-        n_pairs = max(len(maps[0]) - 1, 0)
+        lengths = [len(t) for t in self._node_tours(maps)]
+        n_pairs = max(sum(lengths) - 1, 0)
         matches: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n_pairs
+        for end in np.cumsum(lengths)[:-1]:  # the pairs joining two tours: no track crosses them
+            matches[int(end) - 1] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         for p in parts:
             a = p.arrays
             for k, i in enumerate(a["pairs"]):
@@ -242,8 +286,8 @@ class LandmarkMap(PlaceRecognizer):
                 matches[int(i)] = (np.asarray(a["ia"][s:e]), np.asarray(a["ib"][s:e]))
         missing = [i for i, m in enumerate(matches) if m is None]
         if missing:
-            raise TopolocError(f"landmarks: no shard matched frames {missing[0]} and {missing[0] + 1} of the first "
-                               "tour: were the shards built from the same tours?")
+            raise TopolocError(f"landmarks: no shard matched map images {missing[0]} and {missing[0] + 1}: "
+                               "were the shards built from the same tours?")
         self._build(maps, resources, [m for m in matches if m is not None])
 
     def learn_tour(self, tour: Traverse, *, resources: Resources) -> np.ndarray:
@@ -277,8 +321,9 @@ class LandmarkMap(PlaceRecognizer):
     def _add_tour(self, tour: Traverse, resources: Resources) -> None:
         """Online learning from the tour (Sec. V), exactly as a later ``--map`` tour in ``fit``.
 
-        The landmark map's nodes are the images of its first tour; a tour that
-        visits places the map has none of is refused (build the map from all tours).
+        Its images do not become nodes (that would rebuild the landmarks), in
+        either ``tours`` mode; a tour that visits places the map has no node
+        of is refused (build the map from all tours).
         """
         unseen = np.setdiff1d(tour.places, self.place_ids_)
         if len(unseen):
