@@ -126,3 +126,14 @@ def test_a_coocmap_model_file_cannot_be_combined_with_shards(tiny_route: dict[st
     with pytest.raises(TopolocError, match="model_path cannot be used"):
         build_from_shards(cls, [tiny_route["map"]], params={"model_path": str(tmp_path / "m.tlc")},
                           resources=_res(tiny_route), n_shards=2, executor=LocalExecutor(n_jobs=1))
+
+
+def test_landmark_shards_built_with_other_tours_are_refused(tiny_route: dict[str, Any]) -> None:
+    cls = get_method("landmarks")
+    res = _res(tiny_route)
+    maps = [tiny_route["map"], tiny_route["training"]]
+    ranges = split_places(np.unique(np.concatenate([m.places for m in maps])), 2)
+    # Shards of the paper's map match only the first tour's pairs; a map of separate tours needs all.
+    parts = [cls(tours="first").fit_shard(maps, places=r, index=k, resources=res) for k, r in enumerate(ranges)]
+    with pytest.raises(TopolocError, match=r"no shard matched map images \d+ and \d+"):
+        cls.from_shards(parts, maps, params={"tours": "separate"}, resources=res)
