@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+import pytest
 
 if TYPE_CHECKING:
     from conftest import Cli
@@ -28,7 +29,8 @@ def _build(cli: Cli, s: dict[str, Path], out: Path, method: str = "bow", *extra:
     return out
 
 
-def test_build_info_localize_calibrate(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+def test_build_info_localize_calibrate(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                      caplog: pytest.LogCaptureFixture) -> None:
     tlm = _build(cli, rf, tmp_path / "route.tlm")
     info = json.loads(cli.ok(["map", "info", str(tlm), "--json"]))
     assert info["method"] == "bow" and info["places"] >= 8 and info["vocabulary"]["n_words"] == 300
@@ -44,13 +46,17 @@ def test_build_info_localize_calibrate(cli: Cli, rf: dict[str, Path], tmp_path: 
     assert len(lines) == n + 1 == summary["frames"] and summary["fps"] > 0 and summary["fps_without_features"] > 0
     assert lines[0]["image"] == first.name and lines[-1]["place"] == lines[0]["place"]
     assert all(len(r["top"]) == 3 and r["accepted"] for r in lines) and "x" in lines[0]
+    assert summary["calibrated"] is False
+    assert any("is not calibrated: every frame is marked accepted" in r.getMessage() for r in caplog.records)
     # Calibrate on the dusk tour: the threshold is stored and used.
     cal = json.loads(cli.ok(["map", "calibrate", str(tlm), "--query", str(rf["query"]), "--tolerance", "0:1",
                           "--precision", "0.8", "--quiet"]))
     assert 0 <= cal["recall"] <= 1 and cal["precision"] >= 0.8
+    caplog.clear()
     cli.ok(["localize", str(tlm), str(rf["query"]), "--out", str(out), "--quiet"])
     lines = [json.loads(x) for x in out.read_text().splitlines()]
     assert [r["accepted"] for r in lines] == [r["score"] >= cal["threshold"] for r in lines]
+    assert not any("is not calibrated" in r.getMessage() for r in caplog.records)
 
 
 def test_localize_with_sequence(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -24,6 +25,8 @@ from topoloc.cli.app import (
 from topoloc.cli.progress import rich_progress
 from topoloc.cli.recordings import EveryMOption, EverySOption, PoseTopicOption, TopicOption
 from topoloc.errors import TopolocError, input_error
+
+log = logging.getLogger(__name__)
 
 map_app = typer.Typer(help="Saved maps: build once from tours, add tours later, inspect, calibrate.",
                       no_args_is_help=True)
@@ -248,6 +251,11 @@ def localize(
     from topoloc.maps import Map
 
     m = Map.load(map_file)
+    if m.threshold is None:
+        # For loop closure an accepted false match breaks the map: say so before the first frame.
+        log.warning("%s is not calibrated: every frame is marked accepted; run `topoloc map calibrate %s "
+                    "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
+                    map_file, map_file)
     total, frames = localize_frames(list(inputs), topic=topic, every_s=every_s, every_m=every_m,
                                     pose_topic=pose_topic)
     _check_out_file(out)
