@@ -90,15 +90,15 @@ class Table:
 class Runs:
     """The page's `evaluate` runs: each measured at most once (when ``measure``), else read back."""
 
-    def __init__(self, folder: Path, *, measure: bool, part: str) -> None:
-        self.folder, self.measure, self.part = folder, measure, part
+    def __init__(self, folder: Path, *, measure: bool, part: str, methods: set[str] | None = None) -> None:
+        self.folder, self.measure, self.part, self.methods = folder, measure, part, methods
         self.done: set[str] = set()
 
     def __call__(self, name: str, method: str, maps: Sequence[Path], query: Path, *, vocab: list[Path],
                  tolerance: str, params: dict[str, str] | None = None, options: list[str] | None = None,
                  sequence: int = 0) -> Path:
         out = self.folder / name
-        if self.measure and name not in self.done:
+        if self.measure and name not in self.done and (self.methods is None or method in self.methods):
             # Methods without a vocabulary (voting, seqslam) would only train one for nothing.
             run(method, list(maps), query, out, vocab_train=vocab if get_method(method).uses_vocabulary else [],
                 tolerance=tolerance, params=params, options=options, sequence=sequence)
@@ -323,16 +323,20 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--only", choices=("gardens", "webcam", "speed"),
                     help="measure this part alone; the others are re-rendered from their existing runs")
     ap.add_argument("--page-only", action="store_true", help="measure nothing; re-render the page")
+    ap.add_argument("--methods", help="measure only the runs of these methods (comma-separated, e.g. after "
+                    "changing one method's defaults); the others are read back")
     args = ap.parse_args(argv)
+    methods = set(args.methods.split(",")) if args.methods else None
     require_data()
     folder = RESULTS / "runs"
 
     def measures(part: str) -> bool:
         return not args.page_only and args.only in (None, part)
 
-    gp = gardens(Runs(folder, measure=measures("gardens"), part="gardens"))
-    wc, hourly = webcam(Runs(folder, measure=measures("webcam"), part="webcam"))
-    per_hour_plot(hourly, RESULTS / "coocmap_webcam_by_hour.png")
+    gp = gardens(Runs(folder, measure=measures("gardens"), part="gardens", methods=methods))
+    wc, hourly = webcam(Runs(folder, measure=measures("webcam"), part="webcam", methods=methods))
+    if measures("webcam"):  # the plot needs the runs' S.npy, which the repository does not keep
+        per_hour_plot(hourly, RESULTS / "coocmap_webcam_by_hour.png")
     speed = speed_section(RESULTS, measure=measures("speed"))
     (RESULTS / "coocmap.md").write_text(page(gp, wc, speed))
     print(f"wrote {RESULTS / 'coocmap.md'}")

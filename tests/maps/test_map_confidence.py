@@ -79,3 +79,18 @@ def test_a_landmark_map_saved_before_tours_says_it_learned_them_online(
     assert back.recognizer.get_params()["tours"] == "first"
     assert len(back.recognizer.node_place_) == len(tiny_route["map"])
     np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))
+
+
+def test_a_seqslam_map_saved_before_the_spread_floor_keeps_the_release_enhancement(
+        tiny_route: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def build(**params: Any) -> Map:
+        return Map.build(method="seqslam", tours=[tiny_route["map"]], params=params, vocabulary=None,
+                         vocab_train=(), cache_dir=tiny_route["map"].root.parent / "cache")
+
+    release = build(enhance_floor=False).similarity(tiny_route["query"])
+    m = build()
+    assert m.recognizer.get_params()["enhance_floor"] is True
+    back = Map.load(_save_as_older(m, "enhance_floor", tmp_path / "old.tlm", monkeypatch))
+    assert back.recognizer.get_params()["enhance_floor"] is False
+    np.testing.assert_allclose(back.similarity(tiny_route["query"]), release, rtol=1e-6)
+    assert not np.allclose(m.similarity(tiny_route["query"]), release)  # the floor does change the scores

@@ -197,11 +197,12 @@ def test_not_fitted_and_bad_items(world: dict[str, Traverse]) -> None:
 
 def test_parameters(world: dict[str, Traverse]) -> None:
     assert SeqSLAM.param_names() == [
-        "width", "height", "patch_size", "levels_per_std", "enhance_window", "ds",
+        "width", "height", "patch_size", "levels_per_std", "enhance_window", "enhance_floor", "ds",
         "v_min", "v_max", "v_step", "search", "max_skip", "step_penalty", "uniqueness", "confidence",
     ]
     assert SingleImageSeqSLAM.param_names() == [
-        "width", "height", "patch_size", "levels_per_std", "enhance_window", "uniqueness", "confidence",
+        "width", "height", "patch_size", "levels_per_std", "enhance_window", "enhance_floor", "uniqueness",
+        "confidence",
     ]
     p = SeqSLAM().get_params()
     assert (p["width"], p["height"], p["patch_size"], p["ds"], p["enhance_window"]) == (
@@ -209,11 +210,23 @@ def test_parameters(world: dict[str, Traverse]) -> None:
     assert (p["v_min"], p["v_max"], p["v_step"]) == (0.8, 1.2, 0.1)
     assert parse_param(SeqSLAM, "ds", "5") == 5
     assert parse_param(SeqSLAM, "search", "acceleration") == "acceleration"
+    assert p["enhance_floor"] is True and parse_param(SeqSLAM, "enhance_floor", "false") is False
     res = InMemoryResources(n_jobs=1)
     for bad in ({"search": "zigzag"}, {"patch_size": 1}, {"v_min": 1.5}, {"ds": -1},
-                {"levels_per_std": 0.0}, {"enhance_window": -2}, {"uniqueness": -1}):
+                {"levels_per_std": 0.0}, {"enhance_window": -2}, {"enhance_floor": "yes"}, {"uniqueness": -1}):
         with pytest.raises(TopolocError):
             SeqSLAM(**bad).fit([world["map"]], resources=res)
+
+
+def test_the_floor_is_what_enhanced_differences_use(world: dict[str, Traverse]) -> None:
+    from topoloc.sequence.search import contrast_enhance
+
+    res = InMemoryResources(n_jobs=1)
+    for floor in (True, False):
+        m = SeqSLAM(enhance_floor=floor).fit([world["map"]], resources=res)
+        Q = np.stack(m.encode(world["query"], resources=res))
+        np.testing.assert_array_equal(m.enhanced_differences(Q),
+                                      contrast_enhance(m.place_differences(Q), window=10, spread_floor=floor))
 
 
 # ------------------------------------------------------- degenerate frames (#12)
@@ -247,7 +260,8 @@ def _strip_frames(pano: np.ndarray, n: int, **kw: float) -> list[np.ndarray]:
 
 @pytest.mark.parametrize("kind", ["dark", "uniform", "overexposed", "featureless"])
 @pytest.mark.parametrize("where", ["first", "middle"])
-def test_one_degenerate_frame_does_not_capture_the_queries(kind: str, where: str) -> None:
+@pytest.mark.parametrize("floor", [True, False])
+def test_one_degenerate_frame_does_not_capture_the_queries(kind: str, where: str, floor: bool) -> None:
     # Issue #12's recipe on a synthetic route: the same structureless frame is
     # put into both traverses (first, or in the middle), as a tunnel or a
     # blanked camera gives.  It patch-normalises to (almost) all zeros, which
@@ -261,7 +275,7 @@ def test_one_degenerate_frame_does_not_capture_the_queries(kind: str, where: str
     at = 0 if where == "first" else n // 2
     summer[at], winter[at] = _degenerate(kind, 1), _degenerate(kind, 2)
     res = InMemoryResources(n_jobs=1)
-    m = SeqSLAM().fit([Traverse.from_images(summer, name="summer")], resources=res)
+    m = SeqSLAM(enhance_floor=floor).fit([Traverse.from_images(summer, name="summer")], resources=res)
     D = m.place_differences(np.stack(m.encode(Traverse.from_images(winter), resources=res)))
     others = np.delete(np.arange(n), at)
     # The degenerate image is nearer to most queries than their own place is...

@@ -342,6 +342,28 @@ def test_contrast_enhance_matches_openseqslam(window: int) -> None:
                                atol=2e-4)
 
 
+@pytest.mark.parametrize("window", [4, 10])
+def test_contrast_enhance_floors_the_local_spread_at_the_columns(window: int) -> None:
+    rng = np.random.default_rng(window)
+    # A column whose differences barely vary near its middle and widely elsewhere.
+    D = rng.normal(1.0, 0.2, (40, 3)).astype(np.float32)
+    D[15:25, :] = 1.0 + rng.normal(0, 0.001, (10, 3)).astype(np.float32)
+    D[20, 1] = 0.99  # a tiny dip where the local spread is tiny
+    release, floored = contrast_enhance(D, window=window), contrast_enhance(D, window=window, spread_floor=True)
+    # By hand: the release's z-score with max(local sd, column sd) as the divisor.
+    col = D.astype(np.float64).std(axis=0, ddof=1)
+    expect = np.zeros(D.shape)
+    for i in range(len(D)):
+        v = D[max(0, i - window // 2): i + window // 2 + 1].astype(np.float64)
+        sd = np.maximum(v.std(axis=0, ddof=1), col)
+        expect[i] = (D[i] - v.mean(axis=0)) / sd
+    np.testing.assert_allclose(floored, expect, atol=2e-4)
+    # The noise of the flat stretch no longer outscores real dips; scores only shrink.
+    assert release[20, 1] < -1.0 and abs(floored[20, 1]) < 0.2
+    assert (np.abs(floored) <= np.abs(release) + 1e-5).all()
+    np.testing.assert_array_equal(contrast_enhance(D, window=0, spread_floor=True), D)
+
+
 def test_contrast_enhance_edge_cases() -> None:
     D = np.ones((12, 3), np.float32)
     D[:, 1] = np.arange(12)

@@ -14,7 +14,9 @@ patch normalisation         8 x 8 patches, z-score,     ``patch_size=8``, z-scor
                                                         ``127 + round(16 z)``
 difference matrix           sum of abs. differences     the same, divided by the
                                                         pixels (and 16)
-contrast enhancement        ``R_window = 10``           ``enhance_window=10``
+contrast enhancement        ``R_window = 10``           ``enhance_window=10``, the
+                                                        local spread floored
+                                                        (``enhance_floor``)
 sequence length             ``ds = 10`` (11 frames)     ``ds=10`` (11 frames)
 velocities                  0.8 : 0.1 : 1.2             ``v_min=0.8, v_max=1.2,
                                                         v_step=0.1``
@@ -68,29 +70,48 @@ Deliberate differences, and why:
   query can match the winter tour; averaging normalised images instead would
   blur traverses taken with lateral offsets.
 
+* *Floored spread* (``enhance_floor=True``).  The enhancement divides by
+  the spread of 11 differences, a noisy estimate; where it comes out small,
+  small local differences become large scores.  The spread is floored at
+  the query's spread over the whole map
+  (:func:`~topoloc.sequence.search.contrast_enhance`, ``spread_floor``).
+  On the development data (``docs/results/seqslam.md``, rows
+  ``enhance_floor=False``; ``benchmarks/bench_sequence.py``) it raises AUC
+  on every pair with the default search: Nordland 0.822 -> 0.829, Gardens
+  Point day_left -> day_right 0.19 -> 0.43, day_right -> night_right
+  0.05 -> 0.15, corridor 0.29 -> 0.35 (where R@1 falls, 0.50 -> 0.48).
+  With ``search="acceleration"`` it loses on Nordland (0.44 -> 0.31) and
+  corridor (0.30 -> 0.10) and wins on Gardens Point (0.12 -> 0.50): set
+  ``enhance_floor=False`` with that search on such routes (section "The
+  floored spread against the release's" of that page).
+
 ``search="acceleration"`` replaces the straight trajectories by Cooc-Map's
 forward-only paths (Section II-F), see
 :func:`~topoloc.sequence.search.acceleration_search`.
 
 The contrast enhancement window is the release's.  Nordland needs it (AUC
-0.82 with, 0.001 without), while Gardens Point day_left -> day_right gives
-0.19 with ``enhance_window=10`` and 0.92 with ``enhance_window=0``, and
-corridor loses with it too (``docs/results/seqslam.md``,
-``benchmarks/bench_sequence.py``).  Density of the route does not explain
-it: a window makes a place's enhanced difference at most
-``(n - 1) / sqrt(n)`` below its neighbours' (3.0 for 11 rows), so every local
-minimum of a column ends near the same value and the true place must win
-on the sequence alone; on Nordland the sequence does that, on Gardens Point
-it does not.  We have no measured property of the map that predicts which
-(no benchmark in this repository tests one), so the default stays the
-release's and ``enhance_window=0`` is the documented choice for routes like
-Gardens Point and corridor.  The release itself scores 0.31 AUC on that pair
-with the same window (issue #12); ``levels_per_std=1, uniqueness=10`` (its
-quantisation and its uniqueness score) brings ours from 0.19 to
-0.24 (the ``seqslam (levels_per_std=1.0, uniqueness=10)`` rows of
-``docs/results/seqslam.md``); the rest of the gap is not explained (the
-release centres its window on the query, using the 5 frames after it,
-where ours is causal).
+0.83 with, 0.001 without), while Gardens Point day_left -> day_right gives
+0.43 with ``enhance_window=10`` (0.19 with the release's spread) and 0.92
+with ``enhance_window=0``, and corridor loses with it too
+(``docs/results/seqslam.md``, ``benchmarks/bench_sequence.py``).  Density
+of the route does not explain it: a window makes a place's enhanced
+difference at most ``(n - 1) / sqrt(n)`` below its neighbours' (3.0 for 11
+rows), so every local minimum of a column ends near the same value and the
+true place must win on the sequence alone; on Nordland the sequence does
+that, on Gardens Point it does not.  One property we tried, how slowly the
+map's own differences drift along the route (the correlation of a map
+image's differences to places 10 apart), separated the full development
+routes but not quarters of Nordland, which all need the window but some of
+which drift as little as corridor (a session experiment, not kept as a
+benchmark: issue #12's notes), so the window stays the release's and
+``enhance_window=0`` is the documented choice for routes like Gardens
+Point and corridor.  The release itself scores 0.31 AUC on that pair with
+the same window (issue #12); ``levels_per_std=1, uniqueness=10,
+enhance_floor=False`` (its quantisation, uniqueness score and spread)
+brings ours from 0.19 to 0.24 (the ``seqslam (levels_per_std=1.0, ...)``
+rows of ``docs/results/seqslam.md``); the rest of that gap is not
+explained (the release centres its window on the query, using the 5 frames
+after it, where ours is causal).
 
 :class:`SingleImageSeqSLAM` (``seqslam-single``) is the same pipeline without
 the sequence search: ``S = -`` contrast-enhanced difference.
@@ -103,7 +124,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from topoloc._params import Check, Constraint, Interval, Options
+from topoloc._params import Check, Constraint, Interval, OfType, Options
 from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
@@ -134,6 +155,9 @@ class SeqSLAM(PlaceRecognizer):
         Quantisation of the normalised images (16; 1 as OpenSeqSLAM).
     enhance_window : int
         Local contrast enhancement window along the map (10); 0 disables it.
+    enhance_floor : bool
+        Floor the enhancement's local spread at the query's spread over the
+        whole map (True, not in the release; see the module docstring).
     ds : int
         Sequence length: the query and the ``ds`` before it (10).
     v_min, v_max, v_step : float
@@ -171,11 +195,14 @@ class SeqSLAM(PlaceRecognizer):
 
     name: ClassVar[str] = "seqslam"
     scores_whole_sequence: ClassVar[bool] = True
+    # Maps saved before ``enhance_floor`` existed used the release's spread.
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "enhance_floor": False}
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "width": Interval(int, 1), "height": Interval(int, 1),
         "patch_size": Check(lambda v: not isinstance(v, bool) and int(v) == v and (v == 0 or v >= 2),
                             "0 or an integer >= 2"),
         "levels_per_std": Interval(float, 0.0, closed="neither"), "enhance_window": Interval(int, 0),
+        "enhance_floor": OfType(bool),
         "ds": Interval(int, 0), "v_min": Interval(float, 0.0), "v_max": Interval(float, 0.0),
         "v_step": Interval(float, 0.0, closed="neither"), "search": Options(("constant", "acceleration")),
         "max_skip": Interval(int, 0), "step_penalty": Interval(float, 0.0, float("inf"), closed="left"),
@@ -193,6 +220,7 @@ class SeqSLAM(PlaceRecognizer):
         patch_size: int = 8,
         levels_per_std: float = 16.0,
         enhance_window: int = 10,
+        enhance_floor: bool = True,
         ds: int = 10,
         v_min: float = 0.8,
         v_max: float = 1.2,
@@ -208,6 +236,7 @@ class SeqSLAM(PlaceRecognizer):
         self.patch_size = patch_size
         self.levels_per_std = levels_per_std
         self.enhance_window = enhance_window
+        self.enhance_floor = enhance_floor
         self.ds = ds
         self.v_min = v_min
         self.v_max = v_max
@@ -340,7 +369,7 @@ class SeqSLAM(PlaceRecognizer):
         """:meth:`place_differences` after local contrast enhancement, (n_places, n_q)."""
         D = self.place_differences(queries)
         if self.enhance_window:
-            D = contrast_enhance(D, window=int(self.enhance_window))
+            D = contrast_enhance(D, window=int(self.enhance_window), spread_floor=bool(self.enhance_floor))
         return D
 
     def score(self, items: Sequence[Any]) -> np.ndarray:
@@ -394,7 +423,7 @@ class SingleImageSeqSLAM(SeqSLAM):
 
     Parameters
     ----------
-    width, height, patch_size, levels_per_std, enhance_window, uniqueness, confidence
+    width, height, patch_size, levels_per_std, enhance_window, enhance_floor, uniqueness, confidence
         As for :class:`SeqSLAM`.
     """
 
@@ -409,6 +438,7 @@ class SingleImageSeqSLAM(SeqSLAM):
         patch_size: int = 8,
         levels_per_std: float = 16.0,
         enhance_window: int = 10,
+        enhance_floor: bool = True,
         uniqueness: int = 0,
         confidence: str = "margin",
     ) -> None:
@@ -418,6 +448,7 @@ class SingleImageSeqSLAM(SeqSLAM):
             patch_size=patch_size,
             levels_per_std=levels_per_std,
             enhance_window=enhance_window,
+            enhance_floor=enhance_floor,
             uniqueness=uniqueness,
             confidence=confidence,
         )

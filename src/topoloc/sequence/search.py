@@ -246,6 +246,7 @@ def contrast_enhance(
     D: np.ndarray,
     *,
     window: int = 10,
+    spread_floor: bool = False,
     chunk_queries: int = DEFAULT_CHUNK_QUERIES,
     n_jobs: int = -1,
 ) -> np.ndarray:
@@ -287,6 +288,15 @@ def contrast_enhance(
         Difference matrix, lower = more alike.
     window : int
         ``R_window``; ``0`` returns ``D`` unchanged (as float32).
+    spread_floor : bool
+        Not in the release: divide by ``max(std(D[w_i, T]), std(D[:, T]))``,
+        the local spread floored at the query's spread over the whole
+        database.  Eleven rows give a noisy spread; where it comes out small
+        the release turns small local differences into large scores, and on
+        a route whose differences barely vary (Gardens Point) that noise
+        decides the best place.  The floor only shrinks scores, so the bound
+        above still holds.  Measured in ``docs/results/seqslam.md``
+        (``benchmarks/bench_sequence.py``, rows ``enhance_floor``).
     chunk_queries : int
         Queries per tile (bounds the float64 work arrays; results do not
         depend on it).
@@ -304,6 +314,10 @@ def contrast_enhance(
         return D.copy()
     n_db = D.shape[0]
     half = int(window) // 2
+    if not np.isfinite(D).all():
+        raise ValueError("D must be finite for contrast enhancement")
+    # The whole column's sample spread (float64), the floor of every window's.
+    col_sd = D.std(axis=0, ddof=1, dtype=np.float64) if spread_floor and n_db > 1 else None
 
     def work(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         # Rows g0..g1 are every row the windows of rows r0..r1 touch.
@@ -334,12 +348,12 @@ def contrast_enhance(
         np.divide(ss, np.maximum(cntf - 1.0, 1.0), out=ss)
         ss[flat] = 1.0
         np.sqrt(ss, out=ss)
+        if col_sd is not None:
+            np.maximum(ss, col_sd[None, c0:c1], out=ss)
         res = (x - mean) / ss
         res[flat] = 0.0
         return res
 
-    if not np.isfinite(D).all():
-        raise ValueError("D must be finite for contrast enhancement")
     out = np.empty(D.shape, dtype=np.float32)
     return _run_tiles(out, chunk_queries, n_jobs, work)
 
