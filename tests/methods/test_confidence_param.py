@@ -17,7 +17,7 @@ FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_s
                                    "seqslam": {"ds": 3, "enhance_window": 0}, "seqslam-single": {"enhance_window": 0}}
 
 
-RAW_BY_DEFAULT = ("landmarks", "descriptors")
+RAW_BY_DEFAULT = ("landmarks", "descriptors", "seqslam-single")
 
 
 def _fit(name: str, route: dict[str, Any], **params: Any) -> Any:
