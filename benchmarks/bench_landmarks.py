@@ -16,7 +16,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, gardens_section, report_table, require_data, run
+from benchmarks.common import (
+    DATA,
+    GP,
+    GP_PAIRS,
+    RESULTS,
+    gardens_section,
+    metric_change,
+    report_table,
+    require_data,
+    run,
+)
 from topoloc.bench.landmark_density import density_experiment
 from topoloc.synth import RouteConfig, generate_route
 
@@ -26,12 +36,9 @@ def ablation_prose(done: dict[tuple[str, str], Path], pairs: list[str]) -> str:
 
     ``done`` maps (variant, pair name) to the run's folder.
     """
-    keys = (("auc", "AUC"), ("recall_at_100_precision", "R@100P"), ("recall_at_1", "R@1"))
     lines = []
     for name in pairs:
-        old, new = (json.loads((done[v, name] / "metrics.json").read_text()) for v in ("earlier", "defaults"))
-        change = ", ".join(f"{label} {old[k]:.3f} -> {new[k]:.3f}" for k, label in keys)
-        lost = [label for k, label in keys if new[k] < old[k]]
+        change, lost = metric_change(done["earlier", name], done["defaults", name])
         verdict = f"lose in {' and '.join(lost)}" if lost else "lose in none of them"
         lines.append(f"- {name}: earlier defaults -> defaults: {change}; the defaults {verdict}.\n")
     return "".join(lines)

@@ -17,7 +17,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.common import DATA, GP, GP_PAIRS, RESULTS, VOCAB_FOR_GP, report_table, require_data, run
+from benchmarks.common import (
+    DATA,
+    GP,
+    GP_PAIRS,
+    RESULTS,
+    VOCAB_FOR_GP,
+    metric_change,
+    report_table,
+    require_data,
+    run,
+)
 
 VARIANTS: list[tuple[str, str, dict[str, str]]] = [
     ("seqslam", "seqslam", {}),
@@ -32,7 +42,6 @@ VARIANTS: list[tuple[str, str, dict[str, str]]] = [
 
 def floor_prose(sections: list[tuple[str, list[Path]]]) -> str:
     """One line per (pair, search): AUC / R@100P / R@1 with the floor against without, saying where it loses."""
-    keys = (("auc", "AUC"), ("recall_at_100_precision", "R@100P"), ("recall_at_1", "R@1"))
     lines = []
     for _, dirs in sections:
         by_name = {d.name: d for d in dirs}
@@ -41,11 +50,8 @@ def floor_prose(sections: list[tuple[str, list[Path]]]) -> str:
                                         ("_seqslam-accel", "_seqslam-accel-nofloor", "search=acceleration")):
                 if not d.name.endswith(tag) or d.name[: -len(tag)] + without not in by_name:
                     continue
-                new = json.loads((d / "metrics.json").read_text())
-                old = json.loads((by_name[d.name[: -len(tag)] + without] / "metrics.json").read_text())
+                change, lost = metric_change(by_name[d.name[: -len(tag)] + without], d)
                 pair = d.name[: -len(tag)].removeprefix("seq_")
-                change = ", ".join(f"{n} {old[k]:.3f} -> {new[k]:.3f}" for k, n in keys)
-                lost = [n for k, n in keys if new[k] < old[k]]
                 verdict = f"the floor loses in {' and '.join(lost)}" if lost else "the floor loses in none"
                 lines.append(f"- {pair}, {label}: {change}; {verdict}.\n")
     return "".join(lines)

@@ -35,7 +35,7 @@ DEFAULT_METHODS = "bow,coocmap,fabmap2,landmarks,seqslam,voting"
 
 
 def _head(t: Traverse, n: int) -> Traverse:
-    return Traverse(root=t.root, images=t.images[:n], places=t.places[:n], name=t.name)
+    return t.take(np.arange(min(n, len(t))))
 
 
 def compare(method: str, vocab: Path, shards: int, n_queries: int) -> dict[str, object]:

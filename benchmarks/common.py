@@ -153,6 +153,16 @@ def compare_sentence(who: str, other: str, where: str, ours: Values, theirs: Val
     return f"{head}: AUC / R@100P / R@1 {_fmt(ours, 3)} against {_fmt(theirs, digits)}."
 
 
+def metric_change(before: Path, after: Path) -> tuple[str, list[str]]:
+    """``"AUC a -> b, R@100P ..., R@1 ..."`` from two runs' metrics.json, and the metrics ``after`` loses in.
+
+    For ablation prose: one run beside the same run with one setting changed.
+    """
+    old, new = (json.loads((d / "metrics.json").read_text()) for d in (before, after))
+    change = ", ".join(f"{name} {old[k]:.3f} -> {new[k]:.3f}" for name, k in METRICS)
+    return change, [name for name, k in METRICS if new[k] < old[k]]
+
+
 def best_anchor(anchors: dict[str, Any], column: int) -> tuple[Values, str]:
     """The best anchor value of each metric on ``column`` and who holds it.
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from topoloc.datasets.traverse import find_images, load_traverse, natural_key, read_image
+from topoloc.datasets.traverse import Traverse, find_images, load_traverse, natural_key, read_image
 from topoloc.errors import TopolocError
 
 
@@ -91,3 +91,17 @@ def test_find_images_recursive(tmp_path: Path) -> None:
     _img(tmp_path / "t1" / "0.png")
     _img(tmp_path / "t2" / "0.png")
     assert len(find_images([tmp_path])) == 2
+
+
+def test_take_keeps_each_image_with_its_place_time_position_and_frame() -> None:
+    frames = [np.full((8, 8), k, np.uint8) for k in range(5)]
+    times = np.array([f"2024-01-01T0{k}:00" for k in range(5)], dtype="datetime64[s]")
+    xy = np.arange(10, dtype=np.float64).reshape(5, 2)
+    t = Traverse.from_images(frames, [10, 11, 12, 13, 14], name="tour", times=times, xy=xy)
+    sub = t.take([3, 1])
+    assert sub.name == "tour" and sub.kind == t.kind and sub.root == t.root
+    assert sub.places.tolist() == [13, 11] and sub.times is not None and sub.xy is not None
+    np.testing.assert_array_equal(sub.times, times[[3, 1]])
+    np.testing.assert_array_equal(sub.xy, xy[[3, 1]])
+    assert sub.frames is not None and [int(f[0, 0]) for f in sub.frames] == [3, 1]
+    assert len(t.take(np.zeros(0, np.int64))) == 0

@@ -27,9 +27,9 @@ BAD_PARAMS: dict[str, dict[str, Any]] = {
     "descriptors": {"metric": "dot", "query": 3},
     "fabmap": {"output": "tfidf", "p_new": 1.5},
     "fabmap2": {"normaliser": "exact"},
-    "landmarks": {"match_threshold": 0.0, "index": "kd", "shrinkage": -1.0},
+    "landmarks": {"match_threshold": 0.0, "index": "kd", "shrinkage": -1.0, "tours": "both"},
     "seqslam": {"search": "zigzag", "patch_size": 1, "v_min": 2.0},
-    "seqslam-single": {"patch_size": 1, "width": 0},
+    "seqslam-single": {"patch_size": 1, "width": 0, "enhance_floor": "yes"},
     "voting": {"ratio": 1.5, "n_neighbours": 1},
 }
 # Small parameter changes so that each method runs in well under a second on 10 places.

@@ -36,11 +36,7 @@ log = logging.getLogger(__name__)
 
 
 def _subsample(t: Traverse, stride: int) -> Traverse:
-    idx = np.arange(0, len(t), stride)
-    return Traverse(root=t.root, images=tuple(t.images[i] for i in idx), places=t.places[idx],
-                    times=None if t.times is None else t.times[idx],
-                    xy=None if t.xy is None else t.xy[idx], name=t.name, kind=t.kind,
-                    frames=None if t.frames is None else tuple(t.frames[i] for i in idx))
+    return t.take(np.arange(0, len(t), stride))
 
 
 def density_experiment(

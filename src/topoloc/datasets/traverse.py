@@ -161,6 +161,23 @@ class Traverse:
                    places=ids.astype(np.int64), times=times, xy=None if xy is None else np.asarray(xy, float),
                    name=name, kind=kind, frames=frames)
 
+    def take(self, index: Sequence[int] | np.ndarray) -> Traverse:
+        """The images at ``index``, in that order, with their places, times, positions and frames.
+
+        The root, name and kind are kept (saved models name tours by them), so
+        only the images differ.
+
+        Parameters
+        ----------
+        index : sequence of int, shape (m,)
+            Positions in this traverse.
+        """
+        idx = np.asarray(index, dtype=np.int64).reshape(-1)
+        return Traverse(root=self.root, images=tuple(self.images[i] for i in idx), places=self.places[idx],
+                        times=None if self.times is None else self.times[idx],
+                        xy=None if self.xy is None else self.xy[idx], name=self.name, kind=self.kind,
+                        frames=None if self.frames is None else tuple(self.frames[i] for i in idx))
+
     def fingerprint(self) -> str:
         """SHA-1 of what the traverse holds: image names, places, times and each file's size (or the frames).
 

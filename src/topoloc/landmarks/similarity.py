@@ -27,7 +27,7 @@ import scipy.sparse as sp
 
 
 def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise: bool = True,
-                    shrinkage: float = 0.0) -> np.ndarray:
+                    shrinkage: float = 0.0, denominators: np.ndarray | None = None) -> np.ndarray:
     """Eq. 5 for every node and query, normalised over nodes.
 
     Parameters
@@ -42,6 +42,9 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise
     shrinkage : float
         Pseudo-count of unmatched landmarks per node, as a multiple of the
         median node weight sum (0: Eq. 5 exactly); see the module docstring.
+    denominators : ndarray, shape (n_nodes,), optional
+        ``node_denominators(weights, shrinkage)`` when the caller already has
+        them (it scores many queries against the same weights).
 
     Returns
     -------
@@ -53,7 +56,7 @@ def node_similarity(weights: sp.csr_matrix, match_prob: np.ndarray, *, normalise
     vector = p.ndim == 1
     P = p[:, None] if vector else p
     num = np.asarray(weights @ P)
-    den = node_denominators(weights, shrinkage).reshape(-1, 1)
+    den = (node_denominators(weights, shrinkage) if denominators is None else denominators).reshape(-1, 1)
     S = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
     if not normalise:
         return S[:, 0] if vector else S

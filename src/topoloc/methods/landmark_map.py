@@ -249,10 +249,7 @@ class LandmarkMap(PlaceRecognizer):
             local = positions[(positions >= start) & (positions < start + n)] - start
             pairs = local[local < n - 1]
             need = np.union1d(pairs, pairs + 1).astype(np.int64)
-            sub = Traverse(root=tour.root, images=tuple(tour.images[i] for i in need), places=tour.places[need],
-                           name=tour.name, kind=tour.kind,
-                           frames=None if tour.frames is None else tuple(tour.frames[i] for i in need))
-            feats = resources.features(sub)
+            feats = resources.features(tour.take(need))
             at = {int(f): k for k, f in enumerate(need)}
             for i in pairs:
                 a, b = pair_matches(feats[at[int(i)]], feats[at[int(i) + 1]], frame=int(i),
@@ -302,9 +299,11 @@ class LandmarkMap(PlaceRecognizer):
         self.check_fitted()
         row_of_place = {int(p): i for i, p in enumerate(self.place_ids_)}
         nodes = np.full(len(tour), -1, np.int64)
+        # The tour is localised against the weights it started with (they are refreshed at the end).
+        den = node_denominators(self.weights_, self.shrinkage)
         for i, fs in enumerate(resources.features(tour)):
             prob, f_idx, l_idx = self.model_.match_pairs(fs)
-            s = self._node_scores(fs, prob, f_idx, l_idx)
+            s = self._node_scores(fs, prob, f_idx, l_idx, den)
             if self.online_supervised:
                 row = row_of_place.get(int(tour.places[i]))
                 allowed = np.flatnonzero(self.node_place_ == row) if row is not None else np.zeros(0, np.int64)
@@ -353,14 +352,16 @@ class LandmarkMap(PlaceRecognizer):
         return list(resources.features(query))
 
     def _node_scores(
-        self, fs: FeatureSet, prob: np.ndarray, f_idx: np.ndarray, l_idx: np.ndarray
+        self, fs: FeatureSet, prob: np.ndarray, f_idx: np.ndarray, l_idx: np.ndarray, den: np.ndarray
     ) -> np.ndarray:
-        """Eq. 5 over nodes (normalised), optionally with RANSAC-verified nodes, shape (n_nodes,)."""
-        s = node_similarity(self.weights_, prob, normalise=self.normalise, shrinkage=self.shrinkage)
+        """Eq. 5 over nodes (normalised), optionally with RANSAC-verified nodes, shape (n_nodes,).
+
+        ``den``: :func:`~topoloc.landmarks.node_denominators` of the current weights.
+        """
+        s = node_similarity(self.weights_, prob, normalise=self.normalise, denominators=den)
         if self.verify_nodes <= 0 or len(f_idx) == 0:
             return s
         m = self.model_
-        den = node_denominators(self.weights_, self.shrinkage)
         out = np.zeros_like(s)
         for x in np.argsort(-s, kind="stable")[: self.verify_nodes]:
             obs = m.observation(l_idx, int(x))
@@ -381,8 +382,9 @@ class LandmarkMap(PlaceRecognizer):
         """Eq. 5 per place (max over its nodes; shifted by ``confidence``), shape (n_places, len(items))."""
         self.check_fitted()
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
+        den = node_denominators(self.weights_, self.shrinkage)  # the weights are fixed while scoring
         for j, fs in enumerate(items):
             prob, f_idx, l_idx = self.model_.match_pairs(fs)
-            s = self._node_scores(fs, prob, f_idx, l_idx)
+            s = self._node_scores(fs, prob, f_idx, l_idx, den)
             np.maximum.at(S[:, j], self.node_place_, s.astype(np.float32))
         return self._check_block(self._confident(S), len(items))

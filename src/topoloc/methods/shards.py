@@ -116,14 +116,8 @@ def shard_traverse(traverse: Traverse, places: tuple[int, int]) -> tuple[Travers
         Index in ``traverse`` of each kept image.
     """
     lo, hi = places
-    keep = (traverse.places >= lo) & (traverse.places < hi)
-    index = np.flatnonzero(keep).astype(np.int64)
-    frames = None if traverse.frames is None else tuple(traverse.frames[i] for i in index)
-    sub = Traverse(root=traverse.root, images=tuple(traverse.images[i] for i in index),
-                   places=traverse.places[index], times=None if traverse.times is None else traverse.times[index],
-                   xy=None if traverse.xy is None else traverse.xy[index], name=traverse.name, kind=traverse.kind,
-                   frames=frames)
-    return sub, index
+    index = np.flatnonzero((traverse.places >= lo) & (traverse.places < hi)).astype(np.int64)
+    return traverse.take(index), index
 
 
 def shard_maps(maps: Sequence[Traverse], places: tuple[int, int]) -> tuple[list[Traverse], np.ndarray]:
