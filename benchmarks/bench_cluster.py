@@ -62,8 +62,8 @@ def run_pipeline(route: Any, workers: int, work: Path, *, n_words: int, max_feat
     from topoloc.maps.batch import localize_on
     from topoloc.maps.map import Map
     from topoloc.methods.cooc_map import CoocMap
-    from topoloc.methods.resources import CachedResources
     from topoloc.methods.shards import build_from_shards
+    from topoloc.resources import CachedResources
     from topoloc.vocabulary.vocab import cached_vocabulary
 
     cache = work / f"cache_w{workers}"

@@ -34,9 +34,10 @@ from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
 from topoloc.coocmap.compiled import _one_location, _translation_bound, _triples, match_compiled
 from topoloc.coocmap.matching import consistency_graphs, match_lazy, match_sequential
 from topoloc.datasets.traverse import load_traverse
-from topoloc.evaluation.prepare import make_resources, resolve_max_side
 from topoloc.features import FeatureConfig
 from topoloc.methods.cooc_map import CoocMap
+from topoloc.spec import FeatureSpec, VocabularySpec
+from topoloc.spec.setup import make_resources
 
 COMMAND = ".venv/bin/python -m benchmarks.bench_coocmap_speed"
 #: Preprocessings timed on the two-tour gardens_point pairs (the single-tour pair: CLAHE only).
@@ -50,8 +51,8 @@ def fitted(maps: tuple[str, ...], query: str, preprocess: str) -> tuple[CoocMap,
     """The `coocmap` method with its defaults, fitted and encoded as `topoloc evaluate` does."""
     mp = [load_traverse(GP / m) for m in maps]
     qt = load_traverse(GP / query)
-    side = resolve_max_side("auto", [*mp, qt])
-    res, _ = make_resources(vocab_train=VOCAB_FOR_GP, max_side=side, preprocess=preprocess, needs_vocabulary="coocmap")
+    config = FeatureSpec(preprocess=preprocess).config_for_run([*mp, qt])
+    res, _ = make_resources(config, VocabularySpec(train=tuple(VOCAB_FOR_GP)), needs_vocabulary="coocmap")
     method = CoocMap().fit(mp, resources=res)
     return method, method.encode(qt, resources=res)
 

@@ -30,7 +30,7 @@ import numpy as np
 from benchmarks.common import GP, require_data
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.features import FeatureExtractor
-from topoloc.methods.resources import CachedResources
+from topoloc.resources import CachedResources
 from topoloc.vocabulary import Vocabulary
 
 

@@ -25,7 +25,6 @@ import os
 import platform
 import sys
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any
 
 from benchmarks.common import DATA, GP, RESULTS, require_data
@@ -37,10 +36,10 @@ from topoloc.bench.landmark_density import (
 )
 from topoloc.datasets.groundtruth import ground_truth_from_file, ground_truth_from_places, parse_tolerance
 from topoloc.datasets.traverse import load_traverse
-from topoloc.evaluation.pipeline import EvaluateOptions
-from topoloc.evaluation.prepare import make_resources, resolve_max_side
 from topoloc.methods.base import map_place_ids
 from topoloc.methods.landmark_map import LandmarkMap
+from topoloc.spec import FeatureSpec
+from topoloc.spec.setup import make_resources
 
 COMMAND = ".venv/bin/python -m benchmarks.bench_landmarks_fps"
 STRIDES = (1, 2, 3, 4, 5, 10)
@@ -72,10 +71,9 @@ def _pairs() -> list[dict[str, Any]]:
 
 def _run_pair(pair: dict[str, Any]) -> dict[str, Any]:
     map_t, query = load_traverse(pair["map"]), load_traverse(pair["query"])
-    defaults = EvaluateOptions(method="voting", maps=[pair["map"]], query=pair["query"], out=Path("unused"))
-    max_side = resolve_max_side(defaults.max_side, [map_t, query])
-    resources, _ = make_resources(features=defaults.features, max_features=defaults.max_features,
-                                  max_side=max_side, preprocess=defaults.preprocess)
+    # evaluate's default feature settings, resolved for this pair as evaluate resolves them
+    config = FeatureSpec().config_for_run([map_t, query])
+    resources, _ = make_resources(config)
     place_ids = map_place_ids([map_t])
     if "ground_truth" in pair:
         gt = ground_truth_from_file(pair["ground_truth"], map_traverse=map_t, place_ids=place_ids,
@@ -90,8 +88,8 @@ def _run_pair(pair: dict[str, Any]) -> dict[str, Any]:
     return {
         "map": str(pair["map"].relative_to(DATA)), "query": str(pair["query"].relative_to(DATA)),
         "ground_truth": gt.description, "n_map_images": len(map_t), "n_queries": len(query),
-        "features": {"method": defaults.features, "max_features": defaults.max_features, "max_side": max_side,
-                     "preprocess": defaults.preprocess},
+        "features": {"method": config.method, "max_features": config.max_features, "max_side": config.max_side,
+                     "preprocess": config.preprocess},
         "rows": rows, "selection": selection,
         "nodes_at_3fps": {label: nodes_at_rate(rows, label=label, fps=3.0) for label, _, _ in CONFIGS},
         "min_node_ratio": float(LandmarkMap().fit([map_t], resources=resources).model_.ratios().min()),

@@ -38,8 +38,8 @@ from benchmarks.common import DATA, RESULTS
 from topoloc.datasets.groundtruth import ground_truth_from_places
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.evaluation.metrics import compute_metrics
-from topoloc.methods.resources import CachedResources
 from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM, difference_matrix
+from topoloc.resources import CachedResources
 from topoloc.sequence import acceleration_search, constant_velocity_search, contrast_enhance
 
 ANCHORS = {

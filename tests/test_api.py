@@ -16,9 +16,10 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 
 # Pinned: adding a public name is a decision, removing one breaks users.
 PUBLIC = {
-    "BagOfWords", "CachedResources", "CoocMap", "EvaluateOptions", "FabMap", "FabMap2", "FeatureConfig",
+    "BagOfWords", "CachedResources", "CoocMap", "EvaluateSpec", "ExecutionSpec", "FabMap", "FabMap2", "FeatureConfig",
     "FeatureExtractor", "FeatureSet", "GlobalDescriptors", "GroundTruth", "ImageVoting", "InMemoryResources",
-    "LandmarkMap", "Localizer", "Map",
+    "LandmarkMap", "LocalizeSpec", "Localizer", "Map", "MapBuildSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec",
+    "SequenceSpec", "VocabularySpec", "load_config",
     "NotFittedError", "PlaceRecognizer", "Resources", "Scores", "SeqSLAM", "SingleImageSeqSLAM", "TopolocError",
     "Traverse", "Vocabulary", "__version__", "available_methods", "compute_metrics", "evaluate",
     "extract_features", "get_method", "ground_truth_from_file", "ground_truth_from_places",

@@ -21,13 +21,18 @@ LAYERS: dict[str, int] = {
     # 1 inputs: images, traverses, features, vocabularies, geometry, synthetic data
     "datasets": 1, "features": 1, "vocabulary": 1, "geometry": 1, "synth": 1,
     # 2 algorithm packages: arrays in, arrays out
-    "bow": 2, "confidence": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2, "voting": 2,
-    # 3 recognisers (adapters to the Resources protocol), their registry and test helpers
-    "methods": 3, "testing": 3,
-    # 4 pipelines: evaluation, saved maps and localisation, benchmarks, demo
-    "evaluation": 4, "bench": 4, "demo": 4, "maps": 4,
-    # 5 the command line
-    "cli": 5,
+    "bow": 2, "confidence": 2, "ranking": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2,
+    "voting": 2,
+    # 3 resources: the per-image inputs a recogniser reads (features, words, vocabulary), cached or in memory
+    "resources": 3,
+    # 4 recognisers (adapters to the Resources protocol), their registry and test helpers
+    "methods": 4, "testing": 4,
+    # 5 run specifications: a command's settings, validated once, turned into a recogniser and its resources
+    "spec": 5,
+    # 6 pipelines: evaluation, saved maps and localisation, benchmarks, demo, match drawings
+    "evaluation": 6, "bench": 6, "demo": 6, "maps": 6, "drawing": 6,
+    # 7 the command line
+    "cli": 7,
 }
 ALGORITHMS = {name for name, layer in LAYERS.items() if layer == 2}
 
@@ -107,3 +112,146 @@ def test_the_walker_sees_imports_inside_functions_and_relative_imports() -> None
     assert found == [(2, "topoloc.io"), (4, "topoloc.methods.base"), (5, "topoloc.coocmap.matching"),
                      (6, "topoloc")]
     assert _unit("topoloc.methods.base") == "methods" and LAYERS["methods"] > LAYERS["coocmap"]
+
+
+# -- algorithm packages neither draw nor write files ---------------------------------------
+
+#: Calls that write files, whatever the object (``Path.write_text``, ``fig.savefig``, ``cv2.imwrite``...).
+WRITING_CALLS = {"open", "write_text", "write_bytes", "savefig", "imwrite", "tofile", "savetxt", "savez",
+                 "savez_compressed", "mkdir", "to_csv", "touch"}
+#: topoloc's own writers: importing one is writing.
+WRITERS = {"write_container", "atomic_write_bytes", "write_map_file"}
+DRAWING_MODULES = ("matplotlib", "PIL", "seaborn", "plotly")
+
+
+def _writes_or_draws(source: str) -> list[str]:
+    """``line: what`` for each import of a drawing library, file-writing call or writer import in ``source``."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            out += [f"{node.lineno}: imports {a.name}" for a in node.names if a.name.startswith(DRAWING_MODULES)]
+        elif isinstance(node, ast.ImportFrom):
+            if (node.module or "").startswith(DRAWING_MODULES):
+                out.append(f"{node.lineno}: imports {node.module}")
+            out += [f"{node.lineno}: imports {a.name}" for a in node.names if a.name in WRITERS]
+        elif isinstance(node, ast.Call):
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else ""
+            # np.save / numpy.save; a method called save on anything else is not known to write.
+            numpy_save = (isinstance(f, ast.Attribute) and f.attr == "save" and isinstance(f.value, ast.Name)
+                          and f.value.id in {"np", "numpy"})
+            if name in WRITING_CALLS or name in WRITERS or numpy_save:
+                out.append(f"{node.lineno}: calls {name}()")
+    return out
+
+
+@pytest.mark.parametrize("path", [p for p in _sources() if p.relative_to(PACKAGE).parts[0] in ALGORITHMS],
+                         ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_algorithm_packages_neither_draw_nor_write_files(path: Path) -> None:
+    # Layer 2 takes arrays and returns arrays; files and figures are made by the layers that run it.
+    found = _writes_or_draws(path.read_text())
+    assert not found, f"{path.relative_to(PACKAGE.parent)}: " + "; ".join(found)
+
+
+def test_the_writing_check_sees_writes_and_drawing() -> None:
+    source = ("import matplotlib.pyplot as plt\nimport numpy as np\nfrom topoloc.io.container import write_container\n"
+              "def f(p, a):\n    np.save(p, a)\n    open(p, 'w')\n    p.write_text('x')\n    plt.savefig(p)\n"
+              "    model.save(p)\n")
+    assert _writes_or_draws(source) == ["1: imports matplotlib.pyplot", "3: imports write_container",
+                                        "5: calls save()", "6: calls open()", "7: calls write_text()",
+                                        "8: calls savefig()"]
+
+
+# -- no import cycles between modules ------------------------------------------------------
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _module_edges(source: str, module: str, is_package: bool, modules: set[str]) -> set[str]:
+    """The topoloc modules ``source`` (module ``module``) imports, imports inside functions included.
+
+    ``from a.b import c`` is an import of ``a.b.c`` where that is a module, else of ``a.b``.
+    Imports under ``if TYPE_CHECKING:`` are left out: they exist for annotations only, never run,
+    and are the usual way to name a type without importing its module.
+    """
+    def known(name: str) -> str:
+        parts = name.split(".")
+        while parts and ".".join(parts) not in modules:
+            parts.pop()
+        return ".".join(parts)
+
+    tree = ast.parse(source)
+    typing_only = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+                   and "TYPE_CHECKING" in ast.unparse(node.test) for stmt in node.body for n in ast.walk(stmt)}
+    package = module.split(".") if is_package else module.split(".")[:-1]
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.Import):
+            out |= {known(a.name) for a in node.names if a.name.startswith("topoloc")}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join([*package[: len(package) - node.level + 1], *([node.module] if node.module else [])])
+            else:
+                base = node.module or ""
+            if base.startswith("topoloc"):
+                out |= {f"{base}.{a.name}" if f"{base}.{a.name}" in modules else known(base) for a in node.names}
+    return out - {module, ""}
+
+
+def _import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected groups of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                cycles.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_two_modules_import_each_other() -> None:
+    # A cycle makes import order matter and hides which module depends on which; within a
+    # package the layer rule above cannot see one, so it is checked module by module.
+    files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    graph = {name: _module_edges(p.read_text(), name, p.name == "__init__.py", set(files))
+             for name, p in files.items()}
+    assert not _import_cycles(graph), "import cycles: " + "; ".join(" <-> ".join(c) for c in _import_cycles(graph))
+
+
+def test_the_cycle_check_finds_cycles_through_functions_but_not_type_checking() -> None:
+    modules = {"topoloc.a", "topoloc.a.x", "topoloc.a.y", "topoloc.b"}
+    x = _module_edges("def f():\n    from topoloc.a import y\n", "topoloc.a.x", False, modules)
+    y = _module_edges("from .x import f\nfrom typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                      "    from topoloc.b import B\n", "topoloc.a.y", False, modules)
+    assert x == {"topoloc.a.y"} and y == {"topoloc.a.x"}
+    assert _import_cycles({"topoloc.a.x": x, "topoloc.a.y": y, "topoloc.b": {"topoloc.a.y"}}) == [
+        ["topoloc.a.x", "topoloc.a.y"]]

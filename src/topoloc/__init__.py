@@ -27,24 +27,16 @@ from topoloc.errors import NotFittedError, TopolocError
 
 __version__ = "0.1.0"
 
-# Public name -> module that defines it.
+# Public name -> module that defines it.  The recognisers' classes are not listed: a public
+# name (in __all__) that is not here is looked up among the registered methods by class name.
 _LAZY: dict[str, str] = {
-    # recognisers and their contract
-    "BagOfWords": "topoloc.methods.bag_of_words",
-    "CoocMap": "topoloc.methods.cooc_map",
-    "FabMap": "topoloc.methods.fab_map",
-    "FabMap2": "topoloc.methods.fab_map",
-    "GlobalDescriptors": "topoloc.methods.global_descriptors",
-    "ImageVoting": "topoloc.methods.image_voting",
-    "LandmarkMap": "topoloc.methods.landmark_map",
-    "SeqSLAM": "topoloc.methods.seq_slam",
-    "SingleImageSeqSLAM": "topoloc.methods.seq_slam",
+    # the recognisers' contract
     "PlaceRecognizer": "topoloc.methods.base",
     "available_methods": "topoloc.methods",
     "get_method": "topoloc.methods",
-    "Resources": "topoloc.methods.resources",
-    "CachedResources": "topoloc.methods.resources",
-    "InMemoryResources": "topoloc.methods.resources",
+    "Resources": "topoloc.resources",
+    "CachedResources": "topoloc.resources",
+    "InMemoryResources": "topoloc.resources",
     # inputs
     "Traverse": "topoloc.datasets.traverse",
     "load_traverse": "topoloc.datasets.traverse",
@@ -64,7 +56,17 @@ _LAZY: dict[str, str] = {
     "Localizer": "topoloc.maps.map",
     # evaluation
     "evaluate": "topoloc.evaluation.pipeline",
-    "EvaluateOptions": "topoloc.evaluation.pipeline",
+    # run specifications (topoloc.spec): what a command runs, validated once
+    "EvaluateSpec": "topoloc.spec",
+    "MapBuildSpec": "topoloc.spec",
+    "LocalizeSpec": "topoloc.spec",
+    "FeatureSpec": "topoloc.spec",
+    "VocabularySpec": "topoloc.spec",
+    "GroundTruthSpec": "topoloc.spec",
+    "InputSpec": "topoloc.spec",
+    "SequenceSpec": "topoloc.spec",
+    "ExecutionSpec": "topoloc.spec",
+    "load_config": "topoloc.spec",
     "compute_metrics": "topoloc.evaluation.metrics",
     "Scores": "topoloc.evaluation.metrics",
     "sequence_similarity": "topoloc.sequence.search",
@@ -74,28 +76,36 @@ __all__ = [
     "BagOfWords",
     "CachedResources",
     "CoocMap",
-    "EvaluateOptions",
+    "EvaluateSpec",
+    "ExecutionSpec",
     "FabMap",
     "FabMap2",
     "FeatureConfig",
     "FeatureExtractor",
     "FeatureSet",
+    "FeatureSpec",
     "GlobalDescriptors",
     "GroundTruth",
+    "GroundTruthSpec",
     "ImageVoting",
     "InMemoryResources",
+    "InputSpec",
     "LandmarkMap",
+    "LocalizeSpec",
     "Localizer",
     "Map",
+    "MapBuildSpec",
     "NotFittedError",
     "PlaceRecognizer",
     "Resources",
     "Scores",
     "SeqSLAM",
+    "SequenceSpec",
     "SingleImageSeqSLAM",
     "TopolocError",
     "Traverse",
     "Vocabulary",
+    "VocabularySpec",
     "__version__",
     "available_methods",
     "compute_metrics",
@@ -105,6 +115,7 @@ __all__ = [
     "ground_truth_from_file",
     "ground_truth_from_places",
     "ground_truth_from_xy",
+    "load_config",
     "load_traverse",
     "read_image",
     "sequence_similarity",
@@ -114,15 +125,28 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     module = _LAZY.get(name)
-    if module is None:
+    if module is not None:
+        value = getattr(importlib.import_module(module), name)
+    elif name in __all__:
+        value = _recognizer_class(name)
+    else:
         raise AttributeError(f"module 'topoloc' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
     globals()[name] = value  # later look-ups skip this function
     return value
 
 
+def _recognizer_class(class_name: str) -> Any:
+    from topoloc.methods import available_methods, get_method
+
+    for method in available_methods():
+        cls = get_method(method)
+        if cls.__name__ == class_name:
+            return cls
+    raise AttributeError(f"module 'topoloc' has no attribute {class_name!r}")
+
+
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+    return sorted(set(globals()) | set(_LAZY) | set(__all__))
 
 
 if TYPE_CHECKING:  # static checkers and IDEs see the real names
@@ -134,7 +158,7 @@ if TYPE_CHECKING:  # static checkers and IDEs see the real names
     )
     from topoloc.datasets.traverse import Traverse, load_traverse, read_image
     from topoloc.evaluation.metrics import Scores, compute_metrics
-    from topoloc.evaluation.pipeline import EvaluateOptions, evaluate
+    from topoloc.evaluation.pipeline import evaluate
     from topoloc.features.local import FeatureConfig, FeatureExtractor, FeatureSet, extract_features
     from topoloc.maps.map import Localizer, Map
     from topoloc.methods import available_methods, get_method
@@ -145,7 +169,19 @@ if TYPE_CHECKING:  # static checkers and IDEs see the real names
     from topoloc.methods.global_descriptors import GlobalDescriptors
     from topoloc.methods.image_voting import ImageVoting
     from topoloc.methods.landmark_map import LandmarkMap
-    from topoloc.methods.resources import CachedResources, InMemoryResources, Resources
     from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM
+    from topoloc.resources import CachedResources, InMemoryResources, Resources
     from topoloc.sequence.search import sequence_similarity
+    from topoloc.spec import (
+        EvaluateSpec,
+        ExecutionSpec,
+        FeatureSpec,
+        GroundTruthSpec,
+        InputSpec,
+        LocalizeSpec,
+        MapBuildSpec,
+        SequenceSpec,
+        VocabularySpec,
+        load_config,
+    )
     from topoloc.vocabulary.vocab import Vocabulary, train_vocabulary

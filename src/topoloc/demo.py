@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from topoloc.evaluation.pipeline import EvaluateOptions, evaluate
+from topoloc.evaluation.pipeline import evaluate
 from topoloc.evaluation.report import build_report
 from topoloc.methods import available_methods
 from topoloc.progress import ProgressFactory
@@ -54,13 +54,7 @@ def run_demo(out: Path, *, n_places: int = 60, progress: ProgressFactory | None 
     run_dirs = []
     for i, (method, maps, query) in enumerate(_runs(route)):
         run_dir = out / "runs" / f"{i:02d}_{method}_{query.name}"
-        evaluate(
-            EvaluateOptions(
-                method=method, maps=maps, query=query, out=run_dir, vocab_train=[train],
-                vocab_words=VOCAB_WORDS, max_features=MAX_FEATURES, tolerance="0:1",
-                cache_dir=out / "cache",
-            ),
-            progress=progress,
-        )
+        evaluate(method=method, maps=maps, query=query, out=run_dir, vocab_train=[train], vocab_words=VOCAB_WORDS,
+                 max_features=MAX_FEATURES, tolerance="0:1", cache_dir=out / "cache", progress=progress)
         run_dirs.append(run_dir)
     return build_report(run_dirs, out, title="topoloc demo: synthetic street, tours at 9, 13, 17, 22 h")

@@ -18,6 +18,26 @@ class NotFittedError(TopolocError, AttributeError):
     """A method or model was used before ``fit``."""
 
 
+class ParameterError(TopolocError):
+    """A bad value of one named parameter of a run (``features.max_side``, ``sequence.length``).
+
+    The library names the parameter; the command line names the flag it came
+    from instead (``topoloc.cli.options``), so one message serves both.
+
+    Parameters
+    ----------
+    param : str
+        Dotted name of the parameter in the run specification (``topoloc.spec``).
+    detail : str
+        What is wrong, phrased to follow the name: ``"must be >= 1, got 0"``.
+    """
+
+    def __init__(self, param: str, detail: str) -> None:
+        self.param = param
+        self.detail = " ".join(detail.split())
+        super().__init__(f"{param} {self.detail}")
+
+
 def input_error(problem: str, path: str | Path | None = None) -> TopolocError:
     """Build a one-line :class:`TopolocError` naming ``problem`` and ``path``."""
     msg = problem if path is None else f"{problem}: {path}"

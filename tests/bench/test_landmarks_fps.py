@@ -83,13 +83,14 @@ def test_nearest_node_ground_truth() -> None:
 
 def test_frame_rate_sweep_on_a_generated_route(tmp_path: Path) -> None:
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.prepare import make_resources
+    from topoloc.features import FeatureConfig
+    from topoloc.spec.setup import make_resources
     from topoloc.synth import RouteConfig, generate_route
 
     dirs = generate_route(tmp_path / "route", config=RouteConfig(n_places=8, seed=4),
                           tours=(("a", 10.0), ("b", 13.0)))
     m, q = load_traverse(dirs[0]), load_traverse(dirs[1])
-    res, _ = make_resources(cache_dir=tmp_path / "cache")
+    res, _ = make_resources(FeatureConfig(), cache_dir=tmp_path / "cache")
     gt = ground_truth_from_places(m.places, q.places, 0, 1)  # per map image: several images show one place
     configs = [("lm", "landmarks", {}), ("lm-long", "landmarks", {"min_track_length": 50}), ("v", "voting", {})]
     rows = frame_rate_sweep(m, q, gt, resources=res, strides=(1, 2), configs=configs, log_progress=False)

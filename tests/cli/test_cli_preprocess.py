@@ -42,12 +42,11 @@ def _callbacks(app: typer.Typer) -> list[Callable[..., object]]:
 
 
 def test_every_default_preprocess_is_the_feature_default() -> None:
-    # The default lives in several places (options, EvaluateOptions, report labels); they must agree.
+    # The default lives in several places (options, FeatureSpec, report labels); they must agree.
     from topoloc.cli.main import app
-    from topoloc.evaluation.pipeline import EvaluateOptions
-    from topoloc.evaluation.prepare import make_resources
     from topoloc.evaluation.report import DEFAULT_PREPROCESS
     from topoloc.features import FeatureConfig
+    from topoloc.spec import FeatureSpec
 
     default = FeatureConfig().preprocess
     cli_defaults = {cb.__name__: p.default for cb in _callbacks(app)
@@ -55,5 +54,4 @@ def test_every_default_preprocess_is_the_feature_default() -> None:
     assert len(cli_defaults) >= 4, cli_defaults  # evaluate, vocab train, slam, show-match, map build ...
     assert {k: v for k, v in cli_defaults.items() if v is not None} == dict.fromkeys(
         [k for k, v in cli_defaults.items() if v is not None], default)
-    assert EvaluateOptions.__dataclass_fields__["preprocess"].default == default == DEFAULT_PREPROCESS
-    assert inspect.signature(make_resources).parameters["preprocess"].default == default
+    assert FeatureSpec.__dataclass_fields__["preprocess"].default == default == DEFAULT_PREPROCESS

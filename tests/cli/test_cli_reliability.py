@@ -39,7 +39,7 @@ def test_output_paths_are_checked_before_work(cli: Cli, rf: dict[str, Path], tmp
     cli.error(["report", str(tmp_path), "--out", str(a_file)], "output folder is a file")
     cli.error(["evaluate", "--method", "coocmap", "--map", str(rf["map"]), "--query", str(rf["query"]),
             "--vocab", str(rf["vocab"]), "--param", f"model_path={tmp_path}", "--out", str(tmp_path / "o")],
-           "model_path is a folder")
+           "no parameter 'model_path' any more")
 
 
 def test_options_that_would_be_silently_wrong(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
@@ -93,15 +93,15 @@ def test_a_rerun_replaces_the_run_folder_whole(cli: Cli, rf: dict[str, Path], tm
 
 
 def test_a_saved_coocmap_model_is_refused_for_other_tours(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    # Model files are gone: a fitted method is kept in a map file, and --param model_path says so.
     model = tmp_path / "model.tlc"
-    base = ["evaluate", "--method", "coocmap", "--query", str(rf["query"]), "--vocab", str(rf["vocab"]),
-            "--param", f"model_path={model}", "--cache-dir", str(rf["cache"]), "--quiet", "--tolerance", "0:1"]
-    cli.ok([*base, "--map", str(rf["map"]), "--out", str(tmp_path / "a")])
-    assert model.is_file()
-    cli.ok([*base, "--map", str(rf["map"]), "--out", str(tmp_path / "b")])  # the same tours: reused
-    cli.error([*base, "--map", str(rf["morning"]), "--out", str(tmp_path / "c")], "built from other tours")
-    cli.error([*base, "--map", str(rf["map"]), "--preprocess", "clahe", "--out", str(tmp_path / "d")],
-              "feature settings")
+    for method in ("coocmap", "fabmap"):
+        base = ["evaluate", "--method", method, "--query", str(rf["query"]), "--vocab", str(rf["vocab"]),
+                "--param", f"model_path={model}", "--cache-dir", str(rf["cache"]), "--quiet", "--tolerance", "0:1"]
+        cli.error([*base, "--map", str(rf["map"]), "--out", str(tmp_path / "a")], "Map.load")
+        cli.error(["map", "build", "--method", method, "--map", str(rf["map"]), "--vocab", str(rf["vocab"]),
+                   "--param", f"model_path={model}", "--out", str(tmp_path / "m.tlm")], "topoloc map build")
+    assert not model.exists() and not (tmp_path / "a").exists() and not (tmp_path / "m.tlm").exists()
 
 
 def test_one_line_warnings(cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:

@@ -311,8 +311,8 @@ def test_cli_evaluate_html_version_and_methods(runs: tuple[Path, Path, Path], tm
 
 def test_slam_page(fabmap_loop_model: Any, tmp_path: Path) -> None:
     from topoloc.datasets.traverse import Traverse
+    from topoloc.evaluation.slam import run_slam
     from topoloc.evaluation.slam_html import render_slam_html
-    from topoloc.methods.slam import run_slam
     from topoloc.synth.words import loop_sequence
 
     seq, _ = loop_sequence(12, n_words=400, seed=3)

@@ -109,7 +109,10 @@ def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path,
     import cv2
 
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.prepare import resolve_max_side
+    from topoloc.spec import FeatureSpec
+
+    def resolve_max_side(spec: int | str, traverses: list) -> int:
+        return FeatureSpec(max_side=spec).config_for_run(traverses).max_side
 
     # The query camera gives smaller images than the map's (like gardens_point at night).
     q = tmp_path / "small"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from topoloc.evaluation.pipeline import EvaluateOptions, evaluate
+from topoloc.evaluation.pipeline import evaluate
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 pytestmark = pytest.mark.realdata
@@ -31,12 +31,12 @@ def _subset(src: Path, dst: Path, n: int) -> Path:
 def test_bow_gardens_point_day(tmp_path: Path) -> None:
     gp = _need(DATA / "gardens_point")
     web = _need(DATA / "webcam_daynight")
-    m = evaluate(EvaluateOptions(
+    m = evaluate(
         method="bow", maps=[_subset(gp / "day_left", tmp_path / "dl", 30)],
         query=_subset(gp / "day_right", tmp_path / "dr", 30), out=tmp_path / "out",
         vocab_train=[web / "map" / "tour_1400"], vocab_words=1000, tolerance="0:2",
         cache_dir=tmp_path / "cache",
-    ))
+    )
     assert m["n_places"] == 30 and m["n_queries"] == 30
     assert np.load(tmp_path / "out" / "S.npy").shape == (30, 30)
     # Day to day with a lateral shift: bag of words should find most places.

@@ -7,7 +7,8 @@ import pytest
 
 from topoloc.datasets.groundtruth import ground_truth_from_places
 from topoloc.errors import TopolocError
-from topoloc.evaluation.metrics import compute_metrics, parse_recall_at
+from topoloc.evaluation.metrics import compute_metrics
+from topoloc.spec import parse_recall_at
 
 
 def test_parse() -> None:
@@ -15,7 +16,7 @@ def test_parse() -> None:
     assert parse_recall_at("20, 1,1") == (1, 20)
     assert parse_recall_at([3, 2]) == (2, 3)
     for bad in ["a", "0", "", "1,-2", "1.5"]:
-        with pytest.raises(TopolocError, match="--recall-at"):
+        with pytest.raises(TopolocError, match="recall_at"):
             parse_recall_at(bad)
 
 

@@ -147,7 +147,7 @@ def test_evaluate_top_k_of_an_image_method_and_bad_options(tiny_route: dict[str,
     r = CliRunner().invoke(app, ["report", str(tmp_path / "one"), str(tmp_path / "dense"), "--out",
                                  str(tmp_path / "cmp")])
     assert r.exit_code == 0, r.output
-    with pytest.raises(TopolocError, match="--top-k must be >= 0"):
+    with pytest.raises(TopolocError, match="top_k must be a whole number >= 0"):
         evaluate(out=tmp_path / "bad", top_k=-1, **common)
-    with pytest.raises(TopolocError, match="--html draws the whole S"):
+    with pytest.raises(TopolocError, match="html draws the whole S"):
         evaluate(out=tmp_path / "bad", top_k=5, html=tmp_path / "x.html", **common)

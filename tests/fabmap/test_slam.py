@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from topoloc.errors import TopolocError
+from topoloc.evaluation.slam import write_slam_outputs
 from topoloc.fabmap.model import FabMapModel
-from topoloc.fabmap.slam import FabMapSlam, motion_prior, write_slam_outputs
+from topoloc.fabmap.slam import FabMapSlam, motion_prior
 from topoloc.synth.words import loop_sequence as make_loop
 
 V = 400

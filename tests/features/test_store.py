@@ -285,7 +285,7 @@ def test_a_worker_killed_mid_block_is_rescheduled_and_the_store_is_whole(
 
 def test_an_interrupted_run_of_the_resources_resumes(tiny_route: dict[str, Any], tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    from topoloc.methods.resources import CachedResources
+    from topoloc.resources import CachedResources
 
     trav = tiny_route["map"]
     calls: list[int] = []

@@ -192,3 +192,18 @@ def test_a_map_built_from_shards_saves_the_same_state(tiny_route: dict[str, Any]
     np.testing.assert_array_equal(sharded.place_xy, one.place_xy)
     with pytest.raises(TopolocError, match="shards must be"):
         Map.build(**kw, shards=0)
+
+
+@pytest.mark.parametrize("method", ["coocmap", "fabmap2"])
+def test_a_map_saved_with_model_path_still_loads(method: str, tiny_route: dict[str, Any], tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    # Maps written while coocmap and FAB-MAP had a model_path parameter stored it in their header.
+    m = _build(tiny_route, method)
+    cls = type(m.recognizer)
+    plain_get_params = cls.get_params
+    with monkeypatch.context() as patch:
+        patch.setattr(cls, "get_params", lambda self, deep=True: {**plain_get_params(self, deep), "model_path": ""})
+        path = m.save(tmp_path / "old.tlm")
+    back = Map.load(path)
+    assert "model_path" not in back.recognizer.get_params()
+    np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))

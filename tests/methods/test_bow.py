@@ -9,7 +9,7 @@ from topoloc.bow import inverse_document_frequency, term_counts, tfidf
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError
 from topoloc.methods.bag_of_words import BagOfWords
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
 from topoloc.testing import word_vocabulary
 
 

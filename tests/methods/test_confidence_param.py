@@ -10,7 +10,7 @@ import pytest
 from topoloc.confidence import peak_margin
 from topoloc.errors import TopolocError
 from topoloc.methods import available_methods, get_method
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
 
 # Small parameter changes so that each method runs in well under a second on 10 places.
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20},

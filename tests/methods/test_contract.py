@@ -17,7 +17,7 @@ from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureExtractor
 from topoloc.methods import available_methods, get_method
-from topoloc.methods.resources import CachedResources, InMemoryResources
+from topoloc.resources import CachedResources, InMemoryResources
 from topoloc.testing import check_recognizer
 
 # One parameter value each method must refuse with a one-line error naming it.

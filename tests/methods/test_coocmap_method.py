@@ -9,8 +9,9 @@ import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
+from topoloc.methods.base import parse_param
 from topoloc.methods.cooc_map import CoocMap, order_tours
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
 from topoloc.testing import features_for_words, word_vocabulary
 
 N_WORDS = 40
@@ -79,21 +80,20 @@ def test_not_fitted_and_bad_params(tmp_path: Path) -> None:
         CoocMap(schedule="fast").fit(maps, resources=res)
 
 
-def test_model_path_saves_then_loads(tmp_path: Path) -> None:
-    res, maps, query = _data()
-    path = tmp_path / "m.coocmap"
-    a = CoocMap(grid_x=6, grid_y=4, model_path=str(path)).fit(maps, resources=res)
-    assert path.is_file()
-    b = CoocMap(grid_x=6, grid_y=4, model_path=str(path)).fit(maps, resources=res)
-    items = a.encode(query, resources=res)
-    np.testing.assert_array_equal(a.score(items), b.score(items))
-    other = InMemoryResources(vocabulary=word_vocabulary(N_WORDS + 1))
-    with pytest.raises(TopolocError, match="another vocabulary"):
-        CoocMap(grid_x=6, grid_y=4, model_path=str(path)).fit(maps, resources=other)
+def test_model_path_is_gone_and_says_what_to_use(tmp_path: Path) -> None:
+    # A fitted method is kept one way, in a map file; the old parameter says so in one line.
+    for make in (lambda: CoocMap(grid_x=6, grid_y=4, model_path=str(tmp_path / "m.coocmap")),
+                 lambda: CoocMap().set_params(model_path="m"),
+                 lambda: parse_param(CoocMap, "model_path", "m")):
+        with pytest.raises(TopolocError, match="model_path") as err:
+            make()
+        assert "Map.load" in str(err.value) and "map build" in str(err.value) and "\n" not in str(err.value)
+    assert "model_path" not in CoocMap.param_names()
+    assert not (tmp_path / "m.coocmap").exists()
 
 
 def test_match_drawing_draws_query_beside_best_place() -> None:
-    from topoloc.methods.show_match import match_drawing
+    from topoloc.drawing.show_match import match_drawing
 
     res, maps, query = _data()
     method = CoocMap(grid_x=6, grid_y=4).fit(maps, resources=res)

@@ -10,7 +10,7 @@ from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
 from topoloc.methods.base import parse_param
 from topoloc.methods.landmark_map import LandmarkMap
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
 
 N_FRAMES = 8
 

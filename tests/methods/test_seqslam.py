@@ -12,8 +12,8 @@ import topoloc.methods.seq_slam as seqslam_mod
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.methods.base import parse_param
-from topoloc.methods.resources import InMemoryResources
 from topoloc.methods.seq_slam import SeqSLAM, SingleImageSeqSLAM
+from topoloc.resources import InMemoryResources
 from topoloc.seqslam import difference_matrix, patch_normalize, preprocess_image
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"

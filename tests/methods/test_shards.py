@@ -12,8 +12,8 @@ from topoloc.cluster import LocalExecutor
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.methods import available_methods, get_method
-from topoloc.methods.resources import InMemoryResources
 from topoloc.methods.shards import ShardPart, build_from_shards, shard_maps, split_places
+from topoloc.resources import InMemoryResources
 
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20, "output": "posterior"},
                                    "seqslam": {"ds": 3}, "coocmap": {"top_k": 3}}
@@ -122,8 +122,9 @@ def test_shards_built_on_a_dask_cluster_equal_the_local_build(name: str, tiny_ro
 
 
 def test_a_coocmap_model_file_cannot_be_combined_with_shards(tiny_route: dict[str, Any], tmp_path: Any) -> None:
+    # model_path is gone altogether (a fitted method is kept in its map file): refused before any work.
     cls = get_method("coocmap")
-    with pytest.raises(TopolocError, match="model_path cannot be used"):
+    with pytest.raises(TopolocError, match="no parameter 'model_path' any more"):
         build_from_shards(cls, [tiny_route["map"]], params={"model_path": str(tmp_path / "m.tlc")},
                           resources=_res(tiny_route), n_shards=2, executor=LocalExecutor(n_jobs=1))
 

@@ -12,7 +12,7 @@ from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.io.container import read_container, write_container
 from topoloc.methods import available_methods, get_method
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
 
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20, "output": "posterior"},
                                    "seqslam": {"ds": 3}, "coocmap": {"top_k": 3}}

@@ -9,7 +9,7 @@ from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
 from topoloc.methods.image_voting import ImageVoting
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
 
 N = 6
 

@@ -30,7 +30,7 @@ from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.image_voting import ImageVoting
 from topoloc.methods.landmark_map import LandmarkMap
-from topoloc.methods.resources import CachedResources, Resources
+from topoloc.resources import CachedResources, Resources
 
 log = logging.getLogger(__name__)
 

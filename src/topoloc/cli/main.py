@@ -8,24 +8,37 @@ from typing import Annotated, Any
 
 import typer
 
-from topoloc.cli.app import (
+from topoloc.cli.app import app, bench_app, handle_errors, vocab_app
+from topoloc.cli.options import (
+    CacheDirOption,
+    ConfigOption,
+    EveryMOption,
+    EverySOption,
     FeaturesOption,
+    MapToursOption,
     MaxFeaturesOption,
     MaxSideAutoOption,
     MaxSideOption,
+    MethodOption,
+    ParamOption,
+    PoseTopicOption,
     PreprocessOption,
+    QueryOption,
+    QuietOption,
     SchedulerOption,
     SchedulerTimeoutOption,
-    _parse_params,
-    _sequence_length,
-    app,
-    bench_app,
-    handle_errors,
-    open_executor,
-    vocab_app,
+    SequenceModeOption,
+    SequenceOption,
+    ToleranceMOption,
+    ToleranceOption,
+    TopicOption,
+    VocabOption,
+    VocabTrainOption,
+    VocabWordsOption,
+    parse_params,
+    spec_from_cli,
 )
 from topoloc.cli.progress import rich_progress
-from topoloc.cli.recordings import EveryMOption, EverySOption, PoseTopicOption, TopicOption
 from topoloc.errors import TopolocError
 
 __all__ = ["app", "main"]
@@ -34,44 +47,36 @@ __all__ = ["app", "main"]
 @app.command()
 @handle_errors
 def evaluate(
-    query: Annotated[Path, typer.Option(help="Query traverse: a folder, a ROS bag (--topic) or a video.")],
-    out: Annotated[Path, typer.Option(help="Output folder.")],
-    method: Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")] = "",
-    map: Annotated[list[Path] | None, typer.Option(
-        "--map", help="Map traverse (repeatable): a folder, a ROS bag (--topic) or a video.")] = None,
+    ctx: typer.Context,
+    query: QueryOption = None,
+    out: Annotated[Path | None, typer.Option(help="Output folder.")] = None,
+    method: MethodOption = "",
+    map: MapToursOption = None,
     map_file: Annotated[Path | None, typer.Option(
         "--map-file", help="A saved map (topoloc map build) instead of --map tours and --method.")] = None,
-    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
-    vocab_train: Annotated[
-        list[Path] | None,
-        typer.Option("--vocab-train", help="Folders (searched recursively) to train a vocabulary on."),
-    ] = None,
-    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
-    tolerance: Annotated[str, typer.Option(help="Ground-truth tolerance HARD:SOFT in place ids.")] = "0:8",
-    tolerance_m: Annotated[
-        str | None, typer.Option("--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")
-    ] = None,
+    vocab: VocabOption = None,
+    vocab_train: VocabTrainOption = None,
+    vocab_words: VocabWordsOption = 10000,
+    tolerance: ToleranceOption = "0:8",
+    tolerance_m: ToleranceMOption = None,
     ground_truth: Annotated[
         Path | None, typer.Option(help="VPR-Bench ground_truth_new.npy or .npz with GThard/GTsoft.")
     ] = None,
-    sequence: Annotated[int | None, typer.Option(
-        help="Sequence matching over each query and the N >= 1 before it (off when not given).")] = None,
-    sequence_mode: Annotated[str, typer.Option(
-        help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
-    = "constant",
+    sequence: SequenceOption = None,
+    sequence_mode: SequenceModeOption = "constant",
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
     ] = "1,5,10",
     top_k: Annotated[int, typer.Option(
         "--top-k", help="Keep only the K best places per query (S_topk.npz) and compute every metric from them "
                         "(a correct place outside the top K counts as not found); 0 = the whole S.")] = 0,
-    param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
+    param: ParamOption = None,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "auto",
-    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    cache_dir: CacheDirOption = None,
+    quiet: QuietOption = False,
     html: Annotated[Path | None, typer.Option(
         help="Also write a self-contained HTML page to browse the run (e.g. OUT/index.html).")] = None,
     topic: TopicOption = None,
@@ -80,29 +85,20 @@ def evaluate(
     pose_topic: PoseTopicOption = None,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
+    config: ConfigOption = None,
 ) -> None:
     """Run one method on map and query traverses and score it (docs/protocol.md)."""
-    from topoloc.cli.recordings import check_recording_options
-    from topoloc.evaluation.pipeline import EvaluateOptions
+    values = dict(locals())  # before any name is imported here
     from topoloc.evaluation.pipeline import evaluate as run
     from topoloc.evaluation.report import TABLE_HEADER, table_row
+    from topoloc.spec import EvaluateSpec
 
-    opts = EvaluateOptions(
-        method=method, maps=list(map or []), query=query, out=out, vocab=vocab, map_file=map_file,
-        vocab_train=list(vocab_train or []), vocab_words=vocab_words, tolerance=tolerance,
-        tolerance_m=tolerance_m, ground_truth=ground_truth, sequence=_sequence_length(sequence),
-        sequence_mode=sequence_mode,
-        recall_at=recall_at, top_k=top_k,
-        params=_parse_params(param or []), features=features, max_features=max_features,
-        max_side=max_side, preprocess=preprocess, cache_dir=cache_dir, html=html,
-        topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic,
-    )
-    check_recording_options([*opts.maps, query], topic, every_s, every_m, pose_topic)
-    with open_executor(scheduler, scheduler_timeout) as executor, rich_progress(not quiet) as progress:
-        metrics = run(opts, progress=progress, executor=executor)
+    spec = spec_from_cli(EvaluateSpec, ctx, values, config=config)
+    with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
+        metrics = run(spec, progress=progress, executor=executor)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
-    s_file = "S_topk.npz" if top_k else "S.npy"
-    typer.echo(f"wrote {out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {html}" if html else ""))
+    s_file = "S_topk.npz" if spec.top_k else "S.npy"
+    typer.echo(f"wrote {spec.out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {spec.html}" if spec.html else ""))
 
 
 @app.command()
@@ -163,31 +159,42 @@ def _defaults(cls: type) -> dict[str, Any]:
 @vocab_app.command("train")
 @handle_errors
 def vocab_train_cmd(
-    folders: Annotated[list[Path], typer.Argument(help="Image folders, searched recursively.")],
-    out: Annotated[Path, typer.Option(help="Vocabulary file to write.")],
+    ctx: typer.Context,
+    folders: Annotated[list[Path] | None, typer.Argument(help="Image folders, searched recursively.")] = None,
+    out: Annotated[Path | None, typer.Option(help="Vocabulary file to write.")] = None,
     words: Annotated[int, typer.Option(help="Number of visual words.")] = 10000,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideOption = 0,
     preprocess: PreprocessOption = "auto",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    cache_dir: Annotated[Path | None, typer.Option(help="Feature cache folder.")] = None,
+    cache_dir: CacheDirOption = None,
+    quiet: QuietOption = False,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
+    config: ConfigOption = None,
 ) -> None:
     """Train a visual vocabulary (k-means) on the images under FOLDERS."""
-    from topoloc.features import FeatureConfig, FeatureExtractor
+    values = dict(locals())  # before any name is imported here
+    from topoloc.features import FeatureExtractor
     from topoloc.io.dirs import check_output_file
+    from topoloc.spec import VocabTrainSpec
     from topoloc.vocabulary import train_vocabulary
 
-    check_output_file(out)
-    config = FeatureConfig(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
-    extractor = FeatureExtractor(config, cache_dir=cache_dir)
-    with open_executor(scheduler, scheduler_timeout) as executor, rich_progress() as progress:
-        voc = train_vocabulary(list(folders), extractor=extractor, n_words=words, seed=seed,
-                               progress=progress, executor=executor)
-    voc.save(out)
-    typer.echo(json.dumps({"out": str(out), **voc.provenance_}, default=str))
+    spec = spec_from_cli(VocabTrainSpec, ctx, values, config=config, names=VOCAB_TRAIN_NAMES)
+    assert spec.out is not None
+    check_output_file(spec.out)
+    config_ = spec.features.config_for_run([])
+    extractor = FeatureExtractor(config_, cache_dir=spec.execution.cache_dir)
+    with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
+        voc = train_vocabulary(list(spec.folders), extractor=extractor, n_words=spec.vocabulary.words,
+                               seed=spec.vocabulary.seed, progress=progress, executor=executor)
+    voc.save(spec.out)
+    typer.echo(json.dumps({"out": str(spec.out), **voc.provenance_}, default=str))
+
+
+# ``vocab train`` says --words and --seed for the vocabulary's settings.
+VOCAB_TRAIN_NAMES = {"words": "vocabulary.words", "seed": "vocabulary.seed"}
 
 
 @app.command()
@@ -223,7 +230,7 @@ def _tours(hours: str) -> list[tuple[str, float]]:
 def demo(
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("demo_out"),
     places: Annotated[int, typer.Option(help="Places along the generated route.")] = 60,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Generate a route at several times of day, run the methods, print a table, plot PR curves."""
     from topoloc.demo import run_demo
@@ -257,7 +264,7 @@ def convert(
     from topoloc.datasets.formats import convert as run
 
     result = run(format, src, out, ConvertOptions(images=images, query_images=query_images, poses=poses,
-                                                  columns=_parse_params(column or []), copy=copy))
+                                                  columns=parse_params(column or []), copy=copy))
     for key, folder in result.traverses.items():
         typer.echo(f"{key or 'traverse'}: {folder} ({result.n_images[key]} images)")
     if result.projection:
@@ -273,13 +280,11 @@ def show_match_cmd(
     query_image: Annotated[Path, typer.Argument(help="Query image.")],
     map: Annotated[list[Path], typer.Option("--map", help="Map traverse folder (repeatable): the tours.")],
     out: Annotated[Path, typer.Option(help="PNG to write.")],
-    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
-    vocab_train: Annotated[
-        list[Path] | None, typer.Option("--vocab-train", help="Folders to train a vocabulary on.")
-    ] = None,
-    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
-    param: Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")] = None,
-    method: Annotated[str, typer.Option(help="Method to localise with (see `topoloc methods`).")] = "coocmap",
+    vocab: VocabOption = None,
+    vocab_train: VocabTrainOption = None,
+    vocab_words: VocabWordsOption = 10000,
+    param: ParamOption = None,
+    method: MethodOption = "coocmap",
     place: Annotated[int | None, typer.Option(
         help="Draw this map place (e.g. the right one) instead of the best match; its score and rank are shown.")
     ] = None,
@@ -289,7 +294,7 @@ def show_match_cmd(
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "auto",
-    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
+    cache_dir: CacheDirOption = None,
 ) -> None:
     """Localise one image and draw it beside the map place it matched, labelled, correspondences coloured.
 
@@ -298,20 +303,22 @@ def show_match_cmd(
     correspondences (green; inconsistent ones red) and whether the match is right.
     """
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.prepare import build_method, make_resources, resolve_max_side
+    from topoloc.drawing.match_figure import labelled_match, write_png
     from topoloc.io.dirs import check_output_file
-    from topoloc.methods.match_figure import labelled_match, write_png
+    from topoloc.spec import FeatureSpec, VocabularySpec
+    from topoloc.spec.setup import build_method, make_resources
 
     check_output_file(out)
     if not query_image.is_file():
         raise TopolocError(f"query image not found: {query_image}")
-    rec = build_method(method, _parse_params(param or []))
+    rec = build_method(method, parse_params(param or []))
+    voc_spec = VocabularySpec(file=vocab, train=tuple(vocab_train or ()), words=vocab_words)
+    feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     maps = [load_traverse(m) for m in map]
-    side = resolve_max_side(max_side, maps, images=[query_image])
+    config_ = feature_spec.config_for_run(maps, images=[query_image])
     with rich_progress() as progress:
         resources, _ = make_resources(
-            vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words, features=features,
-            max_features=max_features, max_side=side, preprocess=preprocess, cache_dir=cache_dir,
+            config_, voc_spec, cache_dir=cache_dir,
             needs_vocabulary=f"show-match with {rec.name}" if rec.uses_vocabulary else "", progress=progress,
         )
         rec.fit(maps, resources=resources)
@@ -326,11 +333,9 @@ def show_match_cmd(
 def slam(
     traverse: Annotated[Path, typer.Argument(help="Traverse folder, processed in order.")],
     out: Annotated[Path, typer.Option(help="Output folder.")],
-    vocab: Annotated[Path | None, typer.Option(help="Vocabulary file.")] = None,
-    vocab_train: Annotated[
-        list[Path] | None, typer.Option("--vocab-train", help="Folders to train vocabulary and model on.")
-    ] = None,
-    vocab_words: Annotated[int, typer.Option(help="Words when training with --vocab-train.")] = 10000,
+    vocab: VocabOption = None,
+    vocab_train: VocabTrainOption = None,
+    vocab_words: VocabWordsOption = 10000,
     model: Annotated[Path | None, typer.Option(help="Saved FAB-MAP model (else trained).")] = None,
     variant: Annotated[str, typer.Option(help="fabmap or fabmap2.")] = "fabmap",
     threshold: Annotated[float, typer.Option(help="Posterior needed to accept a loop closure.")] = 0.98,
@@ -340,16 +345,17 @@ def slam(
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideOption = 0,
     preprocess: PreprocessOption = "auto",
-    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")] = False,
+    cache_dir: CacheDirOption = None,
+    quiet: QuietOption = False,
     html: Annotated[Path | None, typer.Option(
         help="Also write a self-contained HTML page: closures along the route, posterior, image pairs.")] = None,
 ) -> None:
     """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.prepare import make_resources
+    from topoloc.evaluation.slam import run_slam
     from topoloc.io.dirs import check_output_dir
-    from topoloc.methods.slam import run_slam
+    from topoloc.spec import FeatureSpec, VocabularySpec
+    from topoloc.spec.setup import make_resources
 
     if min_gap < 0:
         raise TopolocError(f"--min-gap must be >= 0, got {min_gap}")
@@ -357,14 +363,13 @@ def slam(
         raise TopolocError(f"--threshold must be in (0, 1], got {threshold}")
     if not 0.0 <= p_new < 1.0:
         raise TopolocError(f"--p-new must be in [0, 1), got {p_new}")
+    voc_spec = VocabularySpec(file=vocab, train=tuple(vocab_train or ()), words=vocab_words)
+    feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     check_output_dir(out)
     trav = load_traverse(traverse)
     with rich_progress(not quiet) as progress:
-        resources, _ = make_resources(
-            vocab=vocab, vocab_train=list(vocab_train or []), vocab_words=vocab_words, features=features,
-            max_features=max_features, max_side=max_side, preprocess=preprocess, cache_dir=cache_dir,
-            needs_vocabulary="slam", progress=progress,
-        )
+        resources, _ = make_resources(feature_spec.config_for_run([]), voc_spec, cache_dir=cache_dir,
+                                      needs_vocabulary="slam", progress=progress)
         result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
                           threshold=threshold, p_new=p_new, min_gap=min_gap)
         if html is not None:
@@ -409,7 +414,7 @@ def bench_coocmap_cmd(
         list[Path] | None, typer.Option("--vocab-train", help="With --real: folders to train the vocabulary on.")
     ] = None,
     compare: Annotated[int, typer.Option(help="With --real: queries also timed with the previous matcher.")] = 20,
-    cache_dir: Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")] = None,
+    cache_dir: CacheDirOption = None,
 ) -> None:
     """Cooc-Map ms per localisation and map memory at the paper's size: synthetic, or real images with --real DIR..."""
     from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real

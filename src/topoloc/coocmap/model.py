@@ -47,18 +47,15 @@ locations containing it, Sec. II-C).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from pathlib import Path
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 
+from topoloc._params import Configurable, Constraint, Interval
 from topoloc.coocmap.spatial import n_spatial_words, spatial_words
-from topoloc.errors import TopolocError, input_error
-from topoloc.io.container import read_container, write_container
+from topoloc.errors import TopolocError
 
-KIND = "coocmap"
-KIND_VERSION = 1
 MAX_TOURS = 64
 
 #: One image's observation: (location row, word ids (n,), normalised xy (n, 2) uint16).
@@ -86,11 +83,12 @@ def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     return np.repeat(np.asarray(starts, np.int64) - offsets, lengths) + np.arange(total, dtype=np.int64)
 
 
-class CoocModel:
+class CoocModel(Configurable):
     """All locations' word-co-occurrence models plus the inverted files.
 
-    Build with :meth:`build`, extend with :meth:`add_tour`, persist with
-    :meth:`save` / :meth:`load`.  See the module docstring for the exact
+    Build with :meth:`build`, extend with :meth:`add_tour`; a fitted Cooc-Map
+    keeps it in its map file (:class:`~topoloc.maps.Map`, the arrays through
+    :mod:`topoloc.io.state`).  See the module docstring for the exact
     definition of ``M_i`` and the representation.
 
     Parameters
@@ -109,20 +107,25 @@ class CoocModel:
         of that much spatial precision; queries are quantised alike.
     """
 
+    #: Checked, after conversion to int, by :meth:`validate_params` in ``__init__``.
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "n_locations": Interval(int, 0), "n_words": Interval(int, 1), "grid_x": Interval(int, 1),
+        "grid_y": Interval(int, 1), "position_bits": Interval(int, 1, 16),
+    }
+
+    @classmethod
+    def param_owner(cls) -> str:
+        return "coocmap"
+
     def __init__(self, *, n_locations: int, n_words: int, grid_x: int = 12, grid_y: int = 8,
                  interpolate: bool = True, position_bits: int = 16) -> None:
-        if not 1 <= position_bits <= 16:
-            raise TopolocError(f"coocmap: position_bits must be in 1..16, got {position_bits}")
-        if grid_x < 1 or grid_y < 1:
-            raise TopolocError(f"coocmap: grid must be at least 1 x 1, got {grid_x} x {grid_y}")
-        if n_words < 1 or n_locations < 0:
-            raise TopolocError("coocmap: n_words must be >= 1 and n_locations >= 0")
         self.n_locations = int(n_locations)
         self.n_words = int(n_words)
         self.grid_x = int(grid_x)
         self.grid_y = int(grid_y)
         self.interpolate = bool(interpolate)
         self.position_bits = int(position_bits)
+        self.validate_params()
         self.tour_names: list[str] = []
         self.tour_hours: list[float | None] = []
         self.vocabulary: dict[str, Any] = {}
@@ -346,73 +349,6 @@ class CoocModel:
         return {"loc": self.loc, "word": self.word, "xy": self.xy, "tours": self.tours,
                 "loc_ptr": self.loc_ptr, "by_word": self.by_word, "word_ptr": self.word_ptr,
                 "wloc": self.wloc, "wloc_ptr": self.wloc_ptr}
-
-    # -- persistence -----------------------------------------------------------------------
-    def save(self, path: str | Path) -> None:
-        """Write the model atomically (container kind ``"coocmap"``, schema 1).
-
-        Only the features and tour masks are stored; the inverted files are
-        rebuilt on load.
-        """
-        meta = {
-            "n_locations": self.n_locations, "n_words": self.n_words,
-            "grid_x": self.grid_x, "grid_y": self.grid_y, "interpolate": self.interpolate,
-            "position_bits": self.position_bits,
-            "tour_names": self.tour_names, "tour_hours": self.tour_hours,
-            "vocabulary": self.vocabulary, "built_from": self.built_from,
-        }
-        write_container(path, KIND, KIND_VERSION,
-                        {"loc": self.loc, "word": self.word, "xy": self.xy, "tours": self.tours},
-                        meta=meta)
-
-    @classmethod
-    def load(cls, path: str | Path, *, vocabulary: dict[str, Any] | None = None) -> CoocModel:
-        """Read a model written by :meth:`save`.
-
-        Parameters
-        ----------
-        vocabulary : dict, optional
-            :func:`vocabulary_fingerprint` of the vocabulary in use; the map
-            must have been built with the same one.
-
-        Raises
-        ------
-        TopolocError
-            One line naming the file if it is missing, truncated, corrupted, of
-            another schema, inconsistent, or built with another vocabulary.
-        """
-        meta, arrays = read_container(path, KIND, KIND_VERSION)
-        try:
-            model = cls(n_locations=int(meta["n_locations"]), n_words=int(meta["n_words"]),
-                        grid_x=int(meta["grid_x"]), grid_y=int(meta["grid_y"]),
-                        interpolate=bool(meta["interpolate"]),
-                        position_bits=int(meta.get("position_bits", 16)))
-            model.tour_names = [str(t) for t in meta["tour_names"]]
-            model.tour_hours = [None if h is None else float(h) for h in meta["tour_hours"]]
-            model.vocabulary = dict(meta.get("vocabulary") or {})
-            model.built_from = dict(meta.get("built_from") or {})
-            loc, word, xy, tours = arrays["loc"], arrays["word"], arrays["xy"], arrays["tours"]
-        except (KeyError, TypeError, ValueError, TopolocError) as exc:
-            raise input_error(f"coocmap file has invalid metadata ({exc})", path) from None
-        n = len(loc)
-        if not (len(word) == n == len(tours) and xy.shape == (n, 2)):
-            raise input_error("coocmap file is inconsistent (array lengths differ)", path)
-        if n and (int(loc.max()) >= model.n_locations or int(word.max()) >= model.n_words):
-            raise input_error("coocmap file is inconsistent (ids out of range)", path)
-        if vocabulary is not None and model.vocabulary and model.vocabulary != vocabulary:
-            raise input_error(
-                f"coocmap file was built with another vocabulary ({model.vocabulary.get('n_words')} "
-                f"words {model.vocabulary.get('descriptor_kind')} {str(model.vocabulary.get('sha1'))[:12]}, "
-                f"in use: {vocabulary.get('n_words')} words {vocabulary.get('descriptor_kind')} "
-                f"{str(vocabulary.get('sha1'))[:12]})",
-                path,
-            )
-        model.loc = np.array(loc)
-        model.word = np.array(word)
-        model.xy = np.array(xy)
-        model.tours = np.array(tours)
-        model._index()
-        return model
 
 
 def merge_models(parts: Sequence[CoocModel]) -> CoocModel:

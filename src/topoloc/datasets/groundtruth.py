@@ -13,6 +13,7 @@ Euclidean distances in metres.
 
 from __future__ import annotations
 
+import math
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -126,6 +127,9 @@ def parse_tolerance(text: str) -> tuple[float, float]:
             raise ValueError
     except ValueError:
         raise TopolocError(f"tolerance {text!r} is not of the form HARD:SOFT") from None
+    if not (math.isfinite(hard) and math.isfinite(soft)):
+        # nan compares false with everything and inf accepts every place: both would score silently wrong.
+        raise TopolocError(f"tolerance {text!r} needs finite numbers")
     if hard < 0 or soft < hard:
         raise TopolocError(f"tolerance {text!r} needs 0 <= HARD <= SOFT")
     return hard, soft
@@ -153,7 +157,7 @@ def place_positions(maps: list[Traverse], place_ids: np.ndarray) -> np.ndarray:
     """Mean x,y of each map place over all map images, shape (n_places, 2)."""
     if any(m.xy is None for m in maps):
         missing = next(m for m in maps if m.xy is None)
-        raise input_error("--tolerance-m needs x,y columns in places.csv", missing.root)
+        raise input_error("a tolerance in metres needs x,y columns in places.csv", missing.root)
     places = np.concatenate([m.places for m in maps])
     xy = np.concatenate([m.xy for m in maps if m.xy is not None])
     rows = np.searchsorted(place_ids, places)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.errors import TopolocError
+from topoloc.ranking import threshold_sweep
 
 DEFAULT_RECALL_AT = (1, 5, 10)
 
@@ -78,13 +78,7 @@ def pr_curve(S: np.ndarray, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
     """
     _, score, right = best_matches(S, gt)
     n_pos = int(gt.hard.any(axis=0).sum())
-    order = np.argsort(-score, kind="stable")
-    s, r = score[order], right[order].astype(np.float64)
-    tp = np.cumsum(r)
-    fp = np.cumsum(1 - r)
-    # Queries with equal scores are accepted together by any threshold, so
-    # only the last position of each run of ties is a reachable point.
-    last = np.r_[s[1:] != s[:-1], True] if s.size else np.zeros(0, bool)
+    _, tp, fp, last = threshold_sweep(score, right)
     tp, fp = tp[last], fp[last]
     precision = np.r_[1.0, tp / np.maximum(tp + fp, 1)]
     recall = np.r_[0.0, tp / max(n_pos, 1)]
@@ -174,24 +168,6 @@ class Scores:
         for k in sorted(self.recall_at_k):
             out.setdefault(f"recall_at_{k}", self.recall_at_k[k])
         return out
-
-
-def parse_recall_at(text: str | tuple[int, ...] | list[int]) -> tuple[int, ...]:
-    """``"1,5,10,20"`` -> ``(1, 5, 10, 20)``: the N of R@N, each a positive integer.
-
-    Raises
-    ------
-    TopolocError
-        For an empty list, a value that is not an integer, or N < 1.
-    """
-    items = [str(t).strip() for t in (text.split(",") if isinstance(text, str) else text)]
-    try:
-        ks = tuple(sorted({int(t) for t in items if t}))
-    except ValueError:
-        raise TopolocError(f"--recall-at {text!r} is not a comma-separated list of integers") from None
-    if not ks or ks[0] < 1:
-        raise TopolocError(f"--recall-at {text!r} needs one or more N >= 1")
-    return ks
 
 
 def compute_metrics(S: np.ndarray, gt: GroundTruth, recall_at: tuple[int, ...] = DEFAULT_RECALL_AT) -> Scores:

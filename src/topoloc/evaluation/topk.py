@@ -34,6 +34,7 @@ from topoloc.evaluation.metrics import DEFAULT_RECALL_AT, Scores, auc_pr, recall
 from topoloc.io.container import atomic_write_bytes
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.progress import ProgressFactory
+from topoloc.ranking import top_rows
 
 
 @dataclass(frozen=True)
@@ -71,19 +72,8 @@ class TopK:
 
 
 def top_k_of(S: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` best rows of each column of ``S``, best first (equal scores: lower row first), shapes (n_cols, k).
-
-    Which of several rows tied at the K-th score are kept is arbitrary.
-    """
-    St = np.asarray(S, dtype=np.float32).T
-    k = min(k, St.shape[1])
-    if k < St.shape[1]:
-        idx = np.argpartition(-St, k - 1, axis=1)[:, :k]
-    else:
-        idx = np.tile(np.arange(St.shape[1]), (St.shape[0], 1))
-    sc = np.take_along_axis(St, idx, axis=1)
-    order = np.lexsort((idx, -sc), axis=1) if sc.size else np.zeros_like(idx)
-    return np.take_along_axis(idx, order, axis=1).astype(np.int64), np.take_along_axis(sc, order, axis=1)
+    """The ``k`` best rows of each column of ``S`` as float32, best first, shapes (n_cols, k) (:func:`top_rows`)."""
+    return top_rows(np.asarray(S, dtype=np.float32), k)
 
 
 def score_top_k(

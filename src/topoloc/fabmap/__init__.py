@@ -6,7 +6,7 @@ Modules
     Exact Chow-Liu trees from sparse word occurrence (Eq. 4).
 :mod:`~topoloc.fabmap.model`
     :class:`FabMapModel`: training, marginals, tree conditionals, detector
-    model (Eq. 2), save/load tied to a vocabulary.
+    model (Eq. 2), its state tied to a vocabulary.
 :mod:`~topoloc.fabmap.observation`
     :class:`ObservationModel`: word states and the per-word tables of the
     observation likelihood (Eq. 4-5, Chow-Liu and naive Bayes) and of the
@@ -28,7 +28,8 @@ Modules
     and the localisation method grow and query.
 :mod:`~topoloc.fabmap.slam`
     Online loop-closure detection with a motion-model location prior
-    (:class:`FabMapSlam`, run over a traverse by ``topoloc slam``).
+    (:class:`FabMapSlam`, run over a traverse by ``topoloc slam``,
+    :func:`topoloc.evaluation.slam.run_slam`).
 
 Equation numbers refer to the overview paper, Cummins & Newman, "FAB-MAP:
 Appearance-Based Place Recognition and Mapping using a Learned Visual
@@ -44,7 +45,7 @@ from topoloc.fabmap.normaliser import SampledNormaliser, mean_field_log_likeliho
 from topoloc.fabmap.observation import ObservationModel
 from topoloc.fabmap.places import PlaceModels
 from topoloc.fabmap.posterior import location_log_odds, location_posterior
-from topoloc.fabmap.slam import FabMapSlam, SlamResult, write_slam_outputs
+from topoloc.fabmap.slam import FabMapSlam, SlamResult
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 __all__ = [
@@ -63,5 +64,4 @@ __all__ = [
     "mean_field_log_likelihood",
     "occurrence_matrix",
     "vocabulary_fingerprint",
-    "write_slam_outputs",
 ]

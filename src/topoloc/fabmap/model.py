@@ -24,11 +24,12 @@ The detector model (Eq. 2) is a pair of user-set numbers; the defaults are the
 values of Cummins & Newman (IJRR 2008): ``p(z=1 | e=1) = 0.39`` (so
 ``p_fn = p(z=0 | e=1) = 0.61``) and ``p_fp = p(z=1 | e=0) = 0.005``.
 
-A model is tied to the vocabulary that produced its word ids: files store the
-vocabulary's descriptor kind, number of words and a SHA-1 fingerprint of its
-word centres, and :meth:`FabMapModel.load` refuses a model used with another
-vocabulary.  Files use the versioned, checksummed, atomically written
-container of :mod:`topoloc.io.container` (kind ``"fabmap_model"``).
+A model is tied to the vocabulary that produced its word ids: its state
+(:meth:`FabMapModel.to_state`) records the vocabulary's descriptor kind,
+number of words and a SHA-1 fingerprint of its word centres, and
+:meth:`FabMapModel.check_vocabulary` refuses a model used with another
+vocabulary.  The model is kept in map files (:mod:`topoloc.maps`) and in the
+model files of ``topoloc slam`` (:mod:`topoloc.evaluation.slam`).
 """
 
 from __future__ import annotations
@@ -43,11 +44,7 @@ import scipy.sparse as sp
 
 from topoloc.errors import TopolocError, input_error
 from topoloc.fabmap.chowliu import ChowLiuTree, as_occurrence, chow_liu_tree
-from topoloc.io.container import read_container, write_container
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
-
-MODEL_KIND = "fabmap_model"
-MODEL_VERSION = 1
 
 DEFAULT_P_FP = 0.005
 """Detector false-positive probability ``p(z=1 | e=0)`` (Eq. 2; IJRR 2008)."""
@@ -277,7 +274,10 @@ class FabMapModel:
 
     # -- persistence ------------------------------------------------------------------
     def to_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-        """The model as JSON metadata and named arrays (what :meth:`save` writes)."""
+        """The model as JSON metadata and named arrays.
+
+        What map files and :func:`topoloc.evaluation.slam.save_fabmap_model` store.
+        """
         meta: dict[str, Any] = {
             "n_words": self.n_words,
             "root": self.root,
@@ -324,34 +324,6 @@ class FabMapModel:
         except (KeyError, TypeError, ValueError):
             raise input_error("FAB-MAP model lacks required fields", path) from None
         model._validate(path)
-        return model
-
-    def save(self, path: str | Path) -> None:
-        """Write the model atomically to ``path`` (versioned container, see module docstring)."""
-        meta, arrays = self.to_state()
-        write_container(path, MODEL_KIND, MODEL_VERSION, arrays, meta)
-
-    @classmethod
-    def load(cls, path: str | Path, *, vocabulary: Any = None) -> FabMapModel:
-        """Read and validate a model written by :meth:`save`.
-
-        Parameters
-        ----------
-        path : path-like
-            The model file.
-        vocabulary : Vocabulary, optional
-            If given, the model must have been trained with it
-            (:meth:`check_vocabulary`).
-
-        Raises
-        ------
-        TopolocError
-            Missing, truncated, corrupted or inconsistent file, or another vocabulary.
-        """
-        meta, arrays = read_container(path, MODEL_KIND, MODEL_VERSION)
-        model = cls.from_state(meta, arrays, path=path)
-        if vocabulary is not None:
-            model.check_vocabulary(vocabulary, path=path)
         return model
 
     def _validate(self, path: str | Path | None = None) -> None:

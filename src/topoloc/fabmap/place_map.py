@@ -20,10 +20,11 @@ sampled, or the mean-field approximation; :mod:`topoloc.fabmap.normaliser`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from topoloc._params import Constraint, Options, validate_params
 from topoloc.errors import TopolocError
 from topoloc.fabmap.bailout import log_likelihood_bailout
 from topoloc.fabmap.inverted_index import InvertedIndex, WordCounts
@@ -38,6 +39,8 @@ from topoloc.fabmap.places import PlaceModels
 
 VARIANTS = ("fabmap", "fabmap2")
 NORMALISERS = ("sampled", "mean_field")
+#: What the maps' (and :func:`make_map`'s) choices accept.
+MAP_CONSTRAINTS: Mapping[str, Constraint] = {"variant": Options(VARIANTS), "normaliser": Options(NORMALISERS)}
 
 
 class DenseMap:
@@ -67,7 +70,7 @@ class DenseMap:
         bailout: bool = False,
         p_bailout: float = 1e-6,
     ) -> None:
-        _check_choice("normaliser", normaliser, NORMALISERS)
+        validate_params("fabmap", {"normaliser": normaliser}, MAP_CONSTRAINTS)
         self.obs_model = obs_model
         self.places = PlaceModels(obs_model)
         self.normaliser = normaliser
@@ -129,7 +132,7 @@ class IndexMap:
         n_samples: int = 1000,
         seed: int = 0,
     ) -> None:
-        _check_choice("normaliser", normaliser, NORMALISERS)
+        validate_params("fabmap", {"normaliser": normaliser}, MAP_CONSTRAINTS)
         self.obs_model = obs_model
         m = obs_model.model
         self.counts = WordCounts(p_fp=m.p_fp, p_fn=m.p_fn)
@@ -187,11 +190,6 @@ class IndexMap:
         return log_mean_exp(self._samples.log_likelihood(obs))
 
 
-def _check_choice(name: str, value: str, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise TopolocError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
-
-
 def make_map(
     obs_model: ObservationModel,
     *,
@@ -203,7 +201,7 @@ def make_map(
     p_bailout: float = 1e-6,
 ) -> DenseMap | IndexMap:
     """A :class:`DenseMap` (``"fabmap"``) or an :class:`IndexMap` (``"fabmap2"``)."""
-    _check_choice("variant", variant, VARIANTS)
+    validate_params("fabmap", {"variant": variant}, MAP_CONSTRAINTS)
     if variant == "fabmap2":
         return IndexMap(obs_model, normaliser=normaliser, n_samples=n_samples, seed=seed)
     return DenseMap(obs_model, normaliser=normaliser, n_samples=n_samples, seed=seed,

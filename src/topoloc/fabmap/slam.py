@@ -31,53 +31,27 @@ a floor of ``(1 - sigma) / n_k`` of the likelihood, which caps the posterior of
 a place in a map of a few dozen places at about 0.99, so a 0.99 threshold would
 rarely be reachable there.
 
-:class:`FabMapSlam` works on visual-word arrays and a trained model; the maps
-it grows are those of :mod:`topoloc.fabmap.place_map`.  ``topoloc slam`` runs
-it over a traverse through :func:`topoloc.methods.slam.run_slam`, which
-supplies the words and the model from the run's features and vocabulary.
-
-Outputs (:func:`write_slam_outputs`), under ``out_dir``:
-
-``posterior.npy``
-    float64 (n_images, n_places + 1): row ``k`` holds the posterior over the
-    places that existed when image ``k`` arrived (columns ``0..n_k - 1``, places
-    numbered in creation order; NaN for places created later) and, in the
-    **last column**, the probability of a new place.  Each row sums to 1 over
-    its non-NaN entries.
-``loop_closures.csv``
-    header ``image,image_name,matched_image,matched_image_name,probability``:
-    0-based image indices in traverse order (rows of ``posterior.npy``) and the
-    images' file names (``1.jpg`` is index 0 in a folder numbered from 1);
-    ``matched_image`` is the image that founded the matched place; one row per
-    accepted loop closure (posterior >= ``threshold``, default 0.98).
-``loop_closures.png``
-    the loop-closure matrix: entry (k, j) is the posterior, at image ``k``, of
-    the place founded by image ``j``; accepted loop closures are circled.
-``assignments.csv``
-    ``image,image_name,place,founder_image,founder_image_name,new_place,loop_closure``:
-    the place each image was assigned to.
-``slam.json``
-    parameters and counts.
+:class:`FabMapSlam` works on visual-word arrays and a trained model and returns
+a :class:`SlamResult` (arrays: the posterior of every step, the assignments, the
+loop closures); the maps it grows are those of :mod:`topoloc.fabmap.place_map`.
+``topoloc slam`` runs it over a traverse through
+:func:`topoloc.evaluation.slam.run_slam`, which supplies the words and the model
+from the run's features and vocabulary and writes the result's files.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from topoloc.errors import TopolocError
+from topoloc._params import Constraint, Interval, validate_params
 from topoloc.fabmap.model import FabMapModel
 from topoloc.fabmap.observation import ObservationModel
 from topoloc.fabmap.place_map import make_map
 from topoloc.fabmap.posterior import location_posterior
-from topoloc.io.container import atomic_write_bytes
 
 # ---------------------------------------------------------------------------------------
 # Location prior (motion model)
@@ -163,7 +137,7 @@ class SlamStep:
 
 @dataclass
 class SlamResult:
-    """All steps of a run, with the outputs of the module docstring."""
+    """All steps of a run (:func:`topoloc.evaluation.slam.write_slam_outputs` writes them as files)."""
 
     steps: list[SlamStep] = field(default_factory=list)
     founders: list[int] = field(default_factory=list)
@@ -188,7 +162,7 @@ class SlamResult:
                 if s.loop_closure]
 
     def posterior_matrix(self) -> np.ndarray:
-        """``posterior.npy``: (n_images, n_places + 1), NaN-padded, new place last."""
+        """The posterior of every step, (n_images, n_places + 1), NaN-padded, new place last (``posterior.npy``)."""
         out = np.full((self.n_images, self.n_places + 1), np.nan)
         for s in self.steps:
             n = s.posterior.size - 1
@@ -237,6 +211,12 @@ class FabMapSlam:
     seed : int
     """
 
+    #: The filter's own parameters (``variant`` and ``normaliser``: :data:`~topoloc.fabmap.place_map.MAP_CONSTRAINTS`).
+    parameter_constraints: Mapping[str, Constraint] = {
+        "threshold": Interval(float, 0.0, 1.0, closed="right"), "p_new": Interval(float, 0.0, 1.0, closed="left"),
+        "p_stay": Interval(float, 0.0, 1.0), "p_uniform": Interval(float, 0.0, 1.0),
+    }
+
     def __init__(
         self,
         model: FabMapModel,
@@ -254,12 +234,8 @@ class FabMapSlam:
         bailout: bool = False,
         seed: int = 0,
     ) -> None:
-        if not 0.0 < threshold <= 1.0:
-            raise TopolocError(f"threshold must be in (0, 1], got {threshold}")
-        if not 0.0 <= p_new < 1.0:
-            raise TopolocError(f"p_new must be in [0, 1), got {p_new}")
-        if not 0.0 <= p_stay <= 1.0 or not 0.0 <= p_uniform <= 1.0:
-            raise TopolocError("p_stay and p_uniform must be in [0, 1]")
+        validate_params("fabmap", {"threshold": threshold, "p_new": p_new, "p_stay": p_stay, "p_uniform": p_uniform},
+                        self.parameter_constraints)
         self.obs_model = ObservationModel(model, naive_bayes=naive_bayes)
         self.map = make_map(self.obs_model, variant=variant, normaliser=normaliser,
                             n_samples=n_samples, seed=seed, bailout=bailout)
@@ -337,87 +313,3 @@ class FabMapSlam:
             self.step(w)
         return self.result
 
-
-# ---------------------------------------------------------------------------------------
-# Outputs of ``topoloc slam``
-# ---------------------------------------------------------------------------------------
-
-
-def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = True) -> dict[str, Path]:
-    """Write ``posterior.npy``, ``loop_closures.csv``, ``loop_closures.png``,
-    ``assignments.csv`` and ``slam.json`` (module docstring) atomically.
-
-    Returns
-    -------
-    dict of str to Path
-        The files written.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    buf = io.BytesIO()
-    np.save(buf, result.posterior_matrix())
-    paths["posterior"] = out / "posterior.npy"
-    atomic_write_bytes(paths["posterior"], buf.getvalue())
-
-    # Image indices are positions in the traverse, from 0 (rows of posterior.npy); the names are the files'.
-    names = list(result.params.get("images") or [])
-
-    def name(i: int) -> str:
-        return str(names[i]) if 0 <= i < len(names) else ""
-
-    text = io.StringIO()
-    w = csv.writer(text, lineterminator="\n")
-    w.writerow(["image", "image_name", "matched_image", "matched_image_name", "probability"])
-    for img, matched, p in result.loop_closures():
-        w.writerow([img, name(img), matched, name(matched), f"{p:.6f}"])
-    paths["loop_closures"] = out / "loop_closures.csv"
-    atomic_write_bytes(paths["loop_closures"], text.getvalue().encode())
-
-    text = io.StringIO()
-    w = csv.writer(text, lineterminator="\n")
-    w.writerow(["image", "image_name", "place", "founder_image", "founder_image_name", "new_place", "loop_closure"])
-    for s in result.steps:
-        w.writerow([s.image, name(s.image), s.place, result.founders[s.place], name(result.founders[s.place]),
-                    int(s.new_place), int(s.loop_closure)])
-    paths["assignments"] = out / "assignments.csv"
-    atomic_write_bytes(paths["assignments"], text.getvalue().encode())
-
-    summary = {
-        "n_images": result.n_images,
-        "n_places": result.n_places,
-        "n_loop_closures": len(result.loop_closures()),
-        "params": result.params,
-    }
-    paths["summary"] = out / "slam.json"
-    atomic_write_bytes(paths["summary"], (json.dumps(summary, indent=2) + "\n").encode())
-
-    if plot:
-        paths["plot"] = out / "loop_closures.png"
-        atomic_write_bytes(paths["plot"], _plot_png(result))
-    return paths
-
-
-def _plot_png(result: SlamResult) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    m = result.loop_closure_matrix()
-    fig, ax = plt.subplots(figsize=(6.4, 5.6), dpi=100)
-    im = ax.imshow(m, cmap="viridis", vmin=0.0, vmax=1.0, origin="upper", interpolation="nearest")
-    lc = result.loop_closures()
-    if lc:
-        ax.scatter([b for _, b, _ in lc], [a for a, _, _ in lc], s=30, facecolors="none",
-                   edgecolors="red", linewidths=1.0, label="accepted loop closure")
-        ax.legend(loc="lower left", fontsize=8)
-    ax.set_xlabel("image that founded the place")
-    ax.set_ylabel("image (time)")
-    ax.set_title(f"FAB-MAP loop closures ({len(lc)} accepted, p >= {result.params.get('threshold')})")
-    fig.colorbar(im, ax=ax, label="posterior p(L | Z^k)")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    plt.close(fig)
-    return buf.getvalue()

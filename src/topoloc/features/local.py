@@ -29,16 +29,17 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
 
 from topoloc._parallel import n_workers
+from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.datasets.traverse import read_image
 from topoloc.errors import TopolocError, input_error
 from topoloc.features.cache import default_cache_dir, file_sha1
@@ -67,7 +68,7 @@ _KEYPOINT_COLUMNS = 5  # x, y, size, angle_degrees, response
 
 
 @dataclass(frozen=True)
-class FeatureConfig:
+class FeatureConfig(Configurable):
     """What local features to extract.
 
     Parameters
@@ -113,29 +114,28 @@ class FeatureConfig:
     akaze_threshold: float = 0.001
     preprocess: str = "auto"
 
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "method": Options(METHODS, unknown="feature method"),
+        "max_features": Interval(int, 1),
+        "max_side": Interval(int, 0),
+        "preprocess": Options(PREPROCESS, unknown="preprocess"),
+    }
+
     def __post_init__(self) -> None:
-        method = str(self.method).lower()
-        if method not in METHODS:
-            raise TopolocError(
-                f"unknown feature method {self.method!r} (choose from {', '.join(METHODS)})"
-            )
-        object.__setattr__(self, "method", method)
-        if int(self.max_features) < 1:
-            raise TopolocError(f"max_features must be >= 1, got {self.max_features}")
-        if int(self.max_side) < 0:
-            raise TopolocError(f"max_side must be >= 0 (0 = no resizing), got {self.max_side}")
-        # Normalise types so that equal settings always give the same key().
+        # Normalise case and types first, so that equal settings always give the
+        # same key() whatever spelling they came in.
+        object.__setattr__(self, "method", str(self.method).lower())
         object.__setattr__(self, "max_features", int(self.max_features))
         object.__setattr__(self, "max_side", int(self.max_side))
         object.__setattr__(self, "contrast_threshold", float(self.contrast_threshold))
         object.__setattr__(self, "fast_threshold", int(self.fast_threshold))
         object.__setattr__(self, "akaze_threshold", float(self.akaze_threshold))
-        preprocess = str(self.preprocess).lower()
-        if preprocess not in PREPROCESS:
-            raise TopolocError(
-                f"unknown preprocess {self.preprocess!r} (choose from {', '.join(PREPROCESS)})"
-            )
-        object.__setattr__(self, "preprocess", preprocess)
+        object.__setattr__(self, "preprocess", str(self.preprocess).lower())
+        self.validate_params()
+
+    @classmethod
+    def param_owner(cls) -> str:
+        return "features"
 
     def key(self) -> str:
         """Stable short identifier of these settings, e.g. ``"sift-3f2a9c0d1b7e"``.

@@ -456,7 +456,7 @@ def check_shared_cache(executor: Executor, cache_dir: str | Path) -> None:
     if not all(seen):
         raise input_error("the Dask workers do not see the cache folder at this path (workers write the feature "
                           "store there): put it on a file system shared with every worker, at the same path "
-                          "(--cache-dir or TOPOLOC_CACHE_DIR)", root)
+                          "(cache_dir or TOPOLOC_CACHE_DIR)", root)
 
 
 def _config_dict(config: FeatureConfig) -> dict[str, Any]:

@@ -38,13 +38,14 @@ sample of ``n_background`` map features.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
 
 import faiss
 import numpy as np
 import scipy.sparse as sp
 
+from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
 from topoloc.geometry import normalise_descriptors
@@ -60,7 +61,7 @@ from topoloc.landmarks.splitting import node_ratios, split_candidate
 from topoloc.landmarks.tracking import Tracks
 
 
-class LandmarkModel:
+class LandmarkModel(Configurable):
     """Landmarks of one map-building tour with the probabilities of Sec. IV-V.
 
     Parameters
@@ -123,6 +124,14 @@ class LandmarkModel:
     nbr_tmin_: np.ndarray
     nbr_twidth_: np.ndarray
 
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "top_k": Interval(int, 1), "index": Options(("flat", "hnsw")), "min_track_length": Interval(int, 1),
+    }
+
+    @classmethod
+    def param_owner(cls) -> str:
+        return "landmarks"
+
     def __init__(
         self,
         *,
@@ -137,12 +146,6 @@ class LandmarkModel:
         index: str = "flat",
         seed: int = 0,
     ) -> None:
-        if top_k < 1:
-            raise TopolocError(f"landmarks: top_k must be >= 1, got {top_k}")
-        if index not in ("flat", "hnsw"):
-            raise TopolocError(f"landmarks: index must be 'flat' or 'hnsw', not {index!r}")
-        if min_track_length < 1:
-            raise TopolocError(f"landmarks: min_track_length must be >= 1, got {min_track_length}")
         self.top_k = int(top_k)
         self.radius_floor = float(radius_floor)
         self.distance_margin = float(distance_margin)
@@ -153,6 +156,7 @@ class LandmarkModel:
         self.min_track_length = int(min_track_length)
         self.index = index
         self.seed = int(seed)
+        self.validate_params()
 
     # -- building (Sec. III) ------------------------------------------------------------
     def build(

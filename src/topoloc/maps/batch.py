@@ -20,15 +20,17 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from topoloc.cluster import Executor
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.maps.map import Localizer, Map
-from topoloc.methods.resources import InMemoryResources
+from topoloc.resources import InMemoryResources
+
+if TYPE_CHECKING:  # the map module calls this one; the map class travels with each batch instead
+    from topoloc.maps.map import Localizer, Map
 
 BATCH_FRAMES = 16
 """Frames per task: SIFT describes 15.5 frames of 640 x 480 per second and thread
@@ -38,12 +40,16 @@ and the frames held in memory at once stay at ``2 x worker threads x 16``."""
 
 @dataclass(frozen=True)
 class FrameBatch:
-    """Frames to score on a worker: the map file (with its size and mtime, so a rewritten map is refused)."""
+    """Frames to score on a worker: the map file (with its size and mtime, so a rewritten map is refused).
+
+    ``map_type`` is the class whose ``load`` opens the file (:class:`~topoloc.maps.map.Map`).
+    """
 
     map_file: str
     stamp: tuple[int, int]
     first: int
     frames: tuple[np.ndarray, ...]
+    map_type: type[Map]
 
 
 _maps: dict[tuple[str, tuple[int, int]], Map] = {}
@@ -55,14 +61,14 @@ def _stamp(path: str | Path) -> tuple[int, int]:
     return int(st.st_size), int(st.st_mtime_ns)
 
 
-def _worker_map(path: str, stamp: tuple[int, int]) -> Map:
+def _worker_map(path: str, stamp: tuple[int, int], map_type: type[Map]) -> Map:
     """The map of ``path``, opened once per worker process."""
     with _maps_lock:
         m = _maps.get((path, stamp))
         if m is None:
             if _stamp(path) != stamp:
                 raise TopolocError(f"map file changed during the run (or is not shared with the workers): {path}")
-            m = _maps[(path, stamp)] = Map.load(path)
+            m = _maps[(path, stamp)] = map_type.load(path)
     return m
 
 
@@ -72,7 +78,7 @@ def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float]]:
     The same computation as :meth:`Localizer.step` before its sequence
     search: features of the frame in memory, ``encode``, ``score``.
     """
-    m = _worker_map(batch.map_file, batch.stamp)
+    m = _worker_map(batch.map_file, batch.stamp, batch.map_type)
     rec = m.recognizer
     res = InMemoryResources(feature_config=m.features, vocabulary=m.vocabulary, memoise=False, n_jobs=1)
     out = []
@@ -97,7 +103,7 @@ def localize_on(executor: Executor, loc: Localizer,
     loc : Localizer
         The localiser of a map loaded from a file (``Map.load``): the workers open that file.
     frames : iterator of (name, time_s or None, image)
-        As :func:`topoloc.cli.recordings.localize_frames` yields them.
+        As :meth:`topoloc.spec.InputSpec.frames` yields them.
     batch_frames : int
         Frames per task.
 
@@ -126,7 +132,7 @@ def localize_on(executor: Executor, loc: Localizer,
         decode_s = time.perf_counter() - t0
         if not chunk:
             return
-        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]))
+        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]), type(m))
                    for a in range(0, len(chunk), batch_frames)]
         first += len(chunk)
         scored = [c for part in executor.map(score_frames, batches) for c in part]

@@ -24,21 +24,22 @@ import numpy as np
 
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.datasets.traverse import Traverse, load_traverse, probe_image_sides, read_image
-from topoloc.errors import TopolocError, input_error
-from topoloc.features import FeatureConfig, FeatureExtractor
+from topoloc.datasets.traverse import Traverse, load_traverse
+from topoloc.errors import ParameterError, TopolocError, input_error
+from topoloc.features import FeatureConfig
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
-from topoloc.methods.resources import CachedResources, InMemoryResources, Resources
 from topoloc.methods.shards import build_from_shards
 from topoloc.progress import ProgressFactory
+from topoloc.ranking import threshold_sweep, top_rows
+from topoloc.resources import CachedResources, InMemoryResources, Resources
+from topoloc.spec import FeatureSpec, GroundTruthSpec, MapBuildSpec, SequenceSpec, VocabularySpec, spec_to_dict
+from topoloc.spec.setup import build_method, make_resources
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 log = logging.getLogger(__name__)
-
-SEQUENCE_MODES = ("constant", "acceleration")
 
 
 def tour_record(tour: Traverse) -> dict[str, Any]:
@@ -64,14 +65,10 @@ def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
     return sums
 
 
-def auto_max_side(tours: Sequence[Traverse]) -> int:
-    """The smallest longer image side among the tours (first, middle and last image of each).
-
-    A map records the scale its features were extracted at, so that later
-    queries from a larger camera are described at the same scale.
-    """
-    sides = probe_image_sides(tours)
-    return min(sides) if sides else 0
+def check_precision(precision: float) -> None:
+    """Refuse a precision outside (0, 1] (one line naming the parameter)."""
+    if isinstance(precision, bool) or not isinstance(precision, int | float) or not 0 < precision <= 1:
+        raise ParameterError("precision", f"must be in (0, 1], got {precision!r}")
 
 
 class Map:
@@ -91,6 +88,9 @@ class Map:
     place_xy : ndarray of float64, shape (n_places, 2)
         Mean position of each place in metres over the map images that have
         one (NaN where none has).
+    spec : dict or None
+        How it was built (:func:`topoloc.spec.spec_to_dict` of a
+        :class:`~topoloc.spec.MapBuildSpec`); None for maps saved before it was recorded.
     calibration : dict or None
         ``{"threshold", "precision", "recall", "query", "ground_truth", "date"}``
         from :meth:`calibrate`; without it every localisation is accepted.
@@ -100,8 +100,9 @@ class Map:
 
     def __init__(self, recognizer: PlaceRecognizer, *, features: FeatureConfig, vocabulary: Vocabulary | None,
                  tours: list[dict[str, Any]], xy_sums: np.ndarray, calibration: dict[str, Any] | None = None,
-                 created: str | None = None, path: Path | None = None) -> None:
+                 created: str | None = None, path: Path | None = None, spec: dict[str, Any] | None = None) -> None:
         self.recognizer = recognizer
+        self.spec = spec
         self.features = features
         self.vocabulary = vocabulary
         self.tours = tours
@@ -122,7 +123,7 @@ class Map:
         vocabulary: Vocabulary | str | Path | None = None,
         vocab_train: Sequence[str | Path] = (),
         vocab_words: int = 10000,
-        features: FeatureConfig | None = None,
+        features: FeatureConfig | FeatureSpec | None = None,
         cache_dir: str | Path | None = None,
         progress: ProgressFactory | None = None,
         seed: int = 0,
@@ -144,9 +145,10 @@ class Map:
         vocab_train : sequence of folders
             Train a vocabulary on these images instead (cached); FAB-MAP also
             learns its word statistics from them.
-        features : FeatureConfig, optional
-            Default: SIFT, 1000 per image, at the smallest longer image side
-            found among the tours (:func:`auto_max_side`).
+        features : FeatureConfig or FeatureSpec, optional
+            Default ``FeatureSpec()``: SIFT, 1000 per image, ``max_side="auto"``,
+            which a map resolves to the smallest longer image side found among
+            the tours (:meth:`FeatureSpec.config_for_map`).
         shards : int
             Build the map as this many partial models of contiguous place
             ranges (one task each on ``executor``) and merge them; the map
@@ -157,48 +159,46 @@ class Map:
         """
         maps = [t if isinstance(t, Traverse) else load_traverse(t) for t in tours]
         if not maps:
-            raise TopolocError("a map needs at least one tour")
+            raise ParameterError("maps", "needs at least one tour")
         if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1:
-            raise TopolocError(f"shards must be a whole number >= 1, got {shards!r}")
-        cls_ = get_method(method)
-        rec = cls_(**(params or {}))
-        rec.validate_params()  # before any feature is extracted
-        if vocabulary is not None and vocab_train:
-            raise TopolocError("pass either a vocabulary or folders to train one on, not both")
-        config = features if features is not None else FeatureConfig(max_side=auto_max_side(maps))
-        extractor = FeatureExtractor(config, cache_dir=cache_dir)
-        voc: Vocabulary | None = None
-        training_images: list[Path] = []
+            raise ParameterError("shards", f"must be a whole number >= 1, got {shards!r}")
+        rec = build_method(method, params or {})  # before any feature is extracted
+        cls_ = type(rec)
+        if shards > 1 and not cls_.tags.builds_shards:  # before any image is read
+            raise TopolocError(f"method {method!r} cannot be built from shards: build it in one piece")
+        voc_source: VocabularySpec | Vocabulary | None
         if isinstance(vocabulary, Vocabulary):
-            voc = vocabulary
-        elif vocabulary is not None:
-            voc = Vocabulary.load(vocabulary)
-        elif vocab_train:
-            from topoloc.datasets.traverse import find_images
-            from topoloc.vocabulary import cached_vocabulary
-
-            training_images = find_images([Path(f) for f in vocab_train])
-            voc, _ = cached_vocabulary(list(vocab_train), extractor=extractor, n_words=vocab_words, seed=seed,
-                                       cache_dir=cache_dir, progress=progress, executor=executor)
-        if voc is not None:
-            voc.check_compatible(config.descriptor_kind, source=vocabulary if isinstance(vocabulary, str | Path)
-                                 else None)
-        elif rec.uses_vocabulary:
-            raise TopolocError(f"method {method!r} needs a vocabulary: pass a vocabulary file or folders to "
-                               "train one on")
-        res = CachedResources(extractor=extractor, vocabulary=voc, progress=progress,
-                              training_images=training_images, executor=executor)
+            if vocab_train:
+                raise ParameterError("vocabulary", "is either a file or folders to train one on, not both")
+            voc_source = vocabulary
+        else:
+            voc_source = VocabularySpec(file=None if vocabulary is None else Path(vocabulary),
+                                        train=tuple(Path(f) for f in vocab_train), words=vocab_words,
+                                        seed=seed)
+        spec = features if isinstance(features, FeatureSpec) else None
+        config = features if isinstance(features, FeatureConfig) else (spec or FeatureSpec()).config_for_map(maps)
+        res, _ = make_resources(config, voc_source, cache_dir=cache_dir, progress=progress, executor=executor,
+                                needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "")
         if shards > 1:
             # One partial model per range of places, as independent tasks, merged into the same map
             # (topoloc.methods.shards; docs/map_shards.md says what is exact).
             n_parts = min(shards, len(map_place_ids(maps)))
-            rec = build_from_shards(cls_, maps, params=params or {}, resources=res, n_shards=shards,
+            rec = build_from_shards(cls_, maps, params=rec.get_params(), resources=res, n_shards=shards,
                                     executor=executor if executor is not None else getattr(res, "executor", None),
                                     advance=progress("map shards", n_parts)
                                     if progress is not None else None)
         else:
             rec.fit(maps, resources=res)
-        return cls.from_fitted(rec, maps, features=config, vocabulary=voc)
+        # A vocabulary given by folders is trained on first use; a method that uses none still keeps it.
+        voc = res.vocabulary if res.has_vocabulary else None
+        m = cls.from_fitted(rec, maps, features=config, vocabulary=voc)
+        m.spec = spec_to_dict(MapBuildSpec(
+            method=method, params=rec.get_params(), shards=shards,
+            maps=tuple(Path(t.root) if t.kind == "files" else Path(f"<{t.name} in memory>") for t in maps),
+            features=spec or FeatureSpec(method=config.method, max_features=config.max_features,
+                                         max_side=config.max_side, preprocess=config.preprocess),
+            vocabulary=voc_source if isinstance(voc_source, VocabularySpec) else VocabularySpec()))
+        return m
 
     @classmethod
     def from_fitted(cls, recognizer: PlaceRecognizer, tours: Sequence[Traverse], *, features: FeatureConfig,
@@ -222,8 +222,8 @@ class Map:
             raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
                               self.path or t.root)
         old_ids = self.place_ids
-        self.recognizer.add_tour(t, resources=self._resources(cache_dir=cache_dir, progress=progress,
-                                                              executor=executor))
+        self.recognizer.add_tour(t, resources=self.resources(cache_dir=cache_dir, progress=progress,
+                                                             executor=executor))
         sums = _xy_sums([t], self.place_ids)
         sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
         self.xy_sums = sums
@@ -252,7 +252,7 @@ class Map:
         header = {
             "method": self.recognizer.name, "params": self.recognizer.get_params(),
             "features": asdict(self.features), "vocabulary": voc_meta, "tours": self.tours,
-            "state": meta, "calibration": self.calibration, "created": self.created,
+            "state": meta, "calibration": self.calibration, "created": self.created, "spec": self.spec,
             "modified": datetime.now(UTC).isoformat(timespec="seconds"), "topoloc_version": __version__,
         }
         write_map_file(path, header, out)
@@ -286,7 +286,7 @@ class Map:
                     raise input_error("map file's vocabulary does not match its fingerprint", path)
             state = {k.removeprefix(STATE_PREFIX): a for k, a in arrays.items() if k.startswith(STATE_PREFIX)}
             frame_res = InMemoryResources(feature_config=features, vocabulary=voc, memoise=False)
-            params = dict(meta["params"])
+            params = cls_.upgrade_params(meta["params"])  # names a method has since renamed
             names = cls_.param_names()
             for key, value in cls_.legacy_defaults.items():
                 if key in names:
@@ -297,7 +297,7 @@ class Map:
                 raise input_error("map file is inconsistent (place ids differ from the method's)", path)
             return cls(rec, features=features, vocabulary=voc, tours=list(meta["tours"]),
                        xy_sums=np.array(arrays["places/xy_sums"]), calibration=meta.get("calibration"),
-                       created=meta.get("created"), path=path)
+                       created=meta.get("created"), path=path, spec=meta.get("spec"))
         except TopolocError as exc:
             msg = str(exc)
             raise TopolocError(msg if str(path) in msg else f"{msg}: {path}") from None
@@ -337,21 +337,22 @@ class Map:
             "place_id_range": [int(self.place_ids.min()), int(self.place_ids.max())] if len(self.place_ids) else None,
             "tours": self.tours, "vocabulary": voc, "features": asdict(self.features),
             "calibration": self.calibration or "none: every localisation is accepted (run `topoloc map calibrate`)",
-            "created": self.created,
+            "created": self.created, "spec": self.spec,
         }
 
     # -- querying ---------------------------------------------------------------------------
-    def _resources(self, *, cache_dir: str | Path | None = None, progress: ProgressFactory | None = None,
+    def resources(self, *, cache_dir: str | Path | None = None, progress: ProgressFactory | None = None,
                    executor: Executor | None = None) -> CachedResources:
         """Resources for whole traverses: the map's features (disk-cached) and vocabulary, run on ``executor``."""
-        return CachedResources(extractor=FeatureExtractor(self.features, cache_dir=cache_dir),
-                               vocabulary=self.vocabulary, progress=progress, executor=executor)
+        res, _ = make_resources(self.features, self.vocabulary, cache_dir=cache_dir, progress=progress,
+                                executor=executor)
+        return res
 
     def similarity(self, query: Traverse | str | Path, *, resources: Resources | None = None,
                    cache_dir: str | Path | None = None) -> np.ndarray:
         """``S`` of shape (n_places, len(query)) for a whole query traverse."""
         q = query if isinstance(query, Traverse) else load_traverse(query)
-        return self.recognizer.similarity(q, resources=resources or self._resources(cache_dir=cache_dir))
+        return self.recognizer.similarity(q, resources=resources or self.resources(cache_dir=cache_dir))
 
     def localizer(self, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> Localizer:
         """An online localiser: feed it frames one at a time (:meth:`Localizer.step`)."""
@@ -406,8 +407,7 @@ class Map:
         dict
             The calibration stored in the map.
         """
-        if not 0 < precision <= 1:
-            raise TopolocError(f"--precision must be in (0, 1], got {precision}")
+        check_precision(precision)
         if S.shape != gt.shape:
             raise TopolocError(f"scores of shape {S.shape} do not match the ground truth {gt.shape}")
         has_pos = gt.hard.any(axis=0)
@@ -418,11 +418,8 @@ class Map:
         score = S[best, cols].astype(np.float64)
         right = gt.hard[best, cols]
         counted = right | ~gt.soft[best, cols]
-        order = np.argsort(-score, kind="stable")
-        s, r, c = score[order], right[order], counted[order]
-        tp = np.cumsum(r & c)
-        n_counted = np.cumsum(c)
-        last = np.r_[s[1:] != s[:-1], True]  # ties are accepted together
+        s, tp, fp, last = threshold_sweep(score, right, counted)
+        n_counted = tp + fp
         prec = np.where(n_counted > 0, tp / np.maximum(n_counted, 1), 1.0)
         ok = last & (prec >= precision) & (n_counted > 0)
         n_pos = int(has_pos.sum())
@@ -439,6 +436,54 @@ class Map:
         }
         return self.calibration
 
+    def calibrate_on(self, tour: Traverse | str | Path, *, ground_truth: GroundTruthSpec | None = None,
+                     precision: float = 0.99, label: str = "", cache_dir: str | Path | None = None,
+                     progress: ProgressFactory | None = None, executor: Executor | None = None) -> dict[str, Any]:
+        """Score a labelled tour against the map and :meth:`calibrate` on it.
+
+        Parameters
+        ----------
+        tour : Traverse or folder
+            A tour with ground truth (``places.csv``, or natural order) that is not in the map.
+        ground_truth : GroundTruthSpec, optional
+            The tolerance (default ``0:8`` in place ids); in metres it uses the
+            map's place positions.
+        precision : float
+            In (0, 1].
+        label : str
+            How the calibration names the tour (default: its folder or name).
+
+        Raises
+        ------
+        TopolocError
+            If no image of the tour shows a place of the map.
+        """
+        check_precision(precision)
+        q = tour if isinstance(tour, Traverse) else load_traverse(tour)
+        gt = (ground_truth or GroundTruthSpec()).make(self.place_ids, q, map_xy=self.place_xy)
+        if not gt.hard.any():
+            raise input_error("calibration tour has no ground truth in this map (no query place is a map place)",
+                              q.root)
+        S = self.recognizer.similarity(q, resources=self.resources(cache_dir=cache_dir, progress=progress,
+                                                                   executor=executor))
+        return self.calibrate(S, gt, precision=precision,
+                              query=label or (str(q.root) if q.kind == "files" else q.name))
+
+    def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:
+        """Refuse feature settings or a vocabulary other than the map's (one line naming the parameter and map).
+
+        ``features`` compares only what the map fixes (method, cap, preprocessing).
+        """
+        where = f": {self.path}" if self.path is not None else ""
+        if features is not None:
+            for key in ("method", "max_features", "preprocess"):
+                given, have = getattr(features, key), getattr(self.features, key)
+                if str(given).lower() != str(have).lower():
+                    raise ParameterError(f"features.{key}", f"{given} differs from the map's {have}{where}")
+        if vocabulary is not None and (self.vocabulary is None or vocabulary_fingerprint(vocabulary)
+                                       != vocabulary_fingerprint(self.vocabulary)):
+            raise ParameterError("vocabulary", f"is not the one this map was built with{where}")
+
 
 class Localizer:
     """Online localisation against a :class:`Map`, one frame at a time, with bounded memory.
@@ -451,12 +496,9 @@ class Localizer:
     """
 
     def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> None:
-        if top_k < 1:
-            raise TopolocError(f"--top-k must be >= 1, got {top_k}")
-        if sequence < 0:
-            raise TopolocError(f"--sequence must be >= 0, got {sequence}")
-        if sequence_mode not in SEQUENCE_MODES:
-            raise TopolocError(f"--sequence-mode must be one of {', '.join(SEQUENCE_MODES)}, got {sequence_mode!r}")
+        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+            raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
+        SequenceSpec(length=sequence, mode=sequence_mode)  # one-line errors naming the parameter
         self.map = m
         self.top_k = top_k
         self.sequence = sequence
@@ -467,7 +509,55 @@ class Localizer:
         self._columns: deque[np.ndarray] = deque(maxlen=sequence + 1)
         self.ms_features: list[float] = []
         self.ms_matching: list[float] = []
+        self.decode_s = 0.0
+        self.wall_s = 0.0
         self._res = InMemoryResources(feature_config=m.features, vocabulary=m.vocabulary, memoise=False, n_jobs=1)
+
+    def stream(self, frames: Iterable[tuple[str, float | None, np.ndarray]], *,
+               executor: Executor | None = None) -> Iterator[dict[str, Any]]:
+        """Result lines of ``frames`` (``(name, time_s or None, image)``, as :meth:`InputSpec.frames` gives), in order.
+
+        On this process (``executor`` None or local) frames are decoded and
+        localised one at a time, so a recording is never held in memory; on a
+        Dask executor they are described and scored in batches by the workers
+        (:func:`topoloc.maps.batch.localize_on`), with the same lines.  The time
+        spent decoding and the wall time accumulate for :meth:`summary`.
+        """
+        it = iter(frames)
+        t_start = time.perf_counter()
+        try:
+            if executor is not None and executor.name != "local":
+                from topoloc.maps.batch import localize_on
+
+                for line, seconds in localize_on(executor, self, it):
+                    self.decode_s += seconds
+                    yield line
+                return
+            while True:
+                t0 = time.perf_counter()
+                item = next(it, None)
+                self.decode_s += time.perf_counter() - t0
+                if item is None:
+                    return
+                name, time_s, frame = item
+                yield self.step(frame, name=name, time_s=time_s)
+        finally:
+            self.wall_s += time.perf_counter() - t_start
+
+    def summary(self) -> dict[str, Any]:
+        """Frames, frames per second and mean milliseconds per frame of features, matching and the rest.
+
+        Features include decoding the image, as ``evaluate``'s ``ms_features`` does.
+        """
+        n = max(self.frames, 1)
+        match_ms = sum(self.ms_matching) / n
+        features_ms = sum(self.ms_features) / n + 1e3 * self.decode_s / n
+        wall = self.wall_s
+        return {"frames": self.frames, "fps": round(self.frames / wall, 2) if wall else None,
+                "fps_without_features": round(1e3 / match_ms, 2) if match_ms else None,
+                "ms_features_mean": round(features_ms, 2), "ms_matching_mean": round(match_ms, 2),
+                "ms_overhead_mean": round(1e3 * wall / n - features_ms - match_ms, 2),
+                "calibrated": self.map.threshold is not None}
 
     def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]:
         """Localise the next frame (a NumPy image) and return its result line (see :meth:`Map.localize`)."""
@@ -507,9 +597,7 @@ class Localizer:
 
     def _result(self, col: np.ndarray, name: str, time_s: float | None) -> dict[str, Any]:
         m = self.map
-        k = min(self.top_k, len(col))
-        top = np.argpartition(-col, k - 1)[:k] if k < len(col) else np.arange(len(col))
-        top = top[np.lexsort((top, -col[top]))]  # best first, ties by row as argmax
+        top = top_rows(col[:, None], self.top_k)[0][0]  # best first, ties by row as argmax
         best = int(top[0])
         score = float(col[best])
         threshold = m.threshold
@@ -526,43 +614,4 @@ class Localizer:
         return out
 
 
-def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
-    """Image files named directly or found in folders (natural order), in the order given.
-
-    Raises
-    ------
-    TopolocError
-        For an input that does not exist or a folder without images (checked before any is yielded).
-    """
-    from topoloc.datasets.traverse import IMAGE_SUFFIXES, natural_key
-
-    files: list[Path] = []
-    for item in map(Path, inputs):
-        if item.is_dir():
-            found = sorted((p for p in item.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
-                           key=lambda p: natural_key(p.name))
-            if not found:
-                raise input_error("folder holds no images", item)
-            files.extend(found)
-        elif item.is_file():
-            files.append(item)
-        else:
-            raise input_error("input does not exist", item)
-    import cv2
-
-    # Before the first frame: an empty file or one no decoder recognises (its header) stops the run
-    # here, not after an hour of frames; a file damaged further in still fails when it is reached.
-    for f in files:
-        if f.stat().st_size == 0:
-            raise input_error("image file is empty", f)
-        if not cv2.haveImageReader(str(f)):
-            raise input_error("not an image OpenCV can read", f)
-    yield from files
-
-
-def read_frame(path: Path) -> np.ndarray:
-    """A grey frame from a file, decoded as the map's own images were (one-line error if unreadable)."""
-    return read_image(path, gray=True)
-
-
-__all__ = ["Localizer", "Map", "auto_max_side", "iter_inputs", "read_frame", "tour_record"]
+__all__ = ["Localizer", "Map", "tour_record"]

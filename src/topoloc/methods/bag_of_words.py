@@ -39,8 +39,8 @@ from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
+from topoloc.resources import Resources
 
 
 class BagOfWords(PlaceRecognizer):
@@ -149,9 +149,8 @@ class BagOfWords(PlaceRecognizer):
     def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
         return resources.words(query)
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Cosine similarity per place (shifted by ``confidence``), shape (n_places, len(items))."""
-        self.check_fitted()
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
+        """Cosine similarity per place, shape (n_places, len(items))."""
         per_doc = cosine_scores(items, self.idf_, self.inverted_)
         S = np.maximum.reduceat(per_doc[self.doc_order_], self.place_start_, axis=0)
-        return self._check_block(self._confident(S.astype(np.float32)), len(items))
+        return S.astype(np.float32)

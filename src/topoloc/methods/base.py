@@ -10,7 +10,7 @@ A method is a class with keyword-only parameters, validated in one place
   rows of ``S``) and ``resources_`` (where its features came from, reused by
   ``encode``).  A traverse may hold image files, images in memory, features
   or word ids (:class:`~topoloc.datasets.traverse.Traverse`); without
-  ``resources`` an :class:`~topoloc.methods.resources.InMemoryResources` with
+  ``resources`` an :class:`~topoloc.resources.InMemoryResources` with
   default settings is used.
 * ``encode(query, resources=None)`` turns a query traverse into one item per
   image (local features, a downsampled image...).  This is the per-image
@@ -19,39 +19,108 @@ A method is a class with keyword-only parameters, validated in one place
   ``(len(place_ids_), len(items))``, higher = more similar.  The evaluation
   times it query by query; methods that need the whole query sequence at once
   (SeqSLAM) set ``scores_whole_sequence = True`` and are timed as total / n.
+  ``score`` is final: it checks the recogniser is fitted, calls the method's
+  ``_score(items)`` (its own scores) and applies ``confidence`` and the shape
+  check, so that no method can forget either.
 * ``similarity(query)`` is ``score(encode(query))``.
-* A keyword-only ``confidence`` parameter (``"margin"`` by default, or
-  ``"raw"``) says whether ``score`` returns the method's own scores or
-  shifts each query's column so that its best score is a confidence
-  comparable across queries (:mod:`topoloc.confidence`); a method applies
-  it with ``_confident(S)`` at the end of ``score``.
+* A keyword-only ``confidence`` parameter (``"margin"`` or ``"raw"``; the
+  default is the method's choice) says whether ``score`` returns the method's
+  own scores or shifts each query's column so that its best score is a
+  confidence comparable across queries (:mod:`topoloc.confidence`); ``score``
+  applies it with ``_confident(S)``, which a method may override (FAB-MAP
+  keeps a posterior as it is).
+* What a method can do beyond this (add tours, be built from shards, find
+  the top places without ``S``...) is its :class:`RecognizerTags`
+  (``cls.tags``, scikit-learn's estimator tags), derived from the hooks it
+  overrides; :func:`topoloc.testing.recognizer_checks` chooses its checks
+  from them.
 
-Subclasses implement ``_fit``, ``_encode`` and ``score``.
+Subclasses implement ``_fit``, ``_encode`` and ``_score``, and set ``name``.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Self
 
 import numpy as np
 
-from topoloc._params import Constraint, convert_param, keyword_defaults, validate_params
+from topoloc._params import Configurable, Constraint, convert_param, keyword_defaults
 from topoloc.confidence import apply_confidence
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.io.state import object_state, restore_state
-from topoloc.methods.resources import InMemoryResources, Resources
 from topoloc.methods.shards import ShardPart, check_parts, shard_maps
+from topoloc.resources import InMemoryResources, Resources
 
 
-class PlaceRecognizer(ABC):
+@dataclass(frozen=True)
+class RecognizerTags:
+    """What a recogniser can do beyond the contract (scikit-learn's estimator tags).
+
+    Read them as ``cls.tags`` (or ``rec.tags``).  They are derived when the
+    class is defined: the first two from the class attributes of the same
+    name, the abilities from the hooks the class overrides; a class corrects
+    what the hooks cannot show with ``tag_overrides`` (e.g.
+    ``{"adds_places": False}``).  :func:`topoloc.testing.recognizer_checks`
+    chooses its checks from them, and a map refuses what its method cannot do
+    before any image is read.
+
+    Attributes
+    ----------
+    uses_vocabulary : bool
+        ``fit`` needs resources with a visual vocabulary (class attribute
+        ``uses_vocabulary``).
+    scores_whole_sequence : bool
+        A column of ``S`` depends on the queries before it, so ``score`` is
+        given the whole query sequence (class attribute ``scores_whole_sequence``).
+    saves_state : bool
+        ``get_state``/``from_state`` restore the fitted model (a saved map);
+        the default ``_get_state`` saves every learned attribute that is JSON,
+        an array or sparse.
+    adds_tours : bool
+        ``add_tour`` extends a fitted map (the class overrides ``_add_tour``).
+    adds_places : bool
+        An added tour may visit places the map has not seen (new rows of
+        ``S``); by default as ``adds_tours``.
+    adds_tours_exactly : bool
+        ``fit(A).add_tour(B)`` scores exactly as ``fit([A, B])``; by default as
+        ``adds_tours``.
+    builds_shards : bool
+        ``fit_shard``/``from_shards`` build the one-piece model bit for bit
+        (the class overrides ``_fit_shard`` and ``_merge_shards``).
+    scores_top_k : bool
+        A ``top_k(items, k)`` method gives each query's best rows and scores
+        without forming ``S`` (the class defines ``top_k``).
+    """
+
+    uses_vocabulary: bool = False
+    scores_whole_sequence: bool = False
+    saves_state: bool = True
+    adds_tours: bool = False
+    adds_places: bool = False
+    adds_tours_exactly: bool = False
+    builds_shards: bool = False
+    scores_top_k: bool = False
+
+
+# Tags that only a class attribute declares, so that there is one way to say each.
+_ATTRIBUTE_TAGS = ("uses_vocabulary", "scores_whole_sequence")
+
+
+class PlaceRecognizer(Configurable, ABC):
     """Base class of all methods; see the module docstring for the contract."""
 
+    #: The registry name (``get_method(name)``, ``--method``); a class without one is not registered.
     name: ClassVar[str] = ""
     uses_vocabulary: ClassVar[bool] = False
     scores_whole_sequence: ClassVar[bool] = False
+    #: The class's abilities, derived when it is defined (see :class:`RecognizerTags`).
+    tags: ClassVar[RecognizerTags] = RecognizerTags()
+    #: Tags the hooks cannot show, e.g. an ``add_tour`` that refuses new places.
+    tag_overrides: ClassVar[Mapping[str, bool]] = {}
     #: What each keyword-only parameter accepts (see :mod:`topoloc._params`).
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {}
     #: Parameters added after maps were first saved, with the value that reproduces
@@ -62,6 +131,10 @@ class PlaceRecognizer(ABC):
 
     place_ids_: np.ndarray
     resources_: Resources
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.tags = _derive_tags(cls)
 
     # -- the contract ---------------------------------------------------------------------
     def _checked_inputs(self, maps: Traverse | Sequence[Traverse],
@@ -118,9 +191,27 @@ class PlaceRecognizer(ABC):
         self.check_fitted()
         return self._encode(query, resources if resources is not None else self.resources_)
 
-    @abstractmethod
     def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Similarity block of shape (n_map_places, len(items)), higher = more similar."""
+        """Similarity block of shape (n_map_places, len(items)), higher = more similar.
+
+        The method's own scores (``_score``) after its ``confidence`` mode;
+        subclasses implement ``_score``, not this.
+
+        Raises
+        ------
+        NotFittedError
+            Before ``fit``.
+        """
+        self.check_fitted()
+        return self._check_block(self._confident(self._score(items)), len(items))
+
+    @abstractmethod
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
+        """The method's own scores of ``items`` (from ``encode``), shape (n_map_places, len(items)).
+
+        Called by :meth:`score` once the recogniser is known to be fitted;
+        ``confidence`` is applied to what it returns.
+        """
 
     def similarity(self, query: Traverse, *, resources: Resources | None = None) -> np.ndarray:
         """``S`` of shape (n_map_places, len(query)) for a query traverse: ``score(encode(query))``."""
@@ -140,12 +231,16 @@ class PlaceRecognizer(ABC):
             If the method cannot add this tour (e.g. new places to a landmark map).
         """
         self.check_fitted()
+        if not self.tags.adds_tours:
+            raise TopolocError(f"method {self.name!r} cannot add tours to a fitted map: build it from all tours")
         self._add_tour(tour, resources if resources is not None else self.resources_)
         return self
 
     def get_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The learned state as JSON metadata and named arrays (what a map file stores; nothing pickled)."""
         self.check_fitted()
+        if not self.tags.saves_state:
+            raise TopolocError(f"method {self.name!r} cannot save its fitted model")
         return self._get_state()
 
     @classmethod
@@ -177,6 +272,7 @@ class PlaceRecognizer(ABC):
             For a bad parameter, no map traverse, or a method that cannot be built from shards.
         """
         maps, res = self._checked_inputs(maps, resources)
+        self._check_builds_shards()
         subs, positions = shard_maps(maps, places)
         meta, arrays = self._fit_shard(maps, subs, positions, res)
         return ShardPart(index=int(index), places=(int(places[0]), int(places[1])), positions=positions,
@@ -203,10 +299,15 @@ class PlaceRecognizer(ABC):
         rec.validate_params()
         maps = [maps] if isinstance(maps, Traverse) else list(maps)
         res = resources if resources is not None else InMemoryResources()
+        rec._check_builds_shards()
         ordered = check_parts(parts, cls.name)
         rec._merge_shards(ordered, maps, res)
         rec.resources_ = res
         return rec
+
+    def _check_builds_shards(self) -> None:
+        if not self.tags.builds_shards:
+            raise TopolocError(f"method {self.name!r} cannot be built from shards: build it in one piece")
 
     def _fit_shard(self, maps: list[Traverse], shard: list[Traverse], positions: np.ndarray,
                    resources: Resources) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -237,38 +338,18 @@ class PlaceRecognizer(ABC):
 
     # -- parameters (scikit-learn style) ----------------------------------------------------
     @classmethod
-    def param_names(cls) -> list[str]:
-        """Names of the keyword-only constructor parameters."""
-        return list(keyword_defaults(cls))
+    def param_owner(cls) -> str:
+        """The method's name, which starts its parameter errors (``"coocmap: top_k must be ..."``)."""
+        return cls.name
+
+    @classmethod
+    def _unknown_owner(cls) -> str:
+        return f"method {cls.name!r}"
 
     @classmethod
     def default_params(cls) -> dict[str, Any]:
         """The constructor parameters and their defaults."""
         return keyword_defaults(cls)
-
-    def get_params(self, deep: bool = True) -> dict[str, Any]:
-        """The constructor parameters and their current values."""
-        return {k: getattr(self, k) for k in self.param_names()}
-
-    def set_params(self, **params: Any) -> Self:
-        """Set constructor parameters (checked at the next ``fit``).
-
-        Raises
-        ------
-        TopolocError
-            For a name that is not a parameter of this method.
-        """
-        names = set(self.param_names())
-        for key, value in params.items():
-            if key not in names:
-                raise TopolocError(
-                    f"method {self.name!r} has no parameter {key!r} (parameters: {', '.join(sorted(names))})")
-            setattr(self, key, value)
-        return self
-
-    def validate_params(self) -> None:
-        """Check every parameter against :attr:`parameter_constraints` (one-line TopolocError)."""
-        validate_params(self.name, self.get_params(), self.parameter_constraints)
 
     def __repr__(self) -> str:
         defaults = self.default_params()
@@ -296,6 +377,40 @@ class PlaceRecognizer(ABC):
         if S.shape != expected:
             raise AssertionError(f"{self.name}: S has shape {S.shape}, expected {expected}")
         return S
+
+
+def _overrides(cls: type[PlaceRecognizer], hook: str) -> bool:
+    return getattr(cls, hook) is not getattr(PlaceRecognizer, hook)
+
+
+def _derive_tags(cls: type[PlaceRecognizer]) -> RecognizerTags:
+    """The tags of a recogniser class: its class attributes, its hooks, then its ``tag_overrides``.
+
+    Raises
+    ------
+    TypeError
+        For an unknown tag, a tag that a class attribute declares, or an
+        ability claimed without the hook that provides it (at class definition,
+        rather than far from the cause when a map is built).
+    """
+    adds = _overrides(cls, "_add_tour")
+    shards = _overrides(cls, "_fit_shard") and _overrides(cls, "_merge_shards")
+    top_k = callable(getattr(cls, "top_k", None))
+    derived = {"uses_vocabulary": bool(cls.uses_vocabulary), "scores_whole_sequence": bool(cls.scores_whole_sequence),
+               "saves_state": True, "adds_tours": adds, "adds_places": adds, "adds_tours_exactly": adds,
+               "builds_shards": shards, "scores_top_k": top_k}
+    names = {f.name for f in fields(RecognizerTags)}
+    for key in cls.tag_overrides:
+        if key not in names:
+            raise TypeError(f"{cls.__name__}.tag_overrides: unknown tag {key!r} (tags: {', '.join(sorted(names))})")
+        if key in _ATTRIBUTE_TAGS:
+            raise TypeError(f"{cls.__name__}.tag_overrides: declare {key!r} with the class attribute of that name")
+    tags = RecognizerTags(**{**derived, **{k: bool(v) for k, v in cls.tag_overrides.items()}})
+    for tag, has_hook in (("adds_tours", adds), ("adds_places", adds), ("adds_tours_exactly", adds),
+                          ("builds_shards", shards), ("scores_top_k", top_k)):
+        if getattr(tags, tag) and not has_hook:
+            raise TypeError(f"{cls.__name__} claims {tag!r} without the hook that provides it")
+    return tags
 
 
 def _same(a: Any, b: Any) -> bool:

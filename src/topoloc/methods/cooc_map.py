@@ -27,7 +27,7 @@ doubles that on gardens_point (see ``docs/results/coocmap.md``).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -45,15 +45,50 @@ from topoloc.coocmap.matching import (
 from topoloc.coocmap.model import CoocModel, Observation, merge_models
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer, extend_place_ids, map_place_ids
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart
+from topoloc.resources import Resources
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 #: A query item: (word ids (n,), normalised positions (n, 2) uint16).
 Item = tuple[np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class FeatureGroup:
+    """The query features a method found consistent with its best place, for match drawings.
+
+    A recogniser that can say which of a query's features made its match
+    declares ``consistent_group(query, *, index, resources) -> FeatureGroup``;
+    :mod:`topoloc.drawing` then draws that group instead of generic
+    ratio-test matches.
+
+    Attributes
+    ----------
+    row : int
+        Row of ``S`` of the best place.
+    score : float
+        The method's own score of that place (before ``confidence``).
+    words : ndarray of int64, shape (n,)
+        Word ids of the query features the method used.
+    used : int or None
+        How many of each image's features (in extraction order) the method
+        uses, None for all; a map image's features are read alike.
+    group : ndarray of int64
+        Indices into ``words`` of the features in the group.
+    label, symbol : str
+        What the group is (``"Cooc-Map consistent group"``) and its symbol
+        (``"K"``), for a figure's legend.
+    """
+
+    row: int
+    score: float
+    words: np.ndarray
+    used: int | None
+    group: np.ndarray
+    label: str
+    symbol: str
 
 
 def order_tours(maps: Sequence[Traverse]) -> list[Traverse]:
@@ -97,8 +132,12 @@ class CoocMap(PlaceRecognizer):
     top_k : int
         With ``simultaneous``, ranks ``1..top_k`` of each column are exact
         (the paper's bound is ``top_k = 1``).
-    max_features : int
-        Use at most this many features per image, the strongest (0 = all).
+    max_words_per_image : int
+        Use at most this many of each image's visual words, those of its
+        strongest features (0 = all the extractor kept).  Not the extractor's
+        own ``max_features``, which caps the features computed per image.
+        Formerly ``max_features``: map files saved under that name still
+        load (:attr:`renamed_params`).
     seed : int
         Seed of the random tie-breaking of equal scores (Sec. II-C).
     spatial_tolerance : int
@@ -119,9 +158,6 @@ class CoocMap(PlaceRecognizer):
         0.817 -> 0.815, measured with ``topoloc evaluate --method coocmap
         --param position_bits=16|6 --preprocess none`` on the pairs above,
         before the margin confidence).
-    model_path : str
-        If set: load the map from this file when it exists (it must have been
-        built with the same vocabulary and places), else build and save it.
     confidence : {"margin", "raw"}
         ``"margin"`` (default): each query's column is shifted so that its
         best score is its margin over the best place outside the best
@@ -142,38 +178,38 @@ class CoocMap(PlaceRecognizer):
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "grid_x": Interval(int, 1), "grid_y": Interval(int, 1), "interpolate": OfType(bool),
         "simultaneous": OfType(bool), "schedule": Options(("compiled", "lazy", "best_first", "rounds")),
-        "top_k": Interval(int, 1), "max_features": Interval(int, 0), "seed": Interval(int),
-        "spatial_tolerance": Interval(int, 0), "position_bits": Interval(int, 1, 16), "model_path": OfType(str),
+        "top_k": Interval(int, 1), "max_words_per_image": Interval(int, 0), "seed": Interval(int),
+        "spatial_tolerance": Interval(int, 0), "position_bits": Interval(int, 1, 16),
         "confidence": Options(CONFIDENCE_MODES),
     }
+    # The extractor's per-image cap is FeatureConfig.max_features; this one shared its name.
+    renamed_params: ClassVar[Mapping[str, str]] = {"max_features": "max_words_per_image"}
+    # A fitted method has one way to be kept: its map file.
+    removed_params: ClassVar[Mapping[str, str]] = {"model_path": (
+        "a fitted coocmap is kept in a map file: `topoloc map build --method coocmap ... --out FILE` "
+        "or `Map.build(...).save(path)`, reopened with `Map.load(path)`")}
 
     def __init__(self, *, grid_x: int = 12, grid_y: int = 8, interpolate: bool = True,
-                 simultaneous: bool = True, schedule: str = "compiled", top_k: int = 10, max_features: int = 0,
+                 simultaneous: bool = True, schedule: str = "compiled", top_k: int = 10,
+                 max_words_per_image: int = 0,
                  seed: int = 0, spatial_tolerance: int = 1, position_bits: int = 6,
-                 model_path: str = "", confidence: str = "margin") -> None:
+                 confidence: str = "margin") -> None:
         self.grid_x = grid_x
         self.grid_y = grid_y
         self.interpolate = interpolate
         self.simultaneous = simultaneous
         self.schedule = schedule
         self.top_k = top_k
-        self.max_features = max_features
+        self.max_words_per_image = max_words_per_image
         self.seed = seed
         self.spatial_tolerance = spatial_tolerance
         self.position_bits = position_bits
-        self.model_path = model_path
         self.confidence = confidence
-
-    def validate_params(self) -> None:
-        """The per-parameter constraints, and a ``model_path`` that is not a folder."""
-        super().validate_params()
-        if self.model_path and Path(self.model_path).is_dir():
-            raise TopolocError(f"coocmap: model_path is a folder, not a file: {self.model_path}")
 
     def _observations(self, traverse: Traverse, resources: Resources) -> list[Item]:
         feats = resources.features(traverse)
         words = resources.words(traverse)
-        k = self.max_features or None
+        k = self.max_words_per_image or None
         return [(np.asarray(w[:k], np.int64), normalise_xy(f.keypoints[:k, :2], f.image_shape))
                 for f, w in zip(feats, words, strict=True)]
 
@@ -182,33 +218,16 @@ class CoocMap(PlaceRecognizer):
         vocab = resources.vocabulary
         fingerprint = vocabulary_fingerprint(vocab)
         tours = order_tours(maps)
-        model: CoocModel | None = None
-        path = Path(self.model_path) if self.model_path else None
-        built_from = {"tours": [t.fingerprint() for t in tours], "features": resources.extractor.config.key()}
-        if path is not None and path.is_file():
-            model = CoocModel.load(path, vocabulary=fingerprint)
-            if model.built_from != built_from:
-                raise TopolocError(
-                    "coocmap file was built from other tours or feature settings than these maps "
-                    f"(delete it to rebuild, or use it with the maps it was built from): {path}")
-            if (model.n_locations != len(place_ids) or model.grid_x != self.grid_x
-                    or model.grid_y != self.grid_y or model.position_bits != self.position_bits):
-                raise TopolocError(f"coocmap file does not fit these maps or grid: {path}")
-            model.interpolate = bool(self.interpolate)
-        if model is None:
-            built = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_),
-                              grid_x=self.grid_x, grid_y=self.grid_y, interpolate=self.interpolate,
-                              position_bits=self.position_bits)
-            for tour in tours:
-                rows = np.searchsorted(place_ids, tour.places)
-                obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
-                                          in zip(rows, self._observations(tour, resources), strict=True)]
-                built.add_tour(obs, name=tour.name, hour=tour.median_time_of_day())
-            built.vocabulary = fingerprint
-            built.built_from = built_from
-            model = built
-            if path is not None:
-                model.save(path)
+        model = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_),
+                          grid_x=self.grid_x, grid_y=self.grid_y, interpolate=self.interpolate,
+                          position_bits=self.position_bits)
+        for tour in tours:
+            rows = np.searchsorted(place_ids, tour.places)
+            obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
+                                      in zip(rows, self._observations(tour, resources), strict=True)]
+            model.add_tour(obs, name=tour.name, hour=tour.median_time_of_day())
+        model.vocabulary = fingerprint
+        model.built_from = {"tours": [t.fingerprint() for t in tours], "features": resources.extractor.config.key()}
         self.model_ = model
         self.tour_order_ = [t.name for t in tours]
         self.place_ids_ = place_ids
@@ -220,8 +239,6 @@ class CoocMap(PlaceRecognizer):
         The tours' order and hours are those of the whole tours (a tour cut to
         some places could have another median time of day).
         """
-        if self.model_path:
-            raise TopolocError("coocmap: model_path cannot be used when the map is built from shards")
         place_ids = np.unique(np.concatenate([t.places for t in shard]))
         vocab = resources.vocabulary
         model = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_), grid_x=self.grid_x,
@@ -313,6 +330,32 @@ class CoocMap(PlaceRecognizer):
             return graphs, match_best_first(graphs, top_k=self.top_k)
         return graphs, match_simultaneous(graphs, top_k=self.top_k)
 
+    def consistent_group(self, query: Traverse, *, index: int = 0,
+                         resources: Resources | None = None) -> FeatureGroup:
+        """The final consistent group ``K`` of image ``index`` of ``query`` at its best place (Sec. II-D).
+
+        ``resources`` default to the ones the map was fitted with.
+        """
+        self.check_fitted()
+        res = resources if resources is not None else self.resources_
+        fs = res.features(query)[index]
+        k = self.max_words_per_image or None
+        words = np.asarray(res.words(query)[index], np.int64)[:k]
+        graphs, result = self.match((words, normalise_xy(fs.keypoints[:k, :2], fs.image_shape)))
+        return FeatureGroup(row=int(result.best), score=float(result.scores[result.best]), words=words, used=k,
+                            group=result.group(graphs, result.best), label="Cooc-Map consistent group", symbol="K")
+
+    def rank_note(self, rank: int) -> str:
+        """Why a place's ``rank`` among a query's scores is approximate, or ``""`` when it is exact.
+
+        With simultaneous matching only ranks ``1..top_k`` are exact; the
+        places below report bounds (module docstring).
+        """
+        if self.simultaneous and rank > self.top_k:
+            return (f"(Cooc-Map with simultaneous matching: scores beyond rank {self.top_k} are bounds, "
+                    "so this rank is approximate)")
+        return ""
+
     def _scores(self, item: Item) -> np.ndarray:
         if self.simultaneous and self.schedule == "compiled":
             words, xy = item
@@ -324,13 +367,12 @@ class CoocMap(PlaceRecognizer):
                               seed=self.seed, spatial_tolerance=self.spatial_tolerance).scores
         return self.match(item)[1].scores
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Consistent-group sizes (shifted by ``confidence``), shape (n_places, len(items)) (see module docstring)."""
-        self.check_fitted()
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
+        """Consistent-group sizes, shape (n_places, len(items)) (see module docstring)."""
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         for q, item in enumerate(items):
             S[:, q] = self._scores(item)
-        return self._check_block(self._confident(S), len(items))
+        return S
 
 
 def _compiled(*args: Any, **kwargs: Any) -> tuple[MatchResult, np.ndarray]:
@@ -340,4 +382,4 @@ def _compiled(*args: Any, **kwargs: Any) -> tuple[MatchResult, np.ndarray]:
     return match_compiled(*args, **kwargs)
 
 
-__all__ = ["CoocMap", "order_tours"]
+__all__ = ["CoocMap", "FeatureGroup", "order_tours"]

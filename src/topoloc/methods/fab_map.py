@@ -2,9 +2,9 @@
 
 * **Training** (:mod:`topoloc.fabmap.model`): word marginals and the Chow-Liu
   tree are learned from the vocabulary's training images
-  (``resources.training_words()``), never from the map; or a saved model is
-  loaded with ``--param model_path=FILE`` (it must belong to the run's
-  vocabulary).
+  (``resources.training_words()``), never from the map.  A fitted method,
+  model included, is kept in a map file (``topoloc map build``,
+  :class:`~topoloc.maps.Map`).
 * **Map**: every map image is an observation of its place.  With
   ``tours="separate"`` (default) each image is its own appearance model (prior
   + Eq. 11) and a place scores its best image; with ``tours="merge"`` the first
@@ -27,7 +27,7 @@
     the best place leads the rest by a few dozen nats, so confident queries
     tie at the top of a PR curve; the log-odds keep them apart.
 
-Parameters (keyword-only, ``--param KEY=VALUE``): ``model_path``, ``output``,
+Parameters (keyword-only, ``--param KEY=VALUE``): ``output``,
 ``naive_bayes`` (ignore the Chow-Liu tree), ``normaliser``, ``n_samples``,
 ``p_new``, ``smoothing``, ``p_fp`` / ``p_fn`` (detector model, Eq. 2),
 ``bailout`` / ``p_bailout`` (Bennett bail-out, ``fabmap`` only), ``seed``.
@@ -43,16 +43,16 @@ import numpy as np
 from topoloc._params import Constraint, Interval, OfType, Options
 from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
+from topoloc.errors import ParameterError, TopolocError
 from topoloc.fabmap.model import DEFAULT_P_FN, DEFAULT_P_FP, FabMapModel
 from topoloc.fabmap.observation import Observation, ObservationModel
 from topoloc.fabmap.place_map import DenseMap, IndexMap, make_map
 from topoloc.fabmap.posterior import location_log_odds, location_posterior
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
-from topoloc.methods.slam import load_or_train_model
+from topoloc.progress import stage
+from topoloc.resources import Resources
 
 OUTPUTS = ("loglik", "posterior", "logodds")
 #: Outputs that are FAB-MAP's own confidence (Eq. 3) and are returned without the margin.
@@ -64,9 +64,6 @@ class FabMap(PlaceRecognizer):
 
     Parameters
     ----------
-    model_path : str
-        Load a trained :class:`~topoloc.fabmap.model.FabMapModel` instead of
-        training on ``resources.training_words()``.
     output : {"loglik", "posterior", "logodds"}
         What ``S`` holds (module docstring).
     naive_bayes : bool
@@ -121,18 +118,21 @@ class FabMap(PlaceRecognizer):
     uses_vocabulary: ClassVar[bool] = True
     variant: ClassVar[str] = "fabmap"
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
-        "model_path": OfType(str), "output": Options(OUTPUTS), "naive_bayes": OfType(bool),
+        "output": Options(OUTPUTS), "naive_bayes": OfType(bool),
         "normaliser": Options(("sampled", "mean_field")), "n_samples": Interval(int, 0),
         "p_new": Interval(float, 0.0, 1.0, closed="left"), "smoothing": Interval(float, 0.0, 1.0, closed="right"),
         "p_fp": Interval(float, 0.0, 1.0, closed="neither"), "p_fn": Interval(float, 0.0, 1.0, closed="neither"),
         "bailout": OfType(bool), "p_bailout": Interval(float, 0.0, 1.0, closed="neither"), "seed": Interval(int),
         "tours": Options(("merge", "separate")), "confidence": Options(CONFIDENCE_MODES),
     }
+    # A fitted method has one way to be kept: its map file.
+    removed_params: ClassVar[Mapping[str, str]] = {"model_path": (
+        "a fitted FAB-MAP, model included, is kept in a map file: `topoloc map build --method fabmap ... "
+        "--out FILE` or `Map.build(...).save(path)`, reopened with `Map.load(path)`")}
 
     def __init__(
         self,
         *,
-        model_path: str = "",
         output: str = "loglik",
         naive_bayes: bool = False,
         normaliser: str = "sampled",
@@ -147,7 +147,6 @@ class FabMap(PlaceRecognizer):
         tours: str = "separate",
         confidence: str = "margin",
     ) -> None:
-        self.model_path = model_path
         self.output = output
         self.naive_bayes = naive_bayes
         self.normaliser = normaliser
@@ -163,8 +162,8 @@ class FabMap(PlaceRecognizer):
         self.confidence = confidence
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
-        """Train (or load) the model and build one appearance model per map place."""
-        model = load_or_train_model(self.model_path or None, resources)
+        """Train the model and build one appearance model per map place."""
+        model = train_model_from_resources(resources)
         if (model.p_fp, model.p_fn) != (self.p_fp, self.p_fn):
             model = model.with_detector(p_fp=self.p_fp, p_fn=self.p_fn)
         self.model_ = model
@@ -196,12 +195,12 @@ class FabMap(PlaceRecognizer):
                     "places": np.concatenate([tr.places for tr in shard]).astype(np.int64)}
 
     def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
-        """Observations back in map order, the model trained (or loaded) once, place models as in ``fit``."""
+        """Observations back in map order, the model trained once, place models as in ``fit``."""
         order = merge_order(parts, sum(len(m) for m in maps))
         lists = [np.split(p.arrays["words"], p.arrays["ptr"][1:-1]) for p in parts]
         words = [w for part in lists for w in part]
         words = [words[i] for i in order]
-        model = load_or_train_model(self.model_path or None, resources)
+        model = train_model_from_resources(resources)
         if (model.p_fp, model.p_fn) != (self.p_fp, self.p_fn):
             model = model.with_detector(p_fp=self.p_fp, p_fn=self.p_fn)
         self.model_ = model
@@ -271,9 +270,8 @@ class FabMap(PlaceRecognizer):
             return S
         return super()._confident(S)
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
         """``S`` of shape (n_map_places, len(items)): log-likelihood or posterior."""
-        self.check_fitted()
         n_models = len(self.model_row_)
         grouped = n_models != len(self.place_ids_)
         # Log-odds are formed per place (a place's images summed in the log domain), the others per model.
@@ -295,7 +293,7 @@ class FabMap(PlaceRecognizer):
             # Several models per place: the place's probability, or its best image's likelihood.
             reduce = np.add if self.output == "posterior" else np.maximum
             S = reduce.reduceat(S, self._starts, axis=0)
-        return self._check_block(self._confident(S), len(items))
+        return S
 
 
 class FabMap2(FabMap):
@@ -307,6 +305,23 @@ class FabMap2(FabMap):
 
     name: ClassVar[str] = "fabmap2"
     variant: ClassVar[str] = "fabmap2"
+
+
+def train_model_from_resources(resources: Resources, **kwargs: Any) -> FabMapModel:
+    """Train a model on ``resources.training_words()`` with ``resources.vocabulary``.
+
+    Raises
+    ------
+    TopolocError
+        If the resources cannot provide training images.
+    """
+    words = resources.training_words()
+    if len(words) < 2:
+        raise ParameterError("vocabulary.train", "needs at least 2 training images that are not the map: FAB-MAP "
+                                                 "learns its word statistics from them")
+    voc = resources.vocabulary
+    with stage(resources.progress, f"FAB-MAP model: Chow-Liu tree on {len(words)} training images"):
+        return FabMapModel.train(list(words), n_words=int(voc.n_words_), vocabulary=voc, **kwargs)
 
 
 def _build_dense(pmap: DenseMap, om: ObservationModel, per_place: list[list[Observation]]) -> None:

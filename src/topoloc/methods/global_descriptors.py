@@ -42,8 +42,8 @@ from topoloc.datasets.traverse import Traverse, load_traverse, natural_key
 from topoloc.errors import TopolocError, input_error
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
+from topoloc.resources import Resources
 
 #: File names looked for in a traverse folder when no file is given.
 FOLDER_FILES = ("descriptors.npy", "descriptors.h5", "descriptors.hdf5")
@@ -100,7 +100,7 @@ def _read_h5(path: Path, dataset: str) -> tuple[np.ndarray, list[str] | None]:
         f.visititems(visit)
         if not rows:
             raise input_error(f"HDF5 file has no 2-D dataset {dataset!r} and no groups holding one "
-                              f"(--param dataset=NAME)", path)
+                              f"(set the parameter dataset=NAME)", path)
         rows.sort(key=lambda r: natural_key(r[0]))
         dims = {len(v) for _, v in rows}
         if len(dims) != 1:
@@ -204,10 +204,10 @@ class GlobalDescriptors(PlaceRecognizer):
         found = next((root / n for n in FOLDER_FILES if (root / n).is_file()), None) if t.kind == "files" else None
         if found is None and t.kind != "files":
             raise TopolocError(f"descriptors: images held in memory ({what} traverse {t.name}) cannot be described "
-                               f"here (the descriptors are computed elsewhere): pass --param {what}=FILE")
+                               f"here (the descriptors are computed elsewhere): set the parameter {what}=FILE")
         if found is None:
-            raise TopolocError(f"descriptors: no descriptor file for {what} traverse {t.name or root}: pass "
-                               f"--param {what}=FILE or put {FOLDER_FILES[0]} (one row per image) in its folder")
+            raise TopolocError(f"descriptors: no descriptor file for {what} traverse {t.name or root}: set "
+                               f"the parameter {what}=FILE or put {FOLDER_FILES[0]} (one row per image) in its folder")
         arr, names = read_descriptor_file(found, self.dataset)
         if names is not None:
             idx = _by_name(t, names, found)
@@ -296,18 +296,17 @@ class GlobalDescriptors(PlaceRecognizer):
             return out
         return np.maximum.reduceat(per_image[self._order], self._starts, axis=0)
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Cosine similarity (or negative L2 distance) per place, shifted by ``confidence``, (n_places, len(items))."""
-        self.check_fitted()
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
+        """Cosine similarity (or negative L2 distance) per place, (n_places, len(items))."""
         D = self.descriptors_
         if not len(items):
-            return self._check_block(np.zeros((len(self.place_ids_), 0), np.float32), 0)
+            return np.zeros((len(self.place_ids_), 0), np.float32)
         Q = np.ascontiguousarray(np.stack(items), dtype=np.float32)
         dots = D @ Q.T
         if self.metric == "l2":
             sq = (D * D).sum(axis=1)[:, None] + (Q * Q).sum(axis=1)[None, :] - 2 * dots
             dots = -np.sqrt(np.maximum(sq, 0))
-        return self._check_block(self._confident(self._per_place(dots).astype(np.float32)), len(items))
+        return self._per_place(dots).astype(np.float32)
 
     # -- top K without S ---------------------------------------------------------------------
     def top_k(self, items: Sequence[Any], k: int, *, block: int = 16384) -> tuple[np.ndarray, np.ndarray]:

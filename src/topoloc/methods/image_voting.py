@@ -6,7 +6,7 @@ epipolar RANSAC and the inliers are the image's vote (Ramisa et al., ICRA
 2008, the method the paper compares against).  The matching, its
 approximation through one faiss index and the verification are the pure
 functions of :mod:`topoloc.voting`; this recogniser binds them to the
-features of a :class:`~topoloc.methods.resources.Resources` object.  Several
+features of a :class:`~topoloc.resources.Resources` object.  Several
 map images of one place: the maximum of their votes.
 """
 
@@ -26,8 +26,8 @@ from topoloc.features import FeatureSet
 from topoloc.geometry import normalise_descriptors
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
+from topoloc.resources import Resources
 from topoloc.voting import DescriptorIndex, build_index, image_votes
 from topoloc.voting.votes import merge_indexes
 
@@ -177,11 +177,10 @@ class ImageVoting(PlaceRecognizer):
         return image_votes(index, fs.xy, fs.descriptors, ratio=self.ratio, n_neighbours=self.n_neighbours,
                            n_verify=self.n_verify, ransac_px=self.ransac_px, min_matches=self.min_matches)
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Inlier votes per place (max over its images; shifted by ``confidence``), shape (n_places, len(items))."""
-        self.check_fitted()
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
+        """Inlier votes per place (max over its images), shape (n_places, len(items))."""
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         for j, fs in enumerate(items):
             v = self.image_votes(fs)
             np.maximum.at(S[:, j], self.image_place_, v.astype(np.float32))
-        return self._check_block(self._confident(S), len(items))
+        return S

@@ -33,8 +33,8 @@ from topoloc.landmarks.model import LandmarkModel
 from topoloc.landmarks.similarity import node_denominators, node_similarity
 from topoloc.landmarks.tracking import adjacent_matches, chain_tracks, pair_matches
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
+from topoloc.resources import Resources
 
 
 class LandmarkMap(PlaceRecognizer):
@@ -130,6 +130,9 @@ class LandmarkMap(PlaceRecognizer):
     """
 
     name: ClassVar[str] = "landmarks"
+    # A tour is learned online at the existing nodes: it cannot bring new places, and equals
+    # fitting on both tours only with tours="first" (fitting makes a later tour's images nodes otherwise).
+    tag_overrides: ClassVar[Mapping[str, bool]] = {"adds_places": False, "adds_tours_exactly": False}
     # Maps saved before ``shrinkage`` and ``tours`` existed scored with Eq. 5
     # exactly and built their nodes from the first tour only.
     legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "shrinkage": 0.0,
@@ -378,13 +381,12 @@ class LandmarkMap(PlaceRecognizer):
             return out
         return out / total if total > 0 else np.full_like(out, 1.0 / len(out))
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
-        """Eq. 5 per place (max over its nodes; shifted by ``confidence``), shape (n_places, len(items))."""
-        self.check_fitted()
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
+        """Eq. 5 per place (max over its nodes), shape (n_places, len(items))."""
         S = np.zeros((len(self.place_ids_), len(items)), np.float32)
         den = node_denominators(self.weights_, self.shrinkage)  # the weights are fixed while scoring
         for j, fs in enumerate(items):
             prob, f_idx, l_idx = self.model_.match_pairs(fs)
             s = self._node_scores(fs, prob, f_idx, l_idx, den)
             np.maximum.at(S[:, j], self.node_place_, s.astype(np.float32))
-        return self._check_block(self._confident(S), len(items))
+        return S

@@ -129,8 +129,8 @@ from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.methods.base import PlaceRecognizer
-from topoloc.methods.resources import Resources
 from topoloc.methods.shards import ShardPart, merge_order
+from topoloc.resources import Resources
 from topoloc.seqslam import difference_matrix, preprocess_image
 from topoloc.sequence.search import contrast_enhance, sequence_search, uniqueness_margin
 
@@ -372,13 +372,13 @@ class SeqSLAM(PlaceRecognizer):
             D = contrast_enhance(D, window=int(self.enhance_window), spread_floor=bool(self.enhance_floor))
         return D
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
         """Sequence-matched similarity of the whole query sequence.
 
         ``S[p, T] = -`` mean enhanced difference along the best trajectory over
         queries ``T - ds .. T`` ending at place ``p`` (constant velocity, or
-        forward-only for ``search="acceleration"``), then shifted per column
-        by ``confidence``.  Long query sequences are
+        forward-only for ``search="acceleration"``) (:meth:`score` then
+        applies ``confidence``).  Long query sequences are
         processed in blocks of columns with a ``ds``-query overlap, which
         gives exactly the same result with bounded memory.
 
@@ -386,7 +386,6 @@ class SeqSLAM(PlaceRecognizer):
         -------
         ndarray of float32, shape (n_places, len(items))
         """
-        self.check_fitted()
         Q = self._query_matrix(items)
         n_q = Q.shape[0]
         ds = int(self.ds)
@@ -405,7 +404,7 @@ class SeqSLAM(PlaceRecognizer):
                 max_skip=int(self.max_skip), step_penalty=float(self.step_penalty),
             )
             S[:, c0:c1] = self._similarity(cost[:, h:])
-        return self._check_block(self._confident(S), n_q)
+        return S
 
     def _similarity(self, cost: np.ndarray) -> np.ndarray:
         """``-cost``, or the uniqueness margin when ``uniqueness > 0``."""
@@ -462,9 +461,6 @@ class SingleImageSeqSLAM(SeqSLAM):
             confidence=confidence,
         )
 
-    def score(self, items: Sequence[Any]) -> np.ndarray:
+    def _score(self, items: Sequence[Any]) -> np.ndarray:
         """``-`` contrast-enhanced differences (or their uniqueness), (n_places, len(items))."""
-        self.check_fitted()
-        Q = self._query_matrix(items)
-        S = self._similarity(self.enhanced_differences(Q))
-        return self._check_block(self._confident(S), Q.shape[0])
+        return self._similarity(self.enhanced_differences(self._query_matrix(items)))

@@ -40,7 +40,7 @@ from topoloc.progress import no_progress
 if TYPE_CHECKING:
     from topoloc.cluster import Executor
     from topoloc.methods.base import PlaceRecognizer
-    from topoloc.methods.resources import Resources
+    from topoloc.resources import Resources
 
 log = logging.getLogger(__name__)
 
@@ -208,12 +208,14 @@ def build_from_shards(
         Fitted; its state equals that of ``cls(**params).fit(maps)`` (see ``docs/map_shards.md``).
     """
     from topoloc.cluster import LocalExecutor
-    from topoloc.methods.base import map_place_ids
 
     params = dict(params or {})
     maps = list(maps)
     cls(**params).validate_params()  # one-line error before any task is sent
-    ranges = split_places(map_place_ids(maps), n_shards)
+    if not maps:
+        raise TopolocError("at least one map traverse is needed")
+    # methods.base.map_place_ids, computed here: base imports this module, so this one cannot import it.
+    ranges = split_places(np.unique(np.concatenate([m.places for m in maps])), n_shards)
     ex = executor if executor is not None else LocalExecutor()
     task = functools.partial(_shard_task, cls, params, maps,
                              portable(resources, remote=not isinstance(ex, LocalExecutor)), ranges)

@@ -13,11 +13,13 @@ tour, and a tour does not change when other tours are added or removed.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
-from topoloc.errors import input_error
+from topoloc._params import Configurable, Constraint, Interval, param_error
 
 __all__ = ["RouteConfig"]
 
@@ -26,7 +28,7 @@ _TAG_LAYOUT, _TAG_BUILDING, _TAG_POOL, _TAG_GROUND, _TAG_GRAIN, _TAG_TOUR, _TAG_
 
 
 @dataclass(frozen=True)
-class RouteConfig:
+class RouteConfig(Configurable):
     """Parameters of a synthetic route.
 
     Attributes
@@ -93,30 +95,38 @@ class RouteConfig:
     noise: float = 1.0
     jpeg_quality: int = 90
 
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "n_places": Interval(int, 2),
+        "width": Interval(int, 16, 4096),
+        "height": Interval(int, 16, 4096),
+        "seed": Interval(int, 0),
+        "place_spacing_m": Interval(float, 0, None, closed="neither"),
+        "street_width_m": Interval(float, 4),
+        "sidewalk_m": Interval(float, 0, None, closed="neither"),
+        "camera_height_m": Interval(float, 0.3, 4),
+        "hfov_deg": Interval(float, 20, 140),
+        "pitch_deg": Interval(float, -30, 30),
+        "px_per_m": Interval(float, 8, 128),
+        "alias_fraction": Interval(float, 0, 1),
+        "images_per_place": Interval(float, 0.1, 10),
+        "speed_mps": Interval(float, 0, None, closed="neither"),
+        "speed_variation": Interval(float, 0, 1, closed="left"),
+        "stop_probability": Interval(float, 0, 1, closed="left"),
+        "pose_jitter_deg": Interval(float, 0),
+        "noise": Interval(float, 0),
+        "jpeg_quality": Interval(int, 1, 100),
+    }
+
+    @classmethod
+    def param_owner(cls) -> str:
+        return "synthetic route"
+
     def __post_init__(self) -> None:
-        checks = [
-            (self.n_places >= 2, "n_places must be at least 2"),
-            (16 <= self.width <= 4096 and 16 <= self.height <= 4096, "image size out of range"),
-            (self.seed >= 0, "seed must be non-negative"),
-            (self.place_spacing_m > 0, "place_spacing_m must be positive"),
-            (self.street_width_m >= 4, "street_width_m must be at least 4"),
-            (0 < self.sidewalk_m < self.street_width_m / 2 - 1, "sidewalk_m out of range"),
-            (0.3 <= self.camera_height_m <= 4, "camera_height_m out of range"),
-            (20 <= self.hfov_deg <= 140, "hfov_deg out of range"),
-            (abs(self.pitch_deg) <= 30, "pitch_deg out of range"),
-            (8 <= self.px_per_m <= 128, "px_per_m out of range"),
-            (0 <= self.alias_fraction <= 1, "alias_fraction must be in [0, 1]"),
-            (0.1 <= self.images_per_place <= 10, "images_per_place out of range"),
-            (self.speed_mps > 0, "speed_mps must be positive"),
-            (0 <= self.speed_variation < 1, "speed_variation must be in [0, 1)"),
-            (0 <= self.stop_probability < 1, "stop_probability must be in [0, 1)"),
-            (self.pose_jitter_deg >= 0, "pose_jitter_deg must be non-negative"),
-            (self.noise >= 0, "noise must be non-negative"),
-            (1 <= self.jpeg_quality <= 100, "jpeg_quality must be in [1, 100]"),
-        ]
-        for ok, problem in checks:
-            if not ok:
-                raise input_error(f"synthetic route: {problem}")
+        self.validate_params()
+        # The pavements must leave a road between them: the one rule that compares two parameters.
+        if not self.sidewalk_m < self.street_width_m / 2 - 1:
+            raise param_error(self.param_owner(), "sidewalk_m",
+                              f"< street_width_m / 2 - 1 = {self.street_width_m / 2 - 1:g}", self.sidewalk_m)
 
     @property
     def route_length_m(self) -> float:

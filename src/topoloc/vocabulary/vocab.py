@@ -23,16 +23,17 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 import faiss
 import numpy as np
 
 from topoloc._parallel import n_workers
+from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.datasets.traverse import find_images
 from topoloc.errors import NotFittedError, TopolocError, input_error
 from topoloc.io import read_container, write_container
@@ -108,7 +109,7 @@ def parse_descriptor_kind(kind: str) -> tuple[str, int, np.dtype]:
 
 
 
-class Vocabulary:
+class Vocabulary(Configurable):
     """Visual vocabulary (k-means words) with nearest-word quantisation.
 
     Parameters
@@ -146,6 +147,13 @@ class Vocabulary:
         plus what the caller passed, e.g. image folders and ``n_images``).
     """
 
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "n_words": Interval(int, 2), "n_iter": Interval(int, 1), "max_descriptors": Interval(int, 2),
+        "seed": Interval(int), "index": Options(INDEXES), "ef_search": Interval(int, 1),
+    }
+    # Changing ``index`` of a fitted vocabulary only rebuilds the index: refuse a bad value at once.
+    validate_on_set: ClassVar[bool] = True
+
     def __init__(
         self,
         *,
@@ -162,54 +170,17 @@ class Vocabulary:
         self.seed = seed
         self.index = index
         self.ef_search = ef_search
-        self._validate_params()
+        self.validate_params()
         self._index: Any = None
         self._index_for: tuple[str, int] | None = None
         self._lock = threading.Lock()
 
-    # -- parameters ------------------------------------------------------------------------
-    def get_params(self) -> dict[str, Any]:
-        """The constructor parameters and their current values."""
-        return {
-            "n_words": self.n_words,
-            "n_iter": self.n_iter,
-            "max_descriptors": self.max_descriptors,
-            "seed": self.seed,
-            "index": self.index,
-            "ef_search": self.ef_search,
-        }
-
-    def set_params(self, **params: Any) -> Self:
-        """Change constructor parameters (e.g. ``index``, ``ef_search``) and return self.
-
-        Changing ``index`` or ``ef_search`` of a fitted vocabulary takes effect at
-        the next :meth:`quantize`; the words are kept.
-        """
-        unknown = set(params) - set(self.get_params())
-        if unknown:
-            raise TopolocError(f"Vocabulary has no parameter(s) {', '.join(sorted(unknown))}")
-        old = self.get_params()
-        for k, v in params.items():
-            setattr(self, k, v)
-        try:
-            self._validate_params()
-        except TopolocError:
-            for k, v in old.items():
-                setattr(self, k, v)
-            raise
-        return self
-
-    def _validate_params(self) -> None:
-        if int(self.n_words) < 2:
-            raise TopolocError(f"a vocabulary needs at least 2 words, got n_words={self.n_words}")
-        if int(self.n_iter) < 1:
-            raise TopolocError(f"n_iter must be >= 1, got {self.n_iter}")
-        if int(self.max_descriptors) < 2:
-            raise TopolocError(f"max_descriptors must be >= 2, got {self.max_descriptors}")
-        if self.index not in INDEXES:
-            raise TopolocError(f"unknown vocabulary index {self.index!r} (choose hnsw or flat)")
-        if int(self.ef_search) < 1:
-            raise TopolocError(f"ef_search must be >= 1, got {self.ef_search}")
+    # -- parameters (get_params, set_params, validate_params: Configurable) ------------------
+    # Changing ``index`` or ``ef_search`` of a fitted vocabulary with ``set_params`` takes
+    # effect at the next quantize(); the words are kept.
+    @classmethod
+    def param_owner(cls) -> str:
+        return "vocabulary"
 
     def __repr__(self) -> str:
         params = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
@@ -271,7 +242,7 @@ class Vocabulary:
             If the descriptors do not match ``descriptor_kind``, are not finite,
             or are fewer than 2.
         """
-        self._validate_params()
+        self.validate_params()
         _, dim, dtype = parse_descriptor_kind(descriptor_kind)
         X = np.asarray(descriptors)
         if X.ndim != 2 or X.shape[1] != dim or not _dtype_matches(X.dtype, dtype):

@@ -81,7 +81,7 @@ def test_images_option(tmp_path: Path, write_image: Callable[[Path], Path]) -> N
 def test_query_images_option(tmp_path: Path, write_image: Callable[[Path], Path]) -> None:
     mat = _pittsburgh(tmp_path / "pitts", write_image)
     (tmp_path / "pitts" / "queries_real").rename(tmp_path / "tokyo_queries")
-    with pytest.raises(TopolocError, match=r"query images named in dbStruct are missing.*--query-images"):
+    with pytest.raises(TopolocError, match=r"query images named in dbStruct are missing.*query_images"):
         convert("dbstruct", mat, tmp_path / "out")
     from topoloc.datasets.formats import ConvertOptions
 

@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from topoloc.cli.main import app
 from topoloc.datasets.traverse import load_traverse
-from topoloc.evaluation.pipeline import EvaluateOptions, make_ground_truth
+from topoloc.spec import GroundTruthSpec
 
 runner = CliRunner()
 N = 12
@@ -65,9 +65,8 @@ def test_ground_truth_agrees(converted: Path) -> None:
     maps, query = [load_traverse(converted / "map")], load_traverse(converted / "query")
     assert query.places.tolist() == list(range(N))
     ids = np.unique(maps[0].places)
-    base = dict(method="seqslam-single", maps=[converted / "map"], query=converted / "query", out=converted)
-    by_id = make_ground_truth(EvaluateOptions(**base, tolerance="1:3"), maps, query, ids)  # type: ignore[arg-type]
-    by_m = make_ground_truth(EvaluateOptions(**base, tolerance_m="15:35"), maps, query, ids)  # type: ignore[arg-type]
+    by_id = GroundTruthSpec(tolerance="1:3").make(ids, query, maps=maps)
+    by_m = GroundTruthSpec(tolerance_m="15:35").make(ids, query, maps=maps)
     assert by_m.is_sparse
     assert np.array_equal(by_id.hard, by_m.hard) and np.array_equal(by_id.soft, by_m.soft)
 

@@ -82,7 +82,7 @@ def test_bad_video_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(TopolocError, match=r"clip\.mp4") as exc:
         open_source(bad)
     assert "\n" not in str(exc.value)
-    with pytest.raises(TopolocError, match="--every-m needs positions"):
+    with pytest.raises(TopolocError, match="every_m needs positions"):
         open_source(_write_video(tmp_path / "v.avi", [np.zeros((32, 32), np.uint8)] * 2), every_m=1.0)
 
 
@@ -171,7 +171,7 @@ def test_bag_errors_are_one_line(tmp_path: Path, recordings: dict[str, Any], sto
     bag = _route_bag(_bag_path(tmp_path, storage), storage, recordings, frames)
     with pytest.raises(TopolocError, match=rf"topic /nope is not in the bag \(image topics: {RAW}, {CAM}\): .*{bag}"):
         open_source(bag, topic="/nope")
-    with pytest.raises(TopolocError, match=f"give the image topic with --topic NAME .*{RAW}, {CAM}"):
+    with pytest.raises(TopolocError, match=f"give the image topic with topic=NAME .*{RAW}, {CAM}"):
         open_source(bag)
     with pytest.raises(TopolocError, match=f"topic {ODOM} is nav_msgs/Odometry, not an image topic"):
         open_source(bag, topic=ODOM)
@@ -180,7 +180,7 @@ def test_bag_errors_are_one_line(tmp_path: Path, recordings: dict[str, Any], sto
         open_source(odd, topic=RAW)
     no_pose = recordings["write_bag"](_bag_path(tmp_path, storage, "nopose"), storage,
                                       [(CAM, "compressed", recordings["T0"], (recordings["jpeg"](frames[0]),))])
-    with pytest.raises(TopolocError, match="--every-m needs an odometry, pose or GPS topic"):
+    with pytest.raises(TopolocError, match="every_m needs an odometry, pose or GPS topic"):
         open_source(no_pose, every_m=1.0)
     assert len(list(open_source(no_pose, every_s=1.0).frames())) == 1
 
@@ -215,7 +215,7 @@ def test_missing_rosbags_names_the_extra(tmp_path: Path, monkeypatch: pytest.Mon
 def test_keyframe_options_are_checked() -> None:
     with pytest.raises(TopolocError, match="not both"):
         Keyframes(every_s=1.0, every_m=1.0)
-    with pytest.raises(TopolocError, match="--every-s must be a number >= 0"):
+    with pytest.raises(TopolocError, match="every_s must be a number >= 0"):
         Keyframes(every_s=-1.0)
     k = Keyframes(every_m=1.0)
     assert not k.keep(0.0, None) and k.keep(0.1, (0.0, 0.0)) and not k.keep(0.2, (0.5, 0.5))

@@ -87,9 +87,9 @@ def _resolve(names: list[str], roots: list[Path], src: Path, what: str) -> list[
         else:
             missing.append(name)
     if missing:
-        option = "--query-images" if what == "query" else "--images"
+        option = "query_images" if what == "query" else "images"
         raise input_error(f"{len(missing)} of {len(names)} {what} images named in dbStruct are missing under "
-                          f"{roots[0]} (first: {missing[0]}); pass {option} FOLDER", src)
+                          f"{roots[0]} (first: {missing[0]}); give {option}=FOLDER", src)
     return out
 
 

@@ -31,7 +31,7 @@ def poses_file(seq: Path, options: ConvertOptions) -> Path:
         if p.is_file():
             return p
     raise input_error(f"no KITTI poses file (looked for ../../poses/{seq.resolve().name}.txt and poses.txt; "
-                      "pass --poses FILE)", seq)
+                      "give poses=FILE)", seq)
 
 
 def read_poses(path: Path) -> np.ndarray:

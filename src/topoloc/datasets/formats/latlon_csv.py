@@ -32,7 +32,7 @@ def read(src: Path, options: ConvertOptions) -> Dataset:
         raise input_error("CSV file does not exist", src)
     unknown = sorted(set(options.columns) - set(COLUMN_KEYS))
     if unknown:
-        raise input_error(f"--column {unknown[0]!r} is not one of {', '.join(COLUMN_KEYS)}", src)
+        raise input_error(f"columns key {unknown[0]!r} is not one of {', '.join(COLUMN_KEYS)}", src)
     header, rows = read_rows(src)
     cols: dict[str, str | None] = {}
     for key, candidates in (("image", IMAGE_COLUMNS), ("lat", LAT_COLUMNS), ("lon", LON_COLUMNS),
@@ -41,9 +41,9 @@ def read(src: Path, options: ConvertOptions) -> Dataset:
         cols[key] = find_column(header, candidates, override)
         if cols[key] is None and key != "time":
             tried = override or ", ".join(candidates)
-            raise input_error(f"CSV has no {key} column (looked for {tried}; name it with --column {key}=NAME)", src)
+            raise input_error(f"CSV has no {key} column (looked for {tried}; name it with columns {key}=NAME)", src)
         if cols[key] is None and override:
-            raise input_error(f"CSV has no column {override!r} for --column time", src)
+            raise input_error(f"CSV has no column {override!r} for columns time", src)
     root = Path(options.images) if options.images is not None else src.parent
     images: list[Path] = []
     lat, lon = np.empty(len(rows)), np.empty(len(rows))

@@ -13,10 +13,9 @@ from topoloc.datasets.sources.base import (
     Keyframes,
     is_bag,
     is_stream_input,
-    load_input,
-    open_source,
     stream_traverse,
 )
+from topoloc.datasets.sources.recording import load_input, open_source
 
 __all__ = [
     "VIDEO_SUFFIXES",

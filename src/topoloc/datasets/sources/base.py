@@ -1,4 +1,4 @@
-"""What every frame source shares: the frame record, keyframe selection, and opening a path.
+"""What every frame source shares: the frame record, keyframe selection, a recording as a traverse.
 
 A *source* is a recording read as a stream: a ROS 1 bag, a ROS 2 bag (rosbag2
 folder, sqlite3 or MCAP storage) or a video file.  :meth:`FrameSource.frames`
@@ -10,14 +10,16 @@ the recording's length.  Frames not selected as keyframes are not decoded.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+import numbers
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple, Protocol
+from typing import Any, ClassVar, NamedTuple, Protocol
 
 import numpy as np
 
-from topoloc.datasets.traverse import IMAGE_SUFFIXES, Traverse, load_traverse
+from topoloc._params import Check, Configurable, Constraint
+from topoloc.datasets.traverse import IMAGE_SUFFIXES, Traverse
 from topoloc.errors import TopolocError, input_error
 
 VIDEO_SUFFIXES = frozenset({
@@ -63,8 +65,13 @@ class FrameSource(Protocol):
         ...
 
 
+def _distance(value: Any) -> bool:
+    return value is None or (isinstance(value, numbers.Real) and not isinstance(value, bool)
+                             and math.isfinite(value) and float(value) >= 0)
+
+
 @dataclass
-class Keyframes:
+class Keyframes(Configurable):
     """Keep a frame when ``every_s`` seconds or ``every_m`` metres have passed since the last kept one.
 
     The first frame is always kept; with neither set, every frame is.  Distance is the straight
@@ -76,12 +83,19 @@ class Keyframes:
     _t: float | None = field(default=None, init=False, repr=False)
     _xy: tuple[float, float] | None = field(default=None, init=False, repr=False)
 
+    parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
+        "every_s": Check(_distance, "a number >= 0 (or None)"),
+        "every_m": Check(_distance, "a number >= 0 (or None)"),
+    }
+
+    @classmethod
+    def param_owner(cls) -> str:
+        return "keyframes"
+
     def __post_init__(self) -> None:
-        for flag, value in (("--every-s", self.every_s), ("--every-m", self.every_m)):
-            if value is not None and not (math.isfinite(value) and value >= 0):
-                raise TopolocError(f"{flag} must be a number >= 0, got {value}")
+        self.validate_params()
         if self.every_s is not None and self.every_m is not None:
-            raise TopolocError("give --every-s or --every-m, not both")
+            raise TopolocError("keyframes: give every_s or every_m, not both")
 
     def keep(self, time_s: float, xy: tuple[float, float] | None = None) -> bool:
         """Whether the frame at ``time_s`` (at ``xy``) is a keyframe; remembers it if so."""
@@ -129,48 +143,6 @@ def is_stream_input(path: str | Path, *, images_are_files: bool = True) -> bool:
     return p.stat().st_size > 0 and not cv2.haveImageReader(str(p))
 
 
-def open_source(
-    path: str | Path, *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
-    pose_topic: str | None = None, gray: bool = True,
-) -> FrameSource:
-    """Open a bag or a video for streaming; every check that can fail early is made here.
-
-    Parameters
-    ----------
-    path : path
-        A ``.bag`` file, a rosbag2 folder, or a video file.
-    topic : str, optional
-        Image topic of a bag (sensor_msgs/Image or CompressedImage); may be left out when the bag
-        has one image topic.  Ignored for a video.
-    every_s, every_m : float, optional
-        Keyframes: one every ``every_s`` seconds, or every ``every_m`` metres (bags with an
-        odometry, pose or GPS topic).
-    pose_topic : str, optional
-        The pose/GPS topic (default: the first odometry, else pose, else GPS topic of the bag).
-    gray : bool
-        Decode frames grey (as ``localize`` and feature extraction read images) or BGR.
-
-    Raises
-    ------
-    TopolocError
-        Naming the file: not a bag or video, a missing topic (the bag's image topics listed),
-        ``--every-m`` without positions, the ``rosbags`` package missing.
-    """
-    p = Path(path)
-    keyframes = Keyframes(every_s=every_s, every_m=every_m)
-    if not p.exists():
-        raise input_error("input does not exist", p)
-    if is_bag(p):
-        from topoloc.datasets.sources.rosbag import BagSource
-
-        return BagSource(p, topic=topic, keyframes=keyframes, pose_topic=pose_topic, gray=gray)
-    from topoloc.datasets.sources.video import VideoSource
-
-    if every_m is not None:
-        raise input_error("--every-m needs positions: a bag with an odometry, pose or GPS topic, not a video", p)
-    return VideoSource(p, keyframes=keyframes, gray=gray)
-
-
 def stream_traverse(source: FrameSource, *, name: str | None = None) -> Traverse:
     """The keyframes of a recording as an in-memory traverse (times, and x, y when the bag has positions).
 
@@ -194,19 +166,3 @@ def stream_traverse(source: FrameSource, *, name: str | None = None) -> Traverse
     label = name or source.path.name
     return Traverse.from_images(images, name=label, times=stamps,
                                 xy=np.asarray(xy, dtype=np.float64) if have_xy else None)
-
-
-def load_input(
-    path: str | Path, *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
-    pose_topic: str | None = None,
-) -> Traverse:
-    """A traverse from a folder (``load_traverse``), or from a bag or video (:func:`stream_traverse`).
-
-    ``topic``, ``every_s``, ``every_m`` and ``pose_topic`` apply to recordings only (a command may
-    take folders and recordings together).
-    """
-    p = Path(path)
-    if is_bag(p) or (p.is_file() and is_stream_input(p, images_are_files=False)):
-        return stream_traverse(open_source(p, topic=topic, every_s=every_s, every_m=every_m,
-                                           pose_topic=pose_topic))
-    return load_traverse(p)

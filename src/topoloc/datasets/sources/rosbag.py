@@ -141,7 +141,7 @@ class BagSource:
             "it has no sensor_msgs/Image or CompressedImage topic"
         if topic is None:
             if len(images) != 1:
-                raise input_error(f"give the image topic with --topic NAME ({listed})", path)
+                raise input_error(f"give the image topic with topic=NAME ({listed})", path)
             topic = images[0]
         elif topic not in topics:
             raise input_error(f"topic {topic} is not in the bag ({listed})", path)
@@ -160,7 +160,7 @@ class BagSource:
         self.pose_topic = pose_topic if pose_topic is not None else (poses[0] if poses else None)
         self.has_positions = self.pose_topic is not None
         if self.keyframes.every_m is not None and not self.has_positions:
-            raise input_error("--every-m needs an odometry, pose or GPS topic (nav_msgs/Odometry, "
+            raise input_error("every_m needs an odometry, pose or GPS topic (nav_msgs/Odometry, "
                               "geometry_msgs/PoseStamped, sensor_msgs/NavSatFix); the bag has none", path)
         if self._count:
             next(self._raw_images(limit=1), None)  # decodes the first image: fails here, not later

@@ -40,7 +40,7 @@ import numpy as np
 from topoloc._parallel import n_workers
 from topoloc.cluster import Executor, LocalExecutor, flatten
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
+from topoloc.errors import ParameterError, TopolocError
 from topoloc.progress import ProgressFactory, no_progress
 
 if TYPE_CHECKING:
@@ -132,7 +132,8 @@ class _MemoisedResources:
     @property
     def vocabulary(self) -> Vocabulary:
         if self._vocabulary is None:
-            raise TopolocError("this method needs a visual vocabulary: pass --vocab or --vocab-train")
+            raise ParameterError("vocabulary", "is needed by this method (it needs a visual vocabulary): give a "
+                                               "vocabulary file or folders to train one on")
         if callable(self._vocabulary) and not hasattr(self._vocabulary, "quantize"):
             self._vocabulary = self._vocabulary()
         return self._vocabulary  # type: ignore[return-value]
@@ -251,10 +252,8 @@ class _MemoisedResources:
 
             folders = self.vocabulary.provenance_.get("folders", []) if self.has_vocabulary else []
             if not folders:
-                raise TopolocError(
-                    "this method needs training images: pass --vocab-train (the vocabulary file "
-                    "does not record its training folders)"
-                )
+                raise ParameterError("vocabulary.train", "is needed: this method needs training images and the "
+                                                         "vocabulary file does not record its training folders")
             images = find_images(folders)
         # A pseudo-traverse over the training files; its root only keys the memo.
         common = Path(os.path.commonpath([str(p.parent.resolve()) for p in images]))

@@ -10,8 +10,8 @@ import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
+from topoloc.evaluation.slam import run_slam, save_fabmap_model
 from topoloc.fabmap.model import FabMapModel
-from topoloc.methods.slam import run_slam
 from topoloc.synth.words import loop_sequence as make_loop
 
 V = 400
@@ -31,7 +31,7 @@ def test_run_slam_writes_outputs(model: FabMapModel, tmp_path: Path) -> None:
     images = tuple(tmp_path / f"{k}.jpg" for k in range(len(seq)))
     tr = Traverse(root=tmp_path, images=images, places=np.arange(len(seq)))
     model_file = tmp_path / "m.tfm"
-    model.save(model_file)
+    save_fabmap_model(model, model_file)
     out = tmp_path / "out"
     res = run_slam(tr, out_dir=out, model=model_file, words=seq, min_gap=5)
     post = np.load(out / "posterior.npy")

@@ -1,13 +1,15 @@
 """Match drawings as in the Cooc-Map paper's Fig. 1 and 5 (``topoloc show-match``).
 
 The query image is drawn beside a training image of the best location with a
-line for every correspondence of the final consistent group ``K``.  The model
-stores no images or per-tour feature lists, so the training image is taken
-from the map traverses: among the images of the best place, the one whose
-features contain the most words of ``K``; each query feature of ``K`` is
-joined to the feature of the same word in that image whose offset is closest
-to the median offset of all same-word pairs (a drawing aid only; matching
-never uses it).
+line for every correspondence of the final consistent group ``K``, which the
+method declares (:meth:`~topoloc.methods.cooc_map.CoocMap.consistent_group`,
+a :class:`~topoloc.methods.cooc_map.FeatureGroup`; any recogniser with that
+method is drawn the same way).  The model stores no images or per-tour
+feature lists, so the training image is taken from the map traverses: among
+the images of the best place, the one whose features contain the most words
+of ``K``; each query feature of ``K`` is joined to the feature of the same
+word in that image whose offset is closest to the median offset of all
+same-word pairs (a drawing aid only; matching never uses it).
 """
 
 from __future__ import annotations
@@ -15,17 +17,27 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
 
-from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import input_error
 from topoloc.io.container import atomic_write_bytes
-from topoloc.methods.cooc_map import CoocMap
-from topoloc.methods.resources import Resources
+from topoloc.methods.cooc_map import CoocMap, FeatureGroup
+from topoloc.resources import Resources
+
+
+@runtime_checkable
+class GroupMatcher(Protocol):
+    """A fitted recogniser that says which query features made its match (Cooc-Map's ``K``)."""
+
+    place_ids_: np.ndarray
+    resources_: Resources
+
+    def consistent_group(self, query: Traverse, *, index: int = 0,
+                         resources: Resources | None = None) -> FeatureGroup: ...
 
 
 def draw_correspondences(query_bgr: np.ndarray, map_bgr: np.ndarray, pts_query: np.ndarray,
@@ -81,7 +93,7 @@ def frame_pixels(traverse: Traverse, index: int, shape: tuple[int, int]) -> np.n
 
 @dataclass
 class _GroupMatch:
-    """One query matched by Cooc-Map, with the map image of its best place that holds most words of ``K``."""
+    """One query's declared group, with the map image of its best place that holds most words of the group."""
 
     words: np.ndarray
     kp: np.ndarray
@@ -95,17 +107,16 @@ class _GroupMatch:
     map_shape: tuple[int, int]
 
 
-def _group_match(method: CoocMap, query: Traverse, maps: Sequence[Traverse], index: int,
-                 resources: Resources | None) -> _GroupMatch:
-    method.check_fitted()
+def _group_match(method: GroupMatcher, query: Traverse, maps: Sequence[Traverse], index: int,
+                 resources: Resources | None, g: FeatureGroup | None = None) -> _GroupMatch:
+    if g is None:
+        g = method.consistent_group(query, index=index, resources=resources)
     res = resources if resources is not None else method.resources_
     fs = res.features(query)[index]
-    k = method.max_features or None
-    words = np.asarray(res.words(query)[index], np.int64)[:k]
+    k = g.used
+    words, group = g.words, g.group
     kp = fs.keypoints[:k, :2]
-    graphs, result = method.match((words, normalise_xy(kp, fs.image_shape)))
-    group = result.group(graphs, result.best)
-    place = int(method.place_ids_[result.best])
+    place = int(method.place_ids_[g.row])
     # The training image of the best place holding the most words of K.
     best_ref, best_hits, best_feats = None, -1, None
     for t in maps:
@@ -118,7 +129,7 @@ def _group_match(method: CoocMap, query: Traverse, maps: Sequence[Traverse], ind
     if best_ref is None or best_feats is None:
         raise input_error("the best place has no image in the map traverses", str(place))
     return _GroupMatch(words=words, kp=kp.astype(np.float64), shape=fs.image_shape, group=group, place=place,
-                       score=float(result.scores[result.best]), map_ref=best_ref,
+                       score=g.score, map_ref=best_ref,
                        map_words=np.asarray(best_feats[0]),
                        map_kp=best_feats[1].keypoints[:k, :2].astype(np.float64),
                        map_shape=best_feats[1].image_shape)
@@ -159,10 +170,13 @@ def match_drawing(
 
 
 def group_correspondences(
-    method: CoocMap, query: Traverse, maps: Sequence[Traverse], *, index: int = 0,
-    resources: Resources | None = None,
+    method: GroupMatcher, query: Traverse, maps: Sequence[Traverse], *, index: int = 0,
+    resources: Resources | None = None, group: FeatureGroup | None = None,
 ) -> tuple[Traverse, int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The map image of the best place drawn by :func:`match_drawing` and its correspondences.
+
+    ``method`` is any fitted recogniser that declares ``consistent_group`` (:class:`GroupMatcher`);
+    ``group`` is what it returned for this image, when already at hand.
 
     Returns
     -------
@@ -171,7 +185,7 @@ def group_correspondences(
         (each query feature to the same-word map feature nearest the median offset) and whether the
         query feature is in the final consistent group ``K``.
     """
-    m = _group_match(method, query, maps, index, resources)
+    m = _group_match(method, query, maps, index, resources, group)
     in_group = np.zeros(len(m.words), bool)
     in_group[m.group] = True
     # Pair every query feature whose word the image has; K's pairs as match_drawing pairs them.

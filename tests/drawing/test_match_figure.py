@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from topoloc.cli.main import app
-from topoloc.methods.match_figure import draw_labelled, query_info
+from topoloc.drawing.match_figure import draw_labelled, query_info
 from topoloc.synth import RouteConfig, generate_route
 
 runner = CliRunner()

@@ -11,12 +11,15 @@ consistency: green for those in the consistent group (Cooc-Map's final group
 red (faint) for the rest, so that a wrong match, with few consistent lines and many
 inconsistent ones, can be told from a right one.
 
-For ``coocmap`` at its best place the green lines are the method's own group
-``K`` (:func:`topoloc.methods.show_match.match_drawing`); for every other
+At its best place, a method that declares which query features made its
+match (``consistent_group``, :class:`~topoloc.drawing.show_match.GroupMatcher`:
+Cooc-Map's group ``K``) is drawn with that group in green
+(:func:`topoloc.drawing.show_match.group_correspondences`); for every other
 method, and for a place chosen with ``place=``, correspondences are ratio-test
 matches of the query's descriptors to the map image's, split by a RANSAC
 fundamental matrix (exactly what ``voting`` scores; a drawing aid for the
-other methods).
+other methods).  A method whose ranks are not all exact says so through
+``rank_note(rank)``, printed under the score.
 """
 
 from __future__ import annotations
@@ -30,12 +33,12 @@ import cv2
 import numpy as np
 
 from topoloc.datasets.traverse import Traverse, load_traverse
-from topoloc.errors import TopolocError, input_error
+from topoloc.drawing.show_match import GroupMatcher, frame_pixels, group_correspondences
+from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.geometry import epipolar_inliers
 from topoloc.io.container import atomic_write_bytes
 from topoloc.methods.base import PlaceRecognizer
-from topoloc.methods.resources import Resources
-from topoloc.methods.show_match import frame_pixels
+from topoloc.resources import Resources
 
 GREEN = (60, 200, 60)
 RED = (40, 40, 230)
@@ -200,19 +203,15 @@ def labelled_match(
     else:
         rows = np.flatnonzero(ids == place)
         if not len(rows):
-            raise TopolocError(f"--place {place} is not a place of the map (places {ids.min()}..{ids.max()})")
+            raise ParameterError("place", f"{place} is not a place of the map (places {ids.min()}..{ids.max()})")
         row = int(rows[0])
     drawn = int(ids[row])
     rank = int((S > S[row]).sum()) + 1
     qfeats = resources.features(query)[0]
-    use_group = method.name == "coocmap" and row == best_row
-    if use_group:
-        from topoloc.methods.cooc_map import CoocMap
-        from topoloc.methods.show_match import group_correspondences
-
-        assert isinstance(method, CoocMap)
-        t, i, (pq, pm, consistent) = group_correspondences(method, query, maps, resources=resources)
-        how = "Cooc-Map consistent group K (green) / same-word pairs outside K (red)"
+    if isinstance(method, GroupMatcher) and row == best_row:
+        g = method.consistent_group(query, resources=resources)
+        t, i, (pq, pm, consistent) = group_correspondences(method, query, maps, resources=resources, group=g)
+        how = f"{g.label} {g.symbol} (green) / same-word pairs outside {g.symbol} (red)"
     else:
         t, i, (pq, pm, consistent) = _place_image(maps, drawn, resources, qfeats, seed=0)
         how = "ratio-test matches: epipolar RANSAC inliers (green) / outliers (red)"
@@ -226,10 +225,10 @@ def labelled_match(
     bottom = [f"{method.name}: score {S[row]:.4g}, rank {rank} of {len(S)} places"
               + (f" (best: place {int(ids[best_row])}, score {S[best_row]:.4g})" if row != best_row else ""),
               f"{n_cons} consistent correspondences of {len(pq)} drawn; {how}"]
-    top_k = getattr(method, "top_k", None)
-    if method.name == "coocmap" and getattr(method, "simultaneous", False) and top_k is not None and rank > top_k:
-        bottom.append(f"(Cooc-Map with simultaneous matching: scores beyond rank {top_k} are bounds, "
-                      "so this rank is approximate)")
+    rank_note = getattr(method, "rank_note", None)
+    note = rank_note(rank) if rank_note is not None else ""
+    if note:
+        bottom.append(note)
     correct = None
     verdict = None
     if qinfo.place is not None:

@@ -1,0 +1,142 @@
+"""Every option shared by several commands, defined once with one help text, and the flag of each parameter.
+
+Commands parse their options into a run specification (:mod:`topoloc.spec`)
+with :func:`spec_from_cli`; a configuration file (``--config``) gives the
+settings a flag does not, and a flag given on the command line overrides it.
+Library errors name a parameter (``features.max_side``); :func:`flag_of`
+turns it into the flag the user typed (``--max-side``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from topoloc.errors import TopolocError
+
+S = TypeVar("S")
+
+# -- what a run reads -------------------------------------------------------------------------------------
+MapToursOption = Annotated[list[Path] | None, typer.Option(
+    "--map", help="Map traverse (repeatable): a folder, a ROS bag (--topic) or a video.")]
+QueryOption = Annotated[Path | None, typer.Option(
+    help="Query traverse: a folder, a ROS bag (--topic) or a video.")]
+MethodOption = Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")]
+ParamOption = Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")]
+ConfigOption = Annotated[Path | None, typer.Option(
+    "--config", help="Settings file (TOML, YAML, or a run's metrics.json); flags given here override it.")]
+# -- features and vocabulary ------------------------------------------------------------------------------
+FeaturesOption = Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")]
+MaxFeaturesOption = Annotated[int, typer.Option(help="Cap on features per image.")]
+MaxSideAutoOption = Annotated[str, typer.Option(
+    help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
+         "the traverses when their sizes differ (a map: the smallest among its tours), 0 = never.")]
+MaxSideOption = Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")]
+PreprocessOption = Annotated[str, typer.Option(
+    help="Photometric preprocessing: auto (default; CLAHE weighted per image by how far its "
+         "histogram is from uniform, so dark night frames are equalised and well-exposed ones barely "
+         "touched), none, clahe, equalize.")]
+VocabOption = Annotated[Path | None, typer.Option(help="Vocabulary file (topoloc vocab train).")]
+VocabTrainOption = Annotated[list[Path] | None, typer.Option(
+    "--vocab-train", help="Folders (searched recursively) to train a vocabulary on (repeatable).")]
+VocabWordsOption = Annotated[int, typer.Option(help="Words when training with --vocab-train.")]
+# -- ground truth and matching ----------------------------------------------------------------------------
+ToleranceOption = Annotated[str, typer.Option(help="Ground-truth tolerance HARD:SOFT in place ids.")]
+ToleranceMOption = Annotated[str | None, typer.Option(
+    "--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")]
+SequenceOption = Annotated[int | None, typer.Option(
+    help="Sequence matching over each query and the N >= 1 before it (off when not given).")]
+SequenceModeOption = Annotated[str, typer.Option(
+    help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
+# -- where it runs and what it shows ----------------------------------------------------------------------
+CacheDirOption = Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")]
+QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
+SchedulerOption = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address (tcp://host:8786): feature extraction and quantisation run on its "
+                        "workers, which must see the cache folder at the same path; default $TOPOLOC_SCHEDULER, "
+                        "else this machine's threads. Needs pip install 'topoloc\\[distributed]'.")]
+SchedulerTimeoutOption = Annotated[float | None, typer.Option(
+    "--scheduler-timeout", help="Seconds to wait for the scheduler and a worker before a one-line error "
+                                "(default $TOPOLOC_SCHEDULER_TIMEOUT, else 10).")]
+# -- recordings -------------------------------------------------------------------------------------------
+TopicOption = Annotated[str | None, typer.Option(
+    "--topic", help="Image topic of ROS bags (sensor_msgs/Image or CompressedImage); needed when a bag has "
+                    "several.")]
+EverySOption = Annotated[float | None, typer.Option(
+    "--every-s", help="Bags and videos: keep one frame every T seconds.")]
+EveryMOption = Annotated[float | None, typer.Option(
+    "--every-m", help="Bags with an odometry, pose or GPS topic: keep one frame every D metres.")]
+PoseTopicOption = Annotated[str | None, typer.Option(
+    "--pose-topic", help="Bags: the odometry, pose or GPS topic for --every-m and x, y (default: the bag's first).")]
+
+# Command-line names that differ from the specification's flat names (topoloc.spec.FLAT_NAMES).
+_CLI_TO_FLAT = {"map": "maps", "param": "params"}
+_FLAT_TO_FLAG = {"vocabulary": "--vocab/--vocab-train", "maps": "--map", "params": "--param", "images": "INPUTS",
+                 "folders": "FOLDERS", "map_file": "--map-file"}
+_NOT_SPEC = {"config", "quiet", "ctx"}
+
+
+def flag_of(param: str, names: Mapping[str, str] | None = None) -> str:
+    """The flag a parameter of a run specification comes from: ``features.max_side`` -> ``--max-side``.
+
+    ``names`` are the command's own flat names for dotted ones (``vocab train``'s ``words``).
+    """
+    from topoloc.spec.config import DOTTED_NAMES
+
+    parts = []
+    for one in param.split("/"):
+        own = {dotted: flat for flat, dotted in (names or {}).items()}
+        flat = own.get(one) or DOTTED_NAMES.get(one, one)
+        parts.append(_FLAT_TO_FLAG.get(flat) or "--" + flat.replace("_", "-").replace(".", "-"))
+    return "/".join(parts)
+
+
+def parse_params(items: list[str]) -> dict[str, str]:
+    """``["k=v", ...]`` of ``--param`` (or ``--column``) -> ``{"k": "v"}``."""
+    out = {}
+    for it in items:
+        if "=" not in it:
+            raise TopolocError(f"--param {it!r} is not KEY=VALUE")
+        k, v = it.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def sequence_length(n: int | None) -> int:
+    """``--sequence N``: absent means off; a given N must be >= 1 (0 would silently mean "off")."""
+    if n is None:
+        return 0
+    if n < 1:
+        raise TopolocError(f"--sequence must be >= 1 (leave it out to match single images), got {n}")
+    return n
+
+
+def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *, config: Path | None = None,
+                  names: Mapping[str, str] | None = None) -> S:
+    """The run specification ``cls`` from a command's option values (and ``--config``).
+
+    Without ``config`` every value counts; with it, only the options given on
+    the command line (or in the environment) override the file's settings.
+    """
+    from topoloc.spec import load_config, merge, nest, spec_from_dict
+
+    flat: dict[str, Any] = {}
+    for key, value in values.items():
+        if key in _NOT_SPEC:
+            continue
+        if config is not None:
+            source = ctx.get_parameter_source(key)
+            if getattr(source, "name", None) not in ("COMMANDLINE", "ENVIRONMENT"):
+                continue
+        if key == "param":
+            value = parse_params(value or [])
+        elif key == "sequence":
+            value = sequence_length(value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        flat[_CLI_TO_FLAT.get(key, key)] = value
+    base = load_config(config) if config is not None else {}
+    return spec_from_dict(cls, merge(base, nest(flat, names=names)), source=config)

@@ -1,0 +1,86 @@
+"""Frames one at a time from image files, folders, ROS bags and videos, every input checked first.
+
+What ``localize`` reads: unlike a :class:`~topoloc.datasets.traverse.Traverse`,
+nothing is held in memory but the frame being decoded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from topoloc.datasets.traverse import IMAGE_SUFFIXES, natural_key, read_image
+from topoloc.errors import input_error
+
+
+def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
+    """Image files named directly or found in folders (natural order), in the order given.
+
+    Raises
+    ------
+    TopolocError
+        For an input that does not exist or a folder without images (checked before any is yielded).
+    """
+    files: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            found = sorted((p for p in item.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                           key=lambda p: natural_key(p.name))
+            if not found:
+                raise input_error("folder holds no images", item)
+            files.extend(found)
+        elif item.is_file():
+            files.append(item)
+        else:
+            raise input_error("input does not exist", item)
+    import cv2
+
+    # Before the first frame: an empty file or one no decoder recognises (its header) stops the run
+    # here, not after an hour of frames; a file damaged further in still fails when it is reached.
+    for f in files:
+        if f.stat().st_size == 0:
+            raise input_error("image file is empty", f)
+        if not cv2.haveImageReader(str(f)):
+            raise input_error("not an image OpenCV can read", f)
+    yield from files
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """A grey frame from a file, decoded as the map's own images were (one-line error if unreadable)."""
+    return read_image(path, gray=True)
+
+
+def frame_stream(
+    inputs: Sequence[Path], *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
+    pose_topic: str | None = None,
+) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
+    """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
+
+    Every input is opened and checked before the first frame; bags and videos
+    are then streamed (one frame decoded at a time, nothing kept).
+    """
+    from topoloc.datasets.sources import FrameSource, is_stream_input, open_source
+
+    parts: list[list[Path] | FrameSource] = []
+    for item in inputs:
+        if is_stream_input(item):
+            parts.append(open_source(item, topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic))
+        else:
+            parts.append(list(iter_inputs([item])))
+    total = sum(len(p) for p in parts)
+
+    def frames() -> Iterator[tuple[str, float | None, np.ndarray]]:
+        for part in parts:
+            if isinstance(part, list):
+                for path in part:
+                    yield path.name, None, read_frame(path)
+            else:
+                for f in part.frames():
+                    yield f.name, f.time_s, f.image
+
+    return total, frames()
+
+
+__all__ = ["frame_stream", "iter_inputs", "read_frame"]

@@ -1,0 +1,393 @@
+"""The parts a run is made of, each validated once, when it is made.
+
+A command (``evaluate``, ``map build``, ``localize``, ...) is described by a
+few small frozen dataclasses composed together (:mod:`topoloc.spec.runs`):
+
+* :class:`FeatureSpec` -- which local features, at what image scale;
+* :class:`VocabularySpec` -- a vocabulary file, or folders to train one on;
+* :class:`InputSpec` -- how recordings (ROS bags, videos) are turned into frames;
+* :class:`GroundTruthSpec` -- what counts as the right place;
+* :class:`SequenceSpec` -- sequence matching over the last frames;
+* :class:`ExecutionSpec` -- where per-image work runs and what it caches.
+
+Every check of a user's value lives here, once: a bad value raises
+:class:`~topoloc.errors.ParameterError` naming the parameter by its dotted
+name (``features.max_side``), before any image is read.  The command line
+names the flag instead (``topoloc.cli.options``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from topoloc.errors import ParameterError, TopolocError
+
+if TYPE_CHECKING:  # numpy and the readers are not imported when the command line starts
+    import numpy as np
+
+    from topoloc.datasets.groundtruth import GroundTruth
+    from topoloc.datasets.traverse import Traverse
+    from topoloc.features import FeatureConfig
+
+SEQUENCE_MODES = ("constant", "acceleration")
+
+
+def _positive(param: str, value: float | None, *, what: str = "a positive number") -> float | None:
+    """``value`` itself when it is None or a finite number > 0; else one line naming ``param``."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+        raise ParameterError(param, f"must be {what}, got {value!r}")
+    return float(value)
+
+
+def _paths(value: Any) -> tuple[Path, ...]:
+    if value is None:
+        return ()
+    if isinstance(value, str | Path):
+        return (Path(value),)
+    return tuple(Path(v) for v in value)
+
+
+def _opt_path(value: Any) -> Path | None:
+    return None if value is None or value == "" else Path(value)
+
+
+def parse_recall_at(text: str | Sequence[int]) -> tuple[int, ...]:
+    """``"1,5,10,20"`` -> ``(1, 5, 10, 20)``: the N of R@N, each a positive integer.
+
+    Raises
+    ------
+    ParameterError
+        For an empty list, a value that is not an integer, or N < 1.
+    """
+    items = [str(t).strip() for t in (text.split(",") if isinstance(text, str) else text)]
+    try:
+        ks = tuple(sorted({int(t) for t in items if t}))
+    except ValueError:
+        raise ParameterError("recall_at", f"{text!r} is not a comma-separated list of integers") from None
+    if not ks or ks[0] < 1:
+        raise ParameterError("recall_at", f"{text!r} needs one or more N >= 1")
+    return ks
+
+
+# -- features -------------------------------------------------------------------------------------------
+def parse_max_side(value: int | str) -> int | str:
+    """``"auto"`` or a number of pixels >= 0 (0 = no resizing), from a user's text or number."""
+    text = str(value).strip().lower()
+    if text == "auto":
+        return "auto"
+    try:
+        side = int(text)
+    except ValueError:
+        raise ParameterError("features.max_side", f"must be 'auto' or a number of pixels, got {value!r}") from None
+    if side < 0:
+        raise ParameterError("features.max_side", f"must be >= 0 (0 = no resizing), got {side}")
+    return side
+
+
+@dataclass(frozen=True)
+class FeatureSpec:
+    """Which local features a run extracts, and at what scale.
+
+    Parameters
+    ----------
+    method : {"sift", "rootsift", "orb", "akaze"}
+    max_features : int
+        Strongest keypoints kept per image.
+    max_side : int or "auto"
+        Longer image side to downscale to before extraction (0 = never);
+        ``"auto"`` reconciles the image sizes of the run's traverses
+        (:meth:`config_for_run`, :meth:`config_for_map`).
+    preprocess : {"auto", "none", "clahe", "equalize"}
+        Photometric preprocessing (:class:`~topoloc.features.FeatureConfig`).
+    """
+
+    method: str = "sift"
+    max_features: int = 1000
+    max_side: int | str = "auto"
+    preprocess: str = "auto"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "max_side", parse_max_side(self.max_side))
+        self._config(0)  # method, max_features and preprocess are FeatureConfig's own checks
+
+    def _config(self, side: int) -> FeatureConfig:
+        from topoloc.features import FeatureConfig
+
+        try:
+            return FeatureConfig(method=self.method, max_features=self.max_features, max_side=side,
+                                 preprocess=self.preprocess)
+        except ParameterError as exc:
+            raise ParameterError(f"features.{exc.param.rsplit('.', 1)[-1]}", exc.detail) from None
+
+    def config_for_run(self, traverses: Sequence[Traverse], *, images: Sequence[Path] = ()) -> FeatureConfig:
+        """Feature settings for an evaluation of these traverses (and single ``images``).
+
+        SIFT and its kin are scale-invariant only up to their sampling of scale
+        space: the same scene imaged at 960 and at 640 pixels yields different
+        keypoints, which costs matches between traverses taken with different
+        cameras (on gardens_point the night traverse is 640 x 360, the day ones
+        960 x 540).  ``"auto"`` therefore extracts every traverse at the smallest
+        longer side found when the sizes differ, and does not resize when they
+        agree.  The first, middle and last image of each traverse are read.
+        """
+        if self.max_side != "auto":
+            return self._config(int(self.max_side))
+        from topoloc.datasets.traverse import probe_image_sides, read_image
+
+        sides = {max(read_image(path).shape[:2]) for path in images} | probe_image_sides(traverses)
+        return self._config(min(sides) if len(sides) > 1 else 0)
+
+    def config_for_map(self, tours: Sequence[Traverse]) -> FeatureConfig:
+        """Feature settings a map records: ``"auto"`` is the smallest longer side among its tours.
+
+        The map keeps this scale, so that later queries from a larger camera
+        are described at the map's scale.
+        """
+        if self.max_side != "auto":
+            return self._config(int(self.max_side))
+        from topoloc.datasets.traverse import probe_image_sides
+
+        sides = probe_image_sides(tours)
+        return self._config(min(sides) if sides else 0)
+
+
+# -- vocabulary -----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class VocabularySpec:
+    """Where a run's visual vocabulary comes from: a file, or folders to train one on (cached).
+
+    Parameters
+    ----------
+    file : Path, optional
+        A vocabulary written by ``topoloc vocab train``.
+    train : tuple of Path
+        Folders (searched recursively) to train one on, never the map or query images.
+    words : int
+        Words when training.
+    seed : int
+        Seed of the training's k-means.
+    """
+
+    file: Path | None = None
+    train: tuple[Path, ...] = ()
+    words: int = 10000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "file", _opt_path(self.file))
+        object.__setattr__(self, "train", _paths(self.train))
+        if self.file is not None and self.train:
+            raise ParameterError("vocabulary", "is either a file or folders to train one on, not both")
+        if isinstance(self.words, bool) or not isinstance(self.words, int) or self.words < 1:
+            raise ParameterError("vocabulary.words", f"must be a whole number >= 1, got {self.words!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ParameterError("vocabulary.seed", f"must be a whole number, got {self.seed!r}")
+
+    @property
+    def given(self) -> bool:
+        """Whether a file or training folders were named."""
+        return self.file is not None or bool(self.train)
+
+
+# -- recordings and image inputs ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InputSpec:
+    """How ROS bags and videos become frames (image folders need none of it).
+
+    Parameters
+    ----------
+    topic : str, optional
+        Image topic of ROS bags; needed when a bag has several.
+    every_s : float, optional
+        Keep one frame every T seconds (bags and videos).
+    every_m : float, optional
+        Keep one frame every D metres of the bag's odometry, pose or GPS topic.
+    pose_topic : str, optional
+        That topic (default: the bag's first).
+    """
+
+    topic: str | None = None
+    every_s: float | None = None
+    every_m: float | None = None
+    pose_topic: str | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "every_s", _positive("inputs.every_s", self.every_s))
+        object.__setattr__(self, "every_m", _positive("inputs.every_m", self.every_m))
+
+    def _given(self) -> list[str]:
+        return [f"inputs.{k}" for k in ("topic", "every_s", "every_m", "pose_topic") if getattr(self, k) is not None]
+
+    def check(self, paths: Sequence[Path]) -> None:
+        """Refuse recording settings when no input is a bag or a video (they would do nothing)."""
+        from topoloc.datasets.sources import is_stream_input
+
+        given = self._given()
+        # A missing input is left to the loaders, whose message names it.
+        if given and all(Path(p).exists() for p in paths) and not any(
+                is_stream_input(Path(p), images_are_files=False) for p in paths):
+            verb = "applies" if len(given) == 1 else "apply"
+            raise ParameterError("/".join(given), f"{verb} to ROS bags and videos only, and no input is one")
+
+    def load(self, paths: Sequence[str | Path]) -> list[Traverse]:
+        """Traverses from folders, bags and videos (a recording's keyframes held in memory)."""
+        from topoloc.datasets.sources import load_input
+
+        items = [Path(p) for p in paths]
+        self.check(items)
+        return [load_input(p, topic=self.topic, every_s=self.every_s, every_m=self.every_m,
+                           pose_topic=self.pose_topic) for p in items]
+
+    def frames(self, inputs: Sequence[str | Path]) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
+        """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
+
+        Every input is opened and checked before the first frame; bags and
+        videos are then streamed (one frame decoded at a time, nothing kept).
+        """
+        from topoloc.datasets.frames import frame_stream
+
+        items = [Path(p) for p in inputs]
+        self.check(items)
+        return frame_stream(items, topic=self.topic, every_s=self.every_s, every_m=self.every_m,
+                            pose_topic=self.pose_topic)
+
+
+# -- ground truth ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class GroundTruthSpec:
+    """What counts as the right place for a query.
+
+    Parameters
+    ----------
+    tolerance : str
+        ``"HARD:SOFT"`` in place ids: a map place within HARD of the query's is
+        right, one within SOFT is neither right nor wrong.
+    tolerance_m : str, optional
+        The same in metres (needs x, y in ``places.csv``); replaces ``tolerance``.
+    file : Path, optional
+        A VPR-Bench ``ground_truth_new.npy`` or an ``.npz`` with GThard/GTsoft;
+        replaces both.
+    """
+
+    tolerance: str = "0:8"
+    tolerance_m: str | None = None
+    file: Path | None = None
+
+    def __post_init__(self) -> None:
+        from topoloc.datasets.groundtruth import parse_tolerance
+
+        object.__setattr__(self, "file", _opt_path(self.file))
+        for name in ("tolerance", "tolerance_m"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            try:
+                parse_tolerance(value)
+            except TopolocError as exc:
+                raise ParameterError(f"ground_truth.{name}", str(exc).removeprefix("tolerance ")) from None
+        if self.file is not None and not self.file.is_file():
+            raise ParameterError("ground_truth.file", f"names no file: {self.file}")
+
+    def make(self, place_ids: np.ndarray, query: Traverse, *, maps: Sequence[Traverse] = (),
+             map_xy: np.ndarray | None = None) -> GroundTruth:
+        """Ground truth of shape (n_places, len(query)) from the file, the metric or the place-id tolerance.
+
+        ``map_xy`` (shape (n_places, 2)) gives the places' positions when there
+        are no map traverses (a saved map); else they are the mean over the map images.
+        """
+        from topoloc.datasets.groundtruth import (
+            ground_truth_from_file,
+            ground_truth_from_places,
+            ground_truth_from_xy,
+            parse_tolerance,
+            place_positions,
+        )
+        from topoloc.errors import input_error
+
+        if self.file is not None:
+            if not maps:
+                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours, not a saved map")
+            return ground_truth_from_file(self.file, map_traverse=maps[0], place_ids=place_ids,
+                                          n_queries=len(query))
+        if self.tolerance_m is not None:
+            hard, soft = parse_tolerance(self.tolerance_m)
+            if query.xy is None:
+                raise input_error("a tolerance in metres needs x,y columns in places.csv", query.root)
+            positions = map_xy if map_xy is not None else place_positions(list(maps), place_ids)
+            return ground_truth_from_xy(positions, query.xy, hard, soft)
+        hard, soft = parse_tolerance(self.tolerance)
+        return ground_truth_from_places(place_ids, query.places, hard, soft)
+
+
+# -- sequence matching ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SequenceSpec:
+    """Sequence matching: each query with the ``length`` before it (0 = single images).
+
+    Parameters
+    ----------
+    length : int
+        Frames before each query that take part (0 = off).
+    mode : {"constant", "acceleration"}
+        SeqSLAM's constant-velocity lines, or Cooc-Map's forward paths (II-F).
+    """
+
+    length: int = 0
+    mode: str = "constant"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.length, bool) or not isinstance(self.length, int) or self.length < 0:
+            raise ParameterError("sequence.length", f"must be a whole number >= 0 (0 = off), got {self.length!r}")
+        if self.mode not in SEQUENCE_MODES:
+            raise ParameterError("sequence.mode", f"must be one of {', '.join(SEQUENCE_MODES)}, got {self.mode!r}")
+
+
+# -- where the work runs --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ExecutionSpec:
+    """Where per-image work runs, and the cache it reads and fills.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        Dask scheduler address (``tcp://host:8786``); default ``$TOPOLOC_SCHEDULER``,
+        else this machine's threads.
+    scheduler_timeout : float, optional
+        Seconds to wait for the scheduler and a worker.
+    cache_dir : Path, optional
+        Feature and vocabulary cache (default ``~/.cache/topoloc`` or ``$TOPOLOC_CACHE_DIR``).
+    """
+
+    scheduler: str | None = None
+    scheduler_timeout: float | None = None
+    cache_dir: Path | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scheduler_timeout",
+                           _positive("execution.scheduler_timeout", self.scheduler_timeout,
+                                     what="a positive number of seconds"))
+        object.__setattr__(self, "cache_dir", _opt_path(self.cache_dir))
+
+    def connect(self) -> Any:
+        """The run's executor (:func:`topoloc.cluster.connect`): a Dask client, or this machine's threads."""
+        from topoloc.cluster import connect
+
+        return connect(self.scheduler, timeout_s=self.scheduler_timeout)
+
+
+PARTS: dict[str, type] = {
+    "features": FeatureSpec, "vocabulary": VocabularySpec, "inputs": InputSpec, "ground_truth": GroundTruthSpec,
+    "sequence": SequenceSpec, "execution": ExecutionSpec,
+}
+
+
+__all__ = [
+    "PARTS", "SEQUENCE_MODES", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec", "SequenceSpec",
+    "VocabularySpec", "parse_max_side", "parse_recall_at",
+]

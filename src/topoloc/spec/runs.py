@@ -1,0 +1,216 @@
+"""What each command runs, as one composed, validated specification.
+
+A run specification is a frozen dataclass of a command's own fields (method,
+tours, output) and the parts of :mod:`topoloc.spec.parts`.  It is what
+``metrics.json`` and a map's header record (:func:`spec_to_dict`), and what a
+configuration file holds (:mod:`topoloc.spec.config`), so any run can be made
+again from its record.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from topoloc.errors import ParameterError
+from topoloc.spec.parts import (
+    ExecutionSpec,
+    FeatureSpec,
+    GroundTruthSpec,
+    InputSpec,
+    SequenceSpec,
+    VocabularySpec,
+    _opt_path,
+    _paths,
+    parse_recall_at,
+)
+
+
+def _whole(param: str, value: Any, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ParameterError(param, f"must be a whole number >= {low}, got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class EvaluateSpec:
+    """``topoloc evaluate``: one method on map and query traverses, scored (``docs/protocol.md``).
+
+    Parameters
+    ----------
+    method : str
+        A registered method (``topoloc methods``); empty with ``map_file``.
+    params : dict
+        The method's parameters (values, or the strings of ``--param KEY=VALUE``).
+    maps : tuple of Path
+        Map traverses: folders, ROS bags or videos.
+    query : Path
+        The query traverse.
+    out : Path
+        Output folder (``docs/protocol.md`` lists its files).
+    map_file : Path, optional
+        A saved map instead of ``maps`` and ``method``.
+    recall_at : str
+        The N of R@N to report, e.g. ``"1,5,10,20"``.
+    top_k : int
+        Keep only the K best places per query (0 = the whole S).
+    html : Path, optional
+        Also write the browsable HTML page of the run here.
+    features, vocabulary, inputs, ground_truth, sequence, execution
+        The parts (:mod:`topoloc.spec.parts`).
+    """
+
+    method: str = ""
+    params: dict[str, Any] = field(default_factory=dict)
+    maps: tuple[Path, ...] = ()
+    query: Path | None = None
+    out: Path | None = None
+    map_file: Path | None = None
+    recall_at: str = "1,5,10"
+    top_k: int = 0
+    html: Path | None = None
+    features: FeatureSpec = field(default_factory=FeatureSpec)
+    vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
+    inputs: InputSpec = field(default_factory=InputSpec)
+    ground_truth: GroundTruthSpec = field(default_factory=GroundTruthSpec)
+    sequence: SequenceSpec = field(default_factory=SequenceSpec)
+    execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "maps", _paths(self.maps))
+        for name in ("query", "out", "map_file", "html"):
+            object.__setattr__(self, name, _opt_path(getattr(self, name)))
+        object.__setattr__(self, "params", dict(self.params or {}))
+        if self.map_file is not None and self.maps:
+            raise ParameterError("maps/map_file", "exclude each other: give map tours or a saved map, not both")
+        if not self.maps and self.map_file is None:
+            raise ParameterError("maps", "needs at least one map traverse (or a saved map in map_file)")
+        if not self.method and self.map_file is None:
+            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map in map_file")
+        if self.query is None:
+            raise ParameterError("query", "is needed: the traverse to localise")
+        if self.out is None:
+            raise ParameterError("out", "is needed: the output folder")
+        parse_recall_at(self.recall_at)
+        _whole("top_k", self.top_k, 0)
+        if self.top_k and self.html is not None:
+            raise ParameterError("html", "draws the whole S: leave out top_k, or html")
+        if self.map_file is not None and (self.params or self.vocabulary.given):
+            raise ParameterError("map_file", "fixes its parameters and vocabulary: method parameters and a vocabulary "
+                                             f"cannot be given with it ({self.map_file})")
+
+
+@dataclass(frozen=True)
+class MapBuildSpec:
+    """``topoloc map build``: fit a method on tours and save the map.
+
+    Parameters
+    ----------
+    method : str
+    params : dict
+    maps : tuple of Path
+        The map's tours.
+    out : Path, optional
+        The map file to write (None: a map built from Python, not yet saved).
+    shards : int
+        Partial models of place ranges, one task each, merged (``docs/map_shards.md``).
+    features, vocabulary, inputs, execution
+        The parts (:mod:`topoloc.spec.parts`).
+    """
+
+    method: str = ""
+    params: dict[str, Any] = field(default_factory=dict)
+    maps: tuple[Path, ...] = ()
+    out: Path | None = None
+    shards: int = 1
+    features: FeatureSpec = field(default_factory=FeatureSpec)
+    vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
+    inputs: InputSpec = field(default_factory=InputSpec)
+    execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "maps", _paths(self.maps))
+        object.__setattr__(self, "out", _opt_path(self.out))
+        object.__setattr__(self, "params", dict(self.params or {}))
+        if not self.method:
+            raise ParameterError("method", "is needed (see `topoloc methods`)")
+        if not self.maps:
+            raise ParameterError("maps", "needs at least one tour")
+        _whole("shards", self.shards, 1)
+
+
+@dataclass(frozen=True)
+class LocalizeSpec:
+    """``topoloc localize``: frames against a saved map, one result line each.
+
+    Parameters
+    ----------
+    map_file : Path
+    images : tuple of Path
+        Image files or folders, ROS bags or videos, in order.
+    out : Path
+        The JSON-lines file.
+    top_k : int
+        Places listed per frame.
+    sequence, inputs, execution
+        The parts (:mod:`topoloc.spec.parts`).
+    """
+
+    map_file: Path | None = None
+    images: tuple[Path, ...] = ()
+    out: Path | None = None
+    top_k: int = 5
+    sequence: SequenceSpec = field(default_factory=SequenceSpec)
+    inputs: InputSpec = field(default_factory=InputSpec)
+    execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "images", _paths(self.images))
+        object.__setattr__(self, "map_file", _opt_path(self.map_file))
+        object.__setattr__(self, "out", _opt_path(self.out))
+        if self.map_file is None:
+            raise ParameterError("map_file", "is needed: the map to localise against")
+        if not self.images:
+            raise ParameterError("images", "needs at least one image, folder or recording")
+        if self.out is None:
+            raise ParameterError("out", "is needed: the JSON-lines file to write")
+        _whole("top_k", self.top_k, 1)
+
+
+@dataclass(frozen=True)
+class VocabTrainSpec:
+    """``topoloc vocab train``: k-means words from the features of images under folders.
+
+    Parameters
+    ----------
+    folders : tuple of Path
+    out : Path
+        The vocabulary file to write.
+    features, vocabulary, execution
+        The parts; ``vocabulary.words`` and ``vocabulary.seed`` apply,
+        ``vocabulary.train`` is ``folders``.
+    """
+
+    folders: tuple[Path, ...] = ()
+    out: Path | None = None
+    features: FeatureSpec = field(default_factory=lambda: FeatureSpec(max_side=0))
+    vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
+    execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "folders", _paths(self.folders))
+        object.__setattr__(self, "out", _opt_path(self.out))
+        if not self.folders:
+            raise ParameterError("folders", "needs at least one image folder")
+        if self.out is None:
+            raise ParameterError("out", "is needed: the vocabulary file to write")
+        if self.features.max_side == "auto":
+            raise ParameterError("features.max_side", "must be a number of pixels for vocabulary training, got 'auto'")
+
+
+RUN_SPECS: dict[str, type] = {
+    "evaluate": EvaluateSpec, "map build": MapBuildSpec, "localize": LocalizeSpec, "vocab train": VocabTrainSpec,
+}
+
+__all__ = ["RUN_SPECS", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "VocabTrainSpec"]

@@ -1,0 +1,84 @@
+"""Each part of a run specification checks its values once, naming the parameter."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from topoloc.errors import ParameterError
+from topoloc.spec import (
+    EvaluateSpec,
+    ExecutionSpec,
+    FeatureSpec,
+    GroundTruthSpec,
+    InputSpec,
+    LocalizeSpec,
+    MapBuildSpec,
+    SequenceSpec,
+    VocabTrainSpec,
+    VocabularySpec,
+    parse_recall_at,
+)
+
+
+@pytest.mark.parametrize(("make", "param"), [
+    (lambda: FeatureSpec(max_side="big"), "features.max_side"),
+    (lambda: FeatureSpec(max_side=-1), "features.max_side"),
+    (lambda: VocabularySpec(file=Path("v.tlv"), train=(Path("d"),)), "vocabulary"),
+    (lambda: VocabularySpec(words=0), "vocabulary.words"),
+    (lambda: InputSpec(every_s=0.0), "inputs.every_s"),
+    (lambda: InputSpec(every_m=float("nan")), "inputs.every_m"),
+    (lambda: InputSpec(every_s=float("inf")), "inputs.every_s"),
+    (lambda: GroundTruthSpec(tolerance="3"), "ground_truth.tolerance"),
+    (lambda: GroundTruthSpec(tolerance="0:nan"), "ground_truth.tolerance"),
+    (lambda: GroundTruthSpec(tolerance="0:inf"), "ground_truth.tolerance"),
+    (lambda: GroundTruthSpec(tolerance_m="5:1"), "ground_truth.tolerance_m"),
+    (lambda: GroundTruthSpec(file=Path("/no/such/gt.npy")), "ground_truth.file"),
+    (lambda: SequenceSpec(length=-1), "sequence.length"),
+    (lambda: SequenceSpec(mode="sideways"), "sequence.mode"),
+    (lambda: ExecutionSpec(scheduler_timeout=0), "execution.scheduler_timeout"),
+    (lambda: ExecutionSpec(scheduler_timeout=float("nan")), "execution.scheduler_timeout"),
+    (lambda: parse_recall_at("0"), "recall_at"),
+    (lambda: EvaluateSpec(method="bow", query=Path("q"), out=Path("o")), "maps"),
+    (lambda: EvaluateSpec(maps=(Path("m"),), query=Path("q"), out=Path("o")), "method"),
+    (lambda: EvaluateSpec(method="bow", maps=(Path("m"),), out=Path("o")), "query"),
+    (lambda: EvaluateSpec(method="bow", maps=(Path("m"),), query=Path("q"), out=Path("o"), top_k=-1), "top_k"),
+    (lambda: EvaluateSpec(method="bow", maps=(Path("m"),), map_file=Path("m.tlm"), query=Path("q"),
+                          out=Path("o")), "maps/map_file"),
+    (lambda: EvaluateSpec(map_file=Path("m.tlm"), query=Path("q"), out=Path("o"),
+                          vocabulary=VocabularySpec(train=(Path("d"),))), "map_file"),
+    (lambda: MapBuildSpec(method="bow", maps=(Path("m"),), shards=0), "shards"),
+    (lambda: LocalizeSpec(map_file=Path("m.tlm"), images=(Path("i"),), out=Path("o"), top_k=0), "top_k"),
+    (lambda: VocabTrainSpec(folders=(Path("d"),), out=Path("v"), features=FeatureSpec()), "features.max_side"),
+])
+def test_a_bad_value_names_its_parameter_in_one_line(make, param) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ParameterError) as info:
+        make()
+    assert info.value.param == param
+    assert "\n" not in str(info.value) and str(info.value).startswith(param)
+
+
+def test_good_values_are_normalised() -> None:
+    assert FeatureSpec(max_side=" AUTO ").max_side == "auto" and FeatureSpec(max_side="640").max_side == 640
+    v = VocabularySpec(train=["a", Path("b")])  # type: ignore[arg-type]
+    assert v.train == (Path("a"), Path("b")) and v.given and not VocabularySpec().given
+    assert EvaluateSpec(method="bow", maps=["m"], query="q", out="o").maps == (Path("m"),)  # type: ignore[arg-type]
+
+
+def test_feature_spec_resolves_auto_for_runs_and_for_maps(tmp_path: Path) -> None:
+    import cv2
+    import numpy as np
+
+    from topoloc.datasets.traverse import load_traverse
+
+    for name, (w, h) in (("big", (96, 64)), ("small", (72, 48))):
+        (tmp_path / name).mkdir()
+        for i in range(3):
+            cv2.imwrite(str(tmp_path / name / f"{i}.png"), np.full((h, w), 100 + i, np.uint8))
+    big, small = load_traverse(tmp_path / "big"), load_traverse(tmp_path / "small")
+    spec = FeatureSpec()
+    assert spec.config_for_run([big]).max_side == 0  # one size: nothing to reconcile
+    assert spec.config_for_run([big, small]).max_side == 72
+    assert spec.config_for_map([big]).max_side == 96  # a map records its scale
+    assert FeatureSpec(max_side=50).config_for_map([big]).max_side == 50
