@@ -22,6 +22,8 @@ from topoloc.progress import ProgressFactory
 log = logging.getLogger(__name__)
 
 DEMO_TOURS = (("tour_0900", 9.0), ("tour_1300", 13.0), ("tour_1700", 17.0), ("tour_2200", 22.0))
+# What run_demo writes into its folder.
+DEMO_FILES = ("route", "vocab_train", "runs", "cache", "report.md", "pr_curves.png")
 VOCAB_WORDS = 1000
 MAX_FEATURES = 1000
 

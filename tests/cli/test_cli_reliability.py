@@ -82,6 +82,8 @@ def test_mixed_absolute_and_relative_training_folders(cli: Cli, rf: dict[str, Pa
 def test_a_rerun_replaces_the_run_folder_whole(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "run"
     out.mkdir()
+    # An earlier run, recognised by the run block of its metrics.json (a user's folder is refused).
+    (out / "metrics.json").write_text(json.dumps({"method": "bow", "run": {"spec": {}}}))
     (out / "report.md").write_text("an older run")
     (out / "stray.txt").write_text("not of this run")
     r = cli.runner.invoke(app, _evaluate(rf, out))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -94,6 +95,7 @@ def evaluate(
     from topoloc.spec import EvaluateSpec
 
     spec = spec_from_cli(EvaluateSpec, ctx, values, config=config)
+    spec.check_outputs()  # again in the pipeline; here before a scheduler is waited for
     with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
         metrics = run(spec, progress=progress, executor=executor)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
@@ -112,9 +114,13 @@ def report(
 ) -> None:
     """Put several evaluate runs side by side: one table and one PNG of PR curves (and an HTML page)."""
     from topoloc.evaluation.report import build_report
-    from topoloc.io.dirs import check_output_dir
+    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.spec.runs import html_page
 
-    check_output_dir(out)
+    outputs = [Output(out, "folder", names=REPORT_FILES, earlier=_earlier_report, what="report folder")]
+    if html is not None:
+        outputs.append(Output(html_page(html, None), what="HTML page"))
+    check_outputs(outputs, runs)
     path = build_report(list(runs), out, title=title)
     typer.echo(path.read_text(), nl=False)
     if html is not None:
@@ -123,6 +129,14 @@ def report(
         with rich_progress() as progress:
             page = build_html_report(list(runs), html, title=title, progress=progress)
         typer.echo(f"wrote {page}")
+
+
+# What `report` writes into its folder; a folder holding both is an earlier report, rewritten.
+REPORT_FILES = ("report.md", "pr_curves.png")
+
+
+def _earlier_report(folder: Path) -> bool:
+    return all((folder / name).is_file() for name in REPORT_FILES)
 
 
 @app.command()
@@ -177,13 +191,12 @@ def vocab_train_cmd(
     """Train a visual vocabulary (k-means) on the images under FOLDERS."""
     values = dict(locals())  # before any name is imported here
     from topoloc.features import FeatureExtractor
-    from topoloc.io.dirs import check_output_file
     from topoloc.spec import VocabTrainSpec
     from topoloc.vocabulary import train_vocabulary
 
     spec = spec_from_cli(VocabTrainSpec, ctx, values, config=config, names=VOCAB_TRAIN_NAMES)
     assert spec.out is not None
-    check_output_file(spec.out)
+    spec.check_outputs()
     config_ = spec.features.config_for_run([])
     extractor = FeatureExtractor(config_, cache_dir=spec.execution.cache_dir)
     with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
@@ -208,13 +221,35 @@ def synth(
     seed: Annotated[int, typer.Option(help="World seed.")] = 0,
 ) -> None:
     """Generate a synthetic route (tours at several times of day) for tests and demos."""
+    from topoloc.io.dirs import Output, check_outputs
     from topoloc.synth import RouteConfig, generate_route
 
     tours = _tours(hours)
+    names = tuple(name for name, _ in tours)
+    check_outputs([Output(out, "folder", names=names, earlier=_earlier_route(names), what="output folder")], [])
     dirs = generate_route(out, config=RouteConfig(n_places=places, width=width, height=height,
                                                   seed=seed), tours=tours)
     for d in dirs:
         typer.echo(str(d))
+
+
+def _earlier_route(names: tuple[str, ...]) -> Callable[[Path], bool]:
+    """Whether the existing ones of a folder's tour folders ``names`` were written by ``synth``."""
+
+    def earlier(folder: Path) -> bool:
+        tours = [folder / n for n in names if (folder / n).exists()]
+        return bool(tours) and all(_synthetic_tour(t) for t in tours)
+
+    return earlier
+
+
+def _synthetic_tour(folder: Path) -> bool:
+    # generate_route writes this exact header (with x, y from the route); a user's tour rarely does.
+    try:
+        with open(folder / "places.csv", encoding="utf-8") as fh:
+            return fh.readline().strip() == "image,place,time,x,y"
+    except (OSError, UnicodeDecodeError):
+        return False
 
 
 def _tours(hours: str) -> list[tuple[str, float]]:
@@ -233,8 +268,11 @@ def demo(
     quiet: QuietOption = False,
 ) -> None:
     """Generate a route at several times of day, run the methods, print a table, plot PR curves."""
-    from topoloc.demo import run_demo
+    from topoloc.demo import DEMO_FILES, run_demo
+    from topoloc.io.dirs import Output, check_outputs
 
+    check_outputs([Output(out, "folder", names=DEMO_FILES, what="output folder",
+                          earlier=lambda d: _earlier_route(("tour_0900",))(d / "route"))], [])
     with rich_progress(not quiet) as progress:
         report_path = run_demo(out, n_places=places, progress=progress)
     typer.echo(report_path.read_text(), nl=False)
@@ -262,7 +300,14 @@ def convert(
     """Write a public dataset (VPR-Bench, Pittsburgh/Tokyo .mat, MSLS, KITTI, ...) as traverses."""
     from topoloc.datasets.formats import ConvertOptions
     from topoloc.datasets.formats import convert as run
+    from topoloc.io.dirs import Output, check_outputs, json_marker
 
+    if out.exists() and not out.is_dir():
+        raise TopolocError(f"output is not a folder: {out}")
+    # Images are linked into the folder under their own names: any entry of a folder that is not an
+    # earlier conversion (its dataset.json) could be replaced.
+    check_outputs([Output(out, "folder", names=None, earlier=json_marker("dataset.json", "n_images"),
+                          what="output folder")], [src, images, query_images, poses])
     result = run(format, src, out, ConvertOptions(images=images, query_images=query_images, poses=poses,
                                                   columns=parse_params(column or []), copy=copy))
     for key, folder in result.traverses.items():
@@ -304,11 +349,11 @@ def show_match_cmd(
     """
     from topoloc.datasets.traverse import load_traverse
     from topoloc.drawing.match_figure import labelled_match, write_png
-    from topoloc.io.dirs import check_output_file
+    from topoloc.io.dirs import Output, check_outputs
     from topoloc.spec import FeatureSpec, VocabularySpec
     from topoloc.spec.setup import build_method, make_resources
 
-    check_output_file(out)
+    check_outputs([Output(out, what="PNG")], [query_image, *map, vocab, *(vocab_train or ()), cache_dir])
     if not query_image.is_file():
         raise TopolocError(f"query image not found: {query_image}")
     rec = build_method(method, parse_params(param or []))
@@ -352,8 +397,8 @@ def slam(
 ) -> None:
     """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
     from topoloc.datasets.traverse import load_traverse
-    from topoloc.evaluation.slam import run_slam
-    from topoloc.io.dirs import check_output_dir
+    from topoloc.evaluation.slam import SLAM_FILES, run_slam
+    from topoloc.io.dirs import Output, check_outputs, json_marker
     from topoloc.spec import FeatureSpec, VocabularySpec
     from topoloc.spec.setup import make_resources
 
@@ -365,7 +410,11 @@ def slam(
         raise TopolocError(f"--p-new must be in [0, 1), got {p_new}")
     voc_spec = VocabularySpec(file=vocab, train=tuple(vocab_train or ()), words=vocab_words)
     feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
-    check_output_dir(out)
+    outputs = [Output(out, "folder", names=SLAM_FILES, earlier=json_marker("slam.json", "params"),
+                      what="output folder")]
+    if html is not None:
+        outputs.append(Output(html, what="HTML page"))
+    check_outputs(outputs, [traverse, vocab, *(vocab_train or ()), model, cache_dir])
     trav = load_traverse(traverse)
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(feature_spec.config_for_run([]), voc_spec, cache_dir=cache_dir,

@@ -76,7 +76,6 @@ def map_build(
 ) -> None:
     """Build a map from one or more tours and save it in one file."""
     values = dict(locals())  # before any name is imported here
-    from topoloc.io.dirs import check_output_file
     from topoloc.maps import Map
     from topoloc.spec import MapBuildSpec, spec_to_dict
     from topoloc.spec.setup import build_method
@@ -84,7 +83,7 @@ def map_build(
     spec = spec_from_cli(MapBuildSpec, ctx, values, config=config)
     if spec.out is None:
         raise TopolocError("--out is needed: the map file to write")
-    check_output_file(spec.out)
+    spec.check_outputs()
     tours = spec.inputs.load(spec.maps)
     params = build_method(spec.method, spec.params).get_params()  # checks names and types first
     t0 = time.perf_counter()
@@ -123,7 +122,7 @@ def map_add(
     """Add a tour to a saved map without rebuilding it from the earlier images."""
     from dataclasses import replace
 
-    from topoloc.io.dirs import check_output_file
+    from topoloc.io.dirs import Output, check_outputs
     from topoloc.maps import Map
     from topoloc.spec import ExecutionSpec, FeatureSpec, InputSpec
     from topoloc.vocabulary import Vocabulary
@@ -131,7 +130,8 @@ def map_add(
     execution = ExecutionSpec(scheduler=scheduler, scheduler_timeout=scheduler_timeout, cache_dir=cache_dir)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     m = Map.load(map_file)
-    check_output_file(map_file)
+    # The map is rewritten (that is the command); what it reads beside it must not be the map.
+    check_outputs([Output(map_file, what="map file")], [tour, vocab, cache_dir])
     # Options left out take the map's own values, so only those given are compared.
     have = FeatureSpec(method=m.features.method, max_features=m.features.max_features,
                        preprocess=m.features.preprocess)
@@ -186,7 +186,7 @@ def map_calibrate(
     pose_topic: PoseTopicOption = None,
 ) -> None:
     """Choose the score threshold that reaches --precision on a labelled tour and store it in the map."""
-    from topoloc.io.dirs import check_output_file
+    from topoloc.io.dirs import Output, check_outputs
     from topoloc.maps import Map
     from topoloc.maps.map import check_precision
     from topoloc.spec import GroundTruthSpec, InputSpec
@@ -195,7 +195,7 @@ def map_calibrate(
     gt = GroundTruthSpec(tolerance=tolerance, tolerance_m=tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     m = Map.load(map_file)
-    check_output_file(map_file)
+    check_outputs([Output(map_file, what="map file")], [query, cache_dir])
     q = inputs.load([query])[0]
     with rich_progress(not quiet) as progress:
         cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
@@ -230,7 +230,6 @@ def localize(
     map file: it must be on a file system they share); the lines are the same, in the same order.
     """
     values = dict(locals())  # before any name is imported here
-    from topoloc.io.dirs import check_output_file
     from topoloc.maps import Map
     from topoloc.spec import LocalizeSpec
 
@@ -239,7 +238,8 @@ def localize(
     assert spec.map_file is not None and spec.out is not None
     m = Map.load(spec.map_file)
     total, frames = spec.inputs.frames(spec.images)
-    check_output_file(spec.out)
+    # The map file is memory-mapped while the lines are written: truncating it would kill the run.
+    spec.check_outputs()
     if m.threshold is None:
         # For loop closure an accepted false match breaks the map: say so before the first frame
         # (and after the inputs are checked, so that an input error stays the only line).

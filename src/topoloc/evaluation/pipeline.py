@@ -40,7 +40,7 @@ from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
-from topoloc.io.dirs import check_output_dir, staged_dir
+from topoloc.io.dirs import staged_dir
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
@@ -100,8 +100,9 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     assert spec.query is not None and spec.out is not None  # EvaluateSpec refuses a spec without them
     prog: ProgressFactory = progress or no_progress
     out = spec.out
-    # Validate every cheap option before any expensive work starts.
-    check_output_dir(out)
+    # Validate every cheap option before any expensive work starts; the run folder is replaced
+    # whole, so it must hold nothing of the user's (nor an input, nor the working folder).
+    spec.check_outputs()
     recall_at = parse_recall_at(spec.recall_at)
     seq = spec.sequence
     # Folders, or bags and videos (their keyframes in memory: topoloc.datasets.sources).

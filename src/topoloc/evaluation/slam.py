@@ -191,6 +191,11 @@ def run_slam(
     return result
 
 
+# Every file a run writes into its folder (the partial file is removed when the run ends).
+SLAM_FILES = ("posterior.npy", "loop_closures.csv", "loop_closures.png", "assignments.csv", "slam.json",
+              "loop_closures.partial.csv")
+
+
 def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = True) -> dict[str, Path]:
     """Write ``posterior.npy``, ``loop_closures.csv``, ``loop_closures.png``,
     ``assignments.csv`` and ``slam.json`` (module docstring) atomically.
@@ -271,4 +276,6 @@ def _plot_png(result: SlamResult) -> bytes:
     return buf.getvalue()
 
 
-__all__ = ["load_fabmap_model", "load_or_train_model", "run_slam", "save_fabmap_model", "write_slam_outputs"]
+__all__ = [
+    "SLAM_FILES", "load_fabmap_model", "load_or_train_model", "run_slam", "save_fabmap_model", "write_slam_outputs",
+]

@@ -11,6 +11,14 @@ are used, and a kill between them leaves the old run in a hidden folder beside
 :func:`check_output_dir` and :func:`check_output_file` prove, before any long
 work starts, that an output can be written: they create and remove a probe
 file where the output will go.
+
+:func:`check_outputs` proves, before any work, that a command's outputs
+destroy nothing of the user's: no output is one of the command's inputs (or a
+file inside an input folder), a folder replaced whole holds nothing, or an
+earlier output of the same command recognised by its marker file (an
+``evaluate`` run by its ``metrics.json`` with a ``run`` block), never an input
+nor the working folder, and every output is a regular file or a folder, named
+within the file system's limits.
 """
 
 from __future__ import annotations
@@ -18,11 +26,14 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import json
 import logging
 import os
 import shutil
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from topoloc.errors import input_error
@@ -120,4 +131,218 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
 # mkdtemp makes 0700 folders; a run folder gets what any folder the user creates gets.
 _DIR_MODE = 0o777 & ~umask()
 
-__all__ = ["check_output_dir", "check_output_file", "staged_dir"]
+
+# -- outputs against inputs -----------------------------------------------------------------------------
+# The longest prefix and suffix a write adds to an output's name: ``.NAME.staging-old-PID`` of
+# staged_dir and ``.NAME.XXXXXXXX.tmp`` of atomic writes; a name the file system takes but whose
+# temporary sibling it refuses would fail after the work, not before.
+_NAME_EXTRA = 32
+
+Earlier = Callable[[Path], bool]
+
+
+@dataclass(frozen=True)
+class Output:
+    """One path a command writes, and how.
+
+    Parameters
+    ----------
+    path : Path
+        The file or folder.
+    kind : {"file", "folder", "run"}
+        ``"file"``: one file, replaced atomically.  ``"folder"``: files are
+        written into it, the others left as they are.  ``"run"``: the folder
+        is replaced whole (:func:`staged_dir`).
+    names : tuple of str, optional
+        For ``"folder"``: the entries the command writes in it; None when any
+        entry may be written (e.g. images linked by ``convert``).
+    earlier : callable, optional
+        For ``"folder"`` and ``"run"``: whether a folder is an earlier output of
+        the same command, which may be replaced (see :func:`json_marker`).
+    what : str
+        How the refusal names the command's output (``"run folder"``).
+    """
+
+    path: Path
+    kind: str = "file"
+    names: tuple[str, ...] | None = None
+    earlier: Earlier | None = None
+    what: str = "output"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", Path(self.path))
+        if self.kind not in ("file", "folder", "run"):
+            raise ValueError(f"Output.kind must be file, folder or run, got {self.kind!r}")
+
+
+def json_marker(name: str, key: str) -> Earlier:
+    """A test of an earlier output: ``folder/name`` is a JSON object whose ``key`` is an object.
+
+    ``json_marker("metrics.json", "run")`` recognises an ``evaluate`` run folder:
+    topoloc writes its ``run`` block (a user's ``metrics.json`` is unlikely to have one).
+    """
+
+    def earlier(folder: Path) -> bool:
+        marker = folder / name
+        try:
+            if not marker.is_file() or marker.stat().st_size > _MARKER_MAX:
+                return False
+            data = json.loads(marker.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return False
+        return isinstance(data, dict) and isinstance(data.get(key), dict)
+
+    return earlier
+
+
+_MARKER_MAX = 16 * 2**20
+
+
+def _resolved(path: Path) -> Path:
+    # strict=False: the part that does not exist yet is kept as written, under the real parents.
+    return Path(os.path.realpath(path))
+
+
+def _within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def _same(a: Path, b: Path) -> bool:
+    # Hard links and bind mounts name one file under two paths: compare the files themselves.
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _check_name(path: Path, what: str) -> None:
+    real = _resolved(path)
+    existing = real
+    while not os.path.exists(existing) and existing != existing.parent:
+        existing = existing.parent
+    try:
+        name_max = os.pathconf(existing, "PC_NAME_MAX")
+        path_max = os.pathconf(existing, "PC_PATH_MAX")
+    except (OSError, ValueError):
+        name_max, path_max = 255, 4096
+    for part in real.relative_to(existing).parts or (real.name,):
+        if len(os.fsencode(part)) + _NAME_EXTRA > name_max:
+            raise input_error(f"{what} name is too long for this file system ({len(os.fsencode(part))} bytes; "
+                              f"at most {name_max - _NAME_EXTRA} leaves room for the temporary file beside it)",
+                              path)
+    if len(os.fsencode(str(real))) + _NAME_EXTRA > path_max:
+        raise input_error(f"{what} path is too long for this file system", path)
+
+
+def _not_special(path: Path, what: str, *, folder: bool) -> None:
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise input_error(f"cannot use the {what} ({exc.strerror or type(exc).__name__})", path) from None
+    # The wording of check_output_dir and check_output_file, whose checks these extend.
+    if stat.S_ISDIR(mode):
+        if not folder:
+            raise input_error(f"{what} is a folder, not a file", path)
+    elif not stat.S_ISREG(mode):
+        raise input_error(f"{what} is not a regular file (a device, fifo or socket would be replaced)", path)
+    elif folder:
+        raise input_error("output folder is a file", path)
+
+
+def _check_against_inputs(target: Path, inputs: list[tuple[Path, Path]], what: str, shown: Path) -> None:
+    real = _resolved(target)
+    for given, real_in in inputs:
+        if real == real_in or _same(target, given):
+            raise input_error(f"{what} is an input of this command ({given}) and would be overwritten", shown)
+        if real_in.is_dir() and real_in in real.parents and os.path.lexists(target):
+            raise input_error(f"{what} is a file of input folder {given} and would be overwritten", shown)
+
+
+def _holds_user_files(folder: Path, names: tuple[str, ...] | None) -> str | None:
+    """The first entry of ``folder`` a write would replace: a file, or a folder that is not empty."""
+    try:
+        entries = sorted(folder.iterdir()) if names is None else [folder / n for n in names]
+    except OSError:
+        return None
+    for entry in entries:
+        if not os.path.lexists(entry):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            if names is None or any(entry.iterdir()):
+                return entry.name
+        else:
+            return entry.name
+    return None
+
+
+def check_outputs(outputs: Iterable[Output], inputs: Iterable[str | Path | None]) -> None:
+    """Refuse, before any work, outputs that would destroy an input or a user's file.
+
+    Paths are compared resolved (links followed) and as files (hard links).
+    Refused: an output ``"-"`` (standard output is not a file here); an output
+    that is an input, or an existing file inside an input folder; a file output
+    that is a folder, device, fifo or socket; a ``"folder"`` output that is an
+    input, or whose entries to write exist and are not an earlier output of the
+    command; a ``"run"`` output (replaced whole) that is the working folder or
+    holds it, is or holds an input, or holds anything but an earlier output of
+    the command; two outputs at one path; a name too long for the file system.
+    Then each output must be writable (:func:`check_output_file`,
+    :func:`check_output_dir`).
+
+    Parameters
+    ----------
+    outputs : iterable of Output
+    inputs : iterable of path
+        Every file and folder the command reads (maps, map files, images,
+        folders, recordings, vocabularies, ground truth); None and missing
+        paths are skipped (their readers name them).
+
+    Raises
+    ------
+    TopolocError
+        One line naming the output and the problem.
+    """
+    ins = [(Path(p), _resolved(Path(p))) for p in inputs if p is not None and str(p) != ""]
+    ins = [(p, r) for p, r in ins if os.path.lexists(p)]
+    seen: dict[Path, Path] = {}
+    cwd = _resolved(Path.cwd())
+    for out in outputs:
+        path, what = out.path, out.what
+        if str(path) == "-":
+            raise input_error(f"{what} cannot be standard output ('-'): name a file or folder", path)
+        real = _resolved(path)
+        if real in seen:
+            raise input_error(f"{what} is also another output of this command ({seen[real]})", path)
+        seen[real] = path
+        _check_name(path, what)
+        if out.kind == "file":
+            _not_special(path, what, folder=False)
+            _check_against_inputs(path, ins, what, path)
+            check_output_file(path)
+            continue
+        _not_special(path, what, folder=True)
+        if out.kind == "run":
+            if _within(cwd, real):
+                raise input_error(f"{what} is the working folder or holds it, and would be replaced", path)
+            for given, real_in in ins:
+                if _within(real_in, real) or _same(path, given):
+                    raise input_error(f"{what} holds an input of this command ({given}) and would be replaced",
+                                      path)
+        else:
+            for given, real_in in ins:
+                if real == real_in or _same(path, given):
+                    raise input_error(f"{what} is an input of this command ({given})", path)
+            for name in out.names or ():
+                _check_against_inputs(path / name, ins, what, path / name)
+        if path.is_dir() and not (out.earlier is not None and out.earlier(path)):
+            entry = _holds_user_files(path, None if out.kind == "run" else out.names)
+            if entry is not None:
+                verb = "replaced" if out.kind == "run" else "overwritten"
+                raise input_error(f"{what} holds {entry!r}, not an earlier output of this command, which would be "
+                                  f"{verb}: choose a new or empty folder", path)
+        check_output_dir(path)
+
+
+__all__ = ["Output", "check_output_dir", "check_output_file", "check_outputs", "json_marker", "staged_dir"]

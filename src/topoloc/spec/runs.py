@@ -9,11 +9,13 @@ again from its record.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from topoloc.errors import ParameterError
+from topoloc.io.dirs import Output, check_outputs, json_marker
 from topoloc.spec.parts import (
     ExecutionSpec,
     FeatureSpec,
@@ -27,14 +29,55 @@ from topoloc.spec.parts import (
 )
 
 
+def _present(*paths: Path | None) -> tuple[Path, ...]:
+    return tuple(p for p in paths if p is not None)
+
+
 def _whole(param: str, value: Any, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ParameterError(param, f"must be a whole number >= {low}, got {value!r}")
     return value
 
 
+class _ChecksOutputs:
+    """What every run specification says about the paths it reads and writes."""
+
+    def read_paths(self) -> tuple[Path, ...]:
+        """Every file and folder the run reads (inputs to protect from its outputs)."""
+        raise NotImplementedError
+
+    def outputs(self) -> tuple[Output, ...]:
+        """Every file and folder the run writes."""
+        raise NotImplementedError
+
+    def check_outputs(self) -> None:
+        """Refuse, before any work, outputs that would overwrite an input or a user's files.
+
+        See :func:`topoloc.io.dirs.check_outputs`.
+
+        Raises
+        ------
+        TopolocError
+            One line naming the output and the problem.
+        """
+        check_outputs(self.outputs(), self.read_paths())
+
+
+def html_page(html: Path, out: Path | None) -> Path:
+    """The file an HTML page given as ``html`` is written to: ``html/index.html`` for a folder or ``out``."""
+    # The page of a folder is its index.html (evaluation.html.build_html_report), and so is the
+    # page of the run folder itself, which exists by the time the page is written.
+    if html.is_dir() or (out is not None and Path(os.path.realpath(html)) == Path(os.path.realpath(out))):
+        return html / "index.html"
+    return html
+
+
+# An evaluate run folder is recognised by the run block topoloc writes into its metrics.json.
+EARLIER_RUN = json_marker("metrics.json", "run")
+
+
 @dataclass(frozen=True)
-class EvaluateSpec:
+class EvaluateSpec(_ChecksOutputs):
     """``topoloc evaluate``: one method on map and query traverses, scored (``docs/protocol.md``).
 
     Parameters
@@ -100,9 +143,22 @@ class EvaluateSpec:
             raise ParameterError("map_file", "fixes its parameters and vocabulary: method parameters and a vocabulary "
                                              f"cannot be given with it ({self.map_file})")
 
+    def read_paths(self) -> tuple[Path, ...]:
+        """Map tours, query, map file, vocabulary file or training folders, ground truth, cache folder."""
+        return _present(*self.maps, self.query, self.map_file, self.vocabulary.file, *self.vocabulary.train,
+                        self.ground_truth.file, self.execution.cache_dir)
+
+    def outputs(self) -> tuple[Output, ...]:
+        """The run folder (replaced whole: empty, new, or an earlier run) and the HTML page."""
+        assert self.out is not None
+        run = Output(self.out, "run", earlier=EARLIER_RUN, what="run folder")
+        if self.html is None:
+            return (run,)
+        return run, Output(html_page(self.html, self.out), what="HTML page")
+
 
 @dataclass(frozen=True)
-class MapBuildSpec:
+class MapBuildSpec(_ChecksOutputs):
     """``topoloc map build``: fit a method on tours and save the map.
 
     Parameters
@@ -139,9 +195,17 @@ class MapBuildSpec:
             raise ParameterError("maps", "needs at least one tour")
         _whole("shards", self.shards, 1)
 
+    def read_paths(self) -> tuple[Path, ...]:
+        """The tours, the vocabulary file or training folders, the cache folder."""
+        return _present(*self.maps, self.vocabulary.file, *self.vocabulary.train, self.execution.cache_dir)
+
+    def outputs(self) -> tuple[Output, ...]:
+        """The map file (none for a map built from Python, not yet saved)."""
+        return () if self.out is None else (Output(self.out, what="map file"),)
+
 
 @dataclass(frozen=True)
-class LocalizeSpec:
+class LocalizeSpec(_ChecksOutputs):
     """``topoloc localize``: frames against a saved map, one result line each.
 
     Parameters
@@ -177,9 +241,18 @@ class LocalizeSpec:
             raise ParameterError("out", "is needed: the JSON-lines file to write")
         _whole("top_k", self.top_k, 1)
 
+    def read_paths(self) -> tuple[Path, ...]:
+        """The map file (memory-mapped while the run writes) and the images, folders or recordings."""
+        return _present(self.map_file, *self.images)
+
+    def outputs(self) -> tuple[Output, ...]:
+        """The JSON-lines file."""
+        assert self.out is not None
+        return (Output(self.out, what="output"),)
+
 
 @dataclass(frozen=True)
-class VocabTrainSpec:
+class VocabTrainSpec(_ChecksOutputs):
     """``topoloc vocab train``: k-means words from the features of images under folders.
 
     Parameters
@@ -208,9 +281,18 @@ class VocabTrainSpec:
         if self.features.max_side == "auto":
             raise ParameterError("features.max_side", "must be a number of pixels for vocabulary training, got 'auto'")
 
+    def read_paths(self) -> tuple[Path, ...]:
+        """The image folders and the cache folder."""
+        return _present(*self.folders, *self.vocabulary.train, self.execution.cache_dir)
+
+    def outputs(self) -> tuple[Output, ...]:
+        """The vocabulary file."""
+        assert self.out is not None
+        return (Output(self.out, what="vocabulary file"),)
+
 
 RUN_SPECS: dict[str, type] = {
     "evaluate": EvaluateSpec, "map build": MapBuildSpec, "localize": LocalizeSpec, "vocab train": VocabTrainSpec,
 }
 
-__all__ = ["RUN_SPECS", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "VocabTrainSpec"]
+__all__ = ["EARLIER_RUN", "RUN_SPECS", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "VocabTrainSpec", "html_page"]
