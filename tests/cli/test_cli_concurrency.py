@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -60,14 +61,27 @@ def _finish(started: list[tuple[subprocess.Popen[bytes], IO[bytes]]], logs: list
     assert [t.count(WAITING) for t in texts] == [1] * len(started), texts  # says so once, then waits
 
 
-def _map(cli: Cli, rf: dict[str, Path], out: Path) -> Path:
-    cli.ok(["map", "build", "--method", "bow", "--map", str(rf["map"]), "--vocab", str(rf["vocab"]),
-            "--out", str(out), "--cache-dir", str(rf["cache"]), "--quiet"])
+@pytest.fixture(scope="module")
+def bow_map(rf: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A bow map of the tiny route's map tour, built once (tests update copies of it)."""
+    from typer.testing import CliRunner
+
+    from topoloc.cli.main import app
+
+    out = tmp_path_factory.mktemp("concurrency") / "bow.tlm"
+    r = CliRunner().invoke(app, ["map", "build", "--method", "bow", "--map", str(rf["map"]), "--vocab",
+                                 str(rf["vocab"]), "--out", str(out), "--cache-dir", str(rf["cache"]), "--quiet"])
+    assert r.exit_code == 0, r.output
     return out
 
 
-def test_two_map_adds_at_once_keep_both_tours(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
-    tlm = _map(cli, rf, tmp_path / "c.tlm")
+def _map(bow_map: Path, out: Path) -> Path:
+    shutil.copy(bow_map, out)
+    return out
+
+
+def test_two_map_adds_at_once_keep_both_tours(bow_map: Path, rf: dict[str, Path], tmp_path: Path) -> None:
+    tlm = _map(bow_map, tmp_path / "c.tlm")
     logs = [tmp_path / "add_query.log", tmp_path / "add_morning.log"]
     with _all_waiting(tlm, logs):
         started = [_start(["map", "add", str(tlm), str(tour), "--cache-dir", str(rf["cache"]), "--quiet"], log)
@@ -78,9 +92,9 @@ def test_two_map_adds_at_once_keep_both_tours(cli: Cli, rf: dict[str, Path], tmp
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no lock or temporary left
 
 
-def test_map_add_beside_map_calibrate_keeps_the_tour_and_the_calibration(cli: Cli, rf: dict[str, Path],
+def test_map_add_beside_map_calibrate_keeps_the_tour_and_the_calibration(bow_map: Path, rf: dict[str, Path],
                                                                           tmp_path: Path) -> None:
-    tlm = _map(cli, rf, tmp_path / "c.tlm")
+    tlm = _map(bow_map, tmp_path / "c.tlm")
     logs = [tmp_path / "add.log", tmp_path / "calibrate.log"]
     with _all_waiting(tlm, logs):
         started = [
@@ -94,7 +108,7 @@ def test_map_add_beside_map_calibrate_keeps_the_tour_and_the_calibration(cli: Cl
     assert m.calibration is not None and m.calibration["query"] == str(rf["query"])
 
 
-def test_two_evaluates_into_one_folder_end_with_one_whole_run(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+def test_two_evaluates_into_one_folder_end_with_one_whole_run(rf: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "run"
     logs = [tmp_path / "a.log", tmp_path / "b.log"]
     args = ["evaluate", "--method", "seqslam", "--map", str(rf["map"]), "--query", str(rf["query"]),
@@ -113,9 +127,9 @@ def test_two_evaluates_into_one_folder_end_with_one_whole_run(cli: Cli, rf: dict
     assert ds in (2, 3) and f'"ds": {ds}' in (out / "report.md").read_text()
 
 
-def test_a_writer_that_waits_too_long_gives_up_with_one_line(cli: Cli, rf: dict[str, Path], tmp_path: Path,
-                                                              monkeypatch: pytest.MonkeyPatch) -> None:
-    tlm = _map(cli, rf, tmp_path / "c.tlm")
+def test_a_writer_that_waits_too_long_gives_up_with_one_line(cli: Cli, bow_map: Path, rf: dict[str, Path],
+                                                              tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tlm = _map(bow_map, tmp_path / "c.tlm")
     before = tlm.read_bytes()
     held, done = threading.Event(), threading.Event()
 
