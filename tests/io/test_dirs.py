@@ -38,7 +38,14 @@ def test_a_failed_run_leaves_the_old_run(tmp_path: Path) -> None:
 
 
 def test_stale_staging_folders_are_removed(tmp_path: Path) -> None:
-    stale = tmp_path / ".run.staging-abc"
+    import subprocess
+    import sys
+
+    from topoloc.io.lock import HOST_TAG
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    stale = tmp_path / f".run.staging-{gone.pid}-{HOST_TAG}-abcd1234"  # its run was killed
     stale.mkdir()
     (stale / "x").write_text("from a killed run")
     with staged_dir(tmp_path / "run") as stage:

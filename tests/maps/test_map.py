@@ -207,3 +207,18 @@ def test_a_map_saved_with_model_path_still_loads(method: str, tiny_route: dict[s
     back = Map.load(path)
     assert "model_path" not in back.recognizer.get_params()
     np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))
+
+
+def test_update_saves_when_the_block_ends_and_only_then(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    path = _build(tiny_route, "bow").save(tmp_path / "m.tlm")
+    before = path.read_bytes()
+    with pytest.raises(RuntimeError), Map.update(path) as m:
+        m.calibration = {"threshold": 1.0}
+        raise RuntimeError("stopped half way")
+    assert path.read_bytes() == before
+    with Map.update(path) as m:
+        m.add_tour(tiny_route["training"], cache_dir=tiny_route["map"].root.parent / "cache")
+    assert [t["name"] for t in Map.load(path).tours] == [tiny_route["map"].name, tiny_route["training"].name]
+    with pytest.raises(TopolocError, match="map file not found"), Map.update(tmp_path / "none.tlm"):
+        pass
+    assert [p.name for p in tmp_path.iterdir()] == ["m.tlm"]  # no lock file, no temporary

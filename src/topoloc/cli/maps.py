@@ -94,7 +94,7 @@ def map_build(
                       features=spec.features.config_for_map(tours), cache_dir=spec.execution.cache_dir,
                       progress=progress, shards=spec.shards)
     m.spec = spec_to_dict(spec)
-    m.save(spec.out)
+    m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
     info = m.info()
     typer.echo(json.dumps({"out": str(spec.out), "bytes": info["bytes"], "method": info["method"],
                            "places": info["places"], "tours": [t["name"] for t in m.tours],
@@ -119,7 +119,10 @@ def map_add(
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
-    """Add a tour to a saved map without rebuilding it from the earlier images."""
+    """Add a tour to a saved map without rebuilding it from the earlier images.
+
+    Another `map add`, `map calibrate` or `map build` of the same file waits for this one (and says so once).
+    """
     from dataclasses import replace
 
     from topoloc.io.dirs import Output, check_outputs
@@ -129,20 +132,21 @@ def map_add(
 
     execution = ExecutionSpec(scheduler=scheduler, scheduler_timeout=scheduler_timeout, cache_dir=cache_dir)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
-    m = Map.load(map_file)
-    # The map is rewritten (that is the command); what it reads beside it must not be the map.
-    check_outputs([Output(map_file, what="map file")], [tour, vocab, cache_dir])
-    # Options left out take the map's own values, so only those given are compared.
-    have = FeatureSpec(method=m.features.method, max_features=m.features.max_features,
-                       preprocess=m.features.preprocess)
-    given: dict[str, Any] = {k: v for k, v in (("method", features), ("max_features", max_features),
-                                               ("preprocess", preprocess)) if v is not None}
-    m.check_compatible(features=replace(have, **given),
-                       vocabulary=Vocabulary.load(vocab) if vocab is not None else None)
-    t = inputs.load([tour])[0]
-    with execution.connect() as executor, rich_progress(not quiet) as progress:
-        m.add_tour(t, cache_dir=execution.cache_dir, progress=progress, executor=executor)
-    m.save(map_file)
+    # Loaded, extended and saved with no other writer of the file in between (a second
+    # `map add` or a `map calibrate` waits, then extends this one's result).
+    with Map.update(map_file) as m:
+        # The map is rewritten (that is the command); what it reads beside it must not be the map.
+        check_outputs([Output(map_file, what="map file")], [tour, vocab, cache_dir])
+        # Options left out take the map's own values, so only those given are compared.
+        have = FeatureSpec(method=m.features.method, max_features=m.features.max_features,
+                           preprocess=m.features.preprocess)
+        given: dict[str, Any] = {k: v for k, v in (("method", features), ("max_features", max_features),
+                                                   ("preprocess", preprocess)) if v is not None}
+        m.check_compatible(features=replace(have, **given),
+                           vocabulary=Vocabulary.load(vocab) if vocab is not None else None)
+        t = inputs.load([tour])[0]
+        with execution.connect() as executor, rich_progress(not quiet) as progress:
+            m.add_tour(t, cache_dir=execution.cache_dir, progress=progress, executor=executor)
     typer.echo(json.dumps({"out": str(map_file), "places": len(m.place_ids),
                            "tours": [x["name"] for x in m.tours]}))
 
@@ -194,13 +198,12 @@ def map_calibrate(
     check_precision(precision)
     gt = GroundTruthSpec(tolerance=tolerance, tolerance_m=tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
-    m = Map.load(map_file)
-    check_outputs([Output(map_file, what="map file")], [query, cache_dir])
-    q = inputs.load([query])[0]
-    with rich_progress(not quiet) as progress:
-        cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
-                             progress=progress)
-    m.save(map_file)
+    with Map.update(map_file) as m:  # no tour another writer adds meanwhile is lost
+        check_outputs([Output(map_file, what="map file")], [query, cache_dir])
+        q = inputs.load([query])[0]
+        with rich_progress(not quiet) as progress:
+            cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
+                                 progress=progress)
     typer.echo(json.dumps(cal))
 
 

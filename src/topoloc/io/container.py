@@ -18,13 +18,17 @@ files they do not understand.  The CRC-32 of the header, the CRC-32 of the
 payload and its length are checked on load (version 1 files, written before the
 header had its own checksum, are still read), which turns a truncated or corrupted file into a clear error
 instead of silently wrong arrays.  Files are written to a temporary name in
-the same folder and renamed into place, so a crash never leaves half a file.
+the same folder and renamed into place, so a crash never leaves half a file;
+the temporary name carries the writer's process id and host
+(:func:`topoloc.io.lock.writer_tag`), and the next write into the folder
+removes the temporaries of writers that are gone (a process killed mid-write).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import struct
 import tempfile
 import zlib
@@ -35,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from topoloc.errors import input_error
+from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 
 MAGIC = b"TOPOLOC\x00"
 CONTAINER_VERSION = 2
@@ -65,7 +70,8 @@ def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(chunks, bytes):
         chunks = [chunks]
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    remove_stale_temporaries(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{writer_tag()}-", suffix=".tmp", dir=path.parent)
     try:
         os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, "wb") as fh:
@@ -77,6 +83,21 @@ def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove the temporaries that writers now gone left in the folder of ``path``.
+
+    A temporary of :func:`atomic_write_bytes` is named
+    ``.NAME.PID-HOST-XXXXXXXX.tmp``; one whose process on this host has ended
+    (killed before its rename) is removed, one of a live process or of another
+    host never is.  An untagged ``.NAME.XXXXXXXX.tmp`` of ``path`` itself
+    (written before names carried a tag) is removed once it has not changed for
+    an hour.  Returns what was removed.
+    """
+    path = Path(path)
+    pattern = re.compile(rf"^\.(?:.+\.{TAG_PATTERN}-[a-z0-9_]{{8}}|{re.escape(path.name)}\.[a-z0-9_]{{8}})\.tmp$")
+    return remove_stale(path.parent, pattern, Path.unlink)
 
 
 def write_container(

@@ -6,7 +6,9 @@ sibling folder and then puts it in place with one atomic exchange
 folder as it was before, or as the new run wrote it, never a mixture.  Where
 the exchange is not available (another OS, another file system) two renames
 are used, and a kill between them leaves the old run in a hidden folder beside
-``out``, which the next run removes.
+``out``, which the next run removes.  Staging folders carry their writer's
+process id, so a run never removes the staging folder of another run still
+writing into the same ``out``.
 
 :func:`check_output_dir` and :func:`check_output_file` prove, before any long
 work starts, that an output can be written: they create and remove a probe
@@ -26,9 +28,11 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import errno
 import json
 import logging
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -38,6 +42,7 @@ from pathlib import Path
 
 from topoloc.errors import input_error
 from topoloc.io.container import umask
+from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 
 log = logging.getLogger(__name__)
 
@@ -103,29 +108,69 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
 
     Yields the staging folder; on normal exit it replaces ``out`` (the old
     content is removed), on an exception it is removed and ``out`` is untouched.
+    The staging folder is named ``.OUT.staging-PID-HOST-XXXXXXXX`` after its
+    writer (:func:`topoloc.io.lock.writer_tag`): a run removes the staging
+    folders of runs killed before they finished, never those of a run still
+    writing.  Runs into one ``out`` at the same time each put their own run in
+    place whole as they finish, so ``out`` ends as the last one to finish wrote it.
     """
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    for stale in out.parent.glob(f".{out.name}.staging-*"):
-        # Left by a run killed before it finished: never part of a result.
-        shutil.rmtree(stale, ignore_errors=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    # Left by runs killed before they finished (never part of a result), and untagged ones
+    # of older versions once they are an hour old.
+    stale = re.compile(rf"^\.{re.escape(out.name)}\.staging-(?:{TAG_PATTERN}-|(?!\d+-[0-9a-f]{{8}}-))")
+    remove_stale(out.parent, stale, _remove_tree)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-{writer_tag()}-", dir=out.parent))
     try:
         yield stage
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
     os.chmod(stage, _DIR_MODE)
-    if not out.exists():
-        os.rename(stage, out)
+    _put_in_place(stage, out)
+
+
+def _remove_tree(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink()
+
+
+def _put_in_place(stage: Path, out: Path) -> None:
+    """Make ``stage`` the folder ``out``, whatever other runs into ``out`` do at the same time."""
+    # Another run may put its folder in place between any two of these steps; each step that
+    # finds the ground moved starts over, so one run ends in place whole and nothing is mixed.
+    for _ in range(1000):
+        if not os.path.lexists(out):
+            try:
+                os.rename(stage, out)
+                return
+            except OSError as exc:
+                if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and os.path.lexists(out):
+                    continue  # another run's folder arrived first: exchange with it
+                raise
+        if _exchange(stage, out):
+            shutil.rmtree(stage, ignore_errors=True)  # now holds the run it replaced
+            return
+        if not os.path.lexists(out):
+            continue  # gone between the check and the exchange (another run's two renames)
+        old = stage.with_name(stage.name + "-old")
+        try:
+            os.rename(out, old)
+        except FileNotFoundError:
+            continue
+        try:
+            os.rename(stage, out)
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+            # Another run put its folder in place after ours moved the old one aside: it is
+            # whole and newer than the old one, so it stays.
+            shutil.rmtree(stage, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
         return
-    if _exchange(stage, out):
-        shutil.rmtree(stage, ignore_errors=True)  # now holds the old run
-        return
-    old = out.parent / f".{out.name}.staging-old-{os.getpid()}"
-    os.rename(out, old)
-    os.rename(stage, out)
-    shutil.rmtree(old, ignore_errors=True)
+    raise OSError(f"could not put the run in place: {out}")  # pragma: no cover - 1000 lost races
 
 
 # mkdtemp makes 0700 folders; a run folder gets what any folder the user creates gets.

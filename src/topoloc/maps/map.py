@@ -11,6 +11,7 @@ NumPy array) and returns the place it shows with a confidence, and
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections import deque
@@ -27,6 +28,7 @@ from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig
+from topoloc.io.lock import file_lock
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
@@ -231,11 +233,22 @@ class Map:
         return self
 
     # -- persistence ------------------------------------------------------------------------
-    def save(self, path: str | Path) -> Path:
-        """Write the map to one file, atomically; returns the path."""
+    def save(self, path: str | Path, *, timeout: float | None = None) -> Path:
+        """Write the map to one file, atomically; returns the path.
+
+        It waits for another process that is updating the same file (:meth:`update`)
+        to finish, up to ``timeout`` seconds (default ``$TOPOLOC_LOCK_TIMEOUT``, else
+        an hour), then replaces it.
+        """
         path = Path(path)
         if path.is_dir():
             raise input_error("map output is a folder, not a file", path)
+        with file_lock(path, timeout=timeout):
+            self._write(path)
+        self.path = path
+        return path
+
+    def _write(self, path: Path) -> None:
         meta, arrays = self.recognizer.get_state()
         out: dict[str, np.ndarray] = {STATE_PREFIX + k: v for k, v in arrays.items()}
         out["places/ids"] = np.asarray(self.place_ids, np.int64)
@@ -256,8 +269,39 @@ class Map:
             "modified": datetime.now(UTC).isoformat(timespec="seconds"), "topoloc_version": __version__,
         }
         write_map_file(path, header, out)
-        self.path = path
-        return path
+
+    @classmethod
+    @contextlib.contextmanager
+    def update(cls, path: str | Path, *, timeout: float | None = None) -> Iterator[Map]:
+        """Load the map at ``path``, let the caller change it, and save it, with no other writer in between.
+
+        Every writer of the file that goes through :meth:`update` or :meth:`save`
+        (``map add``, ``map calibrate``, ``map build``, in any process) waits for
+        the one holding the file: the next one loads what the last one saved, so
+        no tour or calibration is lost.  A writer that waits logs one line; after
+        ``timeout`` seconds (default ``$TOPOLOC_LOCK_TIMEOUT``, else an hour) it
+        gives up with a one-line error.  Readers (:meth:`load`) never wait: a save
+        is an atomic rename, so they read the old file or the new one, whole.  The
+        map is saved when the block ends without an exception, and not at all
+        otherwise.
+
+        Examples
+        --------
+        >>> with Map.update("city.tlm") as m:  # doctest: +SKIP
+        ...     m.add_tour("tours/night")
+
+        Raises
+        ------
+        TopolocError
+            What :meth:`load` refuses, or another process still holds the file after ``timeout``.
+        """
+        path = Path(path)
+        if not path.is_file():
+            read_map_file(path)  # the one-line error of a missing map, before any lock
+        with file_lock(path, timeout=timeout):
+            m = cls.load(path)
+            yield m
+            m.save(path, timeout=timeout)
 
     @classmethod
     def load(cls, path: str | Path, *, mmap: bool = True) -> Map:
