@@ -498,7 +498,8 @@ class Localizer:
     def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> None:
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
-        SequenceSpec(length=sequence, mode=sequence_mode)  # one-line errors naming the parameter
+        # One-line errors naming the parameter; the last N + 1 columns it keeps are bounded too.
+        SequenceSpec(length=sequence, mode=sequence_mode).check_memory(len(m.place_ids), online=True)
         self.map = m
         self.top_k = top_k
         self.sequence = sequence
