@@ -176,8 +176,8 @@ def _state(meta: dict[str, Any]) -> dict[str, Any]:
 
 @pytest.mark.parametrize("case", [
     "sparse_side_1e11", "sparse_side_vs_vocabulary", "sparse_indptr_short", "sparse_indptr_decreasing",
-    "sparse_transposed", "sparse_index_outside", "sparse_format", "sparse_negative_shape", "names_a_method", "names_a_parameter",
-    "names_private", "state_not_objects",
+    "sparse_transposed", "sparse_index_outside", "sparse_format", "sparse_negative_shape", "names_a_method",
+    "names_a_parameter", "names_private", "state_not_objects",
 ])
 def test_crafted_map_state_is_refused_before_allocation(case: str, bow_map: Path, tmp_path: Path) -> None:
     p = tmp_path / "crafted.tlm"

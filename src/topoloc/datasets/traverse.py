@@ -18,8 +18,8 @@ import hashlib
 import io
 import math
 import re
-import warnings
 import uuid
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -422,7 +422,7 @@ def image_header_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
     """
     from PIL import Image
 
-    buf = data if isinstance(data, bytes) else memoryview(np.ascontiguousarray(data))
+    buf = data if isinstance(data, bytes) else np.ascontiguousarray(data).data
     try:
         with warnings.catch_warnings():
             # Pillow warns of (and past twice its own limit, refuses) large images: the size is what we need.
@@ -434,7 +434,7 @@ def image_header_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
         match = re.search(r"\((\d+) pixels\)", str(exc))
         pixels = int(match.group(1)) if match else MAX_IMAGE_PIXELS + 1
         return pixels, 1
-    except Exception:  # noqa: BLE001  # any format Pillow cannot parse is left to OpenCV
+    except Exception:  # any format Pillow cannot parse is left to OpenCV
         return None
     return int(width), int(height)
 

@@ -155,7 +155,7 @@ def _array_entry(e: Any, payload_nbytes: int) -> tuple[str, tuple[int, ...], np.
     if math.prod(shape) * dt.itemsize != nbytes or offset + nbytes > payload_nbytes:
         raise ValueError(f"array {e['name']!r} of shape {shape} does not fit its {nbytes} bytes at offset "
                          f"{offset} of a {payload_nbytes}-byte payload")
-    return e["name"], tuple(shape), dt, offset
+    return str(e["name"]), tuple(shape), dt, int(offset)  # type: ignore[arg-type]  # checked by _whole
 
 
 def read_container(

@@ -60,8 +60,11 @@ def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
     for t in tours:
         if t.xy is None:
             continue
-        rows = np.searchsorted(place_ids, t.places)
-        np.add.at(sums, rows, np.c_[t.xy, np.ones(len(t))])
+        # A frame without a position (NaN, as recordings give it) adds nothing: summed, it would
+        # make its place's mean position NaN for good, whatever later tours add.
+        known = np.isfinite(t.xy).all(axis=1)
+        rows = np.searchsorted(place_ids, t.places[known])
+        np.add.at(sums, rows, np.c_[t.xy[known], np.ones(int(known.sum()))])
     return sums
 
 
