@@ -15,8 +15,11 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import io
+import math
 import re
 import uuid
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -32,6 +35,11 @@ IMAGE_SUFFIXES = frozenset(
     {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 )
 SIDECAR = "places.csv"
+#: Most pixels (width x height) an image may have.  The size is read from the file's header and a
+#: larger image is refused before it is decoded: a few megabytes of PNG can announce 32000 x 32000
+#: pixels, 1 GB grey and 3 GB BGR once decoded.  2**28 (268 million) is above the largest camera
+#: sensors (200 megapixels, 805 MB BGR at most).
+MAX_IMAGE_PIXELS = 1 << 28
 TRAVERSE_KINDS = ("files", "images", "features", "words")
 
 
@@ -265,54 +273,42 @@ def _parse_time(text: str, csv_path: Path, line: int) -> np.datetime64:
 
 
 def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
+    # Rows are checked as they are read, so a bad row stops the reading there: a large file with a
+    # bad row near its top is refused at once, without being read (or held) whole first.
+    images: list[Path] = []
+    places: list[int] = []
+    times: list[np.datetime64] = []
+    xy: list[tuple[float, float]] = []
+    seen: set[str] = set()
     try:
         # utf-8-sig: spreadsheets save a byte-order mark before the header.
         with csv_path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh, skipinitialspace=True)
             if reader.fieldnames:
                 reader.fieldnames = [f.strip().lower() for f in reader.fieldnames]
-            rows = [{k: v for k, v in r.items() if k is not None} for r in reader]
             fields = set(reader.fieldnames or [])
+            if fields and not {"image", "place"} <= fields:
+                raise input_error("places.csv needs a header with columns image,place (found: "
+                                  f"{','.join(sorted(fields))})", csv_path)
+            has_time = "time" in fields
+            has_xy = {"x", "y"} <= fields
+            for row in reader:
+                # The line the row ends on (a quoted field may span lines), as an editor numbers it.
+                i = reader.line_num
+                name, pid, when, pos = _sidecar_row(row, folder, csv_path, i, has_time, has_xy)
+                if name in seen:
+                    raise input_error(f"{csv_path}:{i}: image {name!r} is listed twice", None)
+                seen.add(name)
+                images.append(folder / name)
+                places.append(pid)
+                if when is not None:
+                    times.append(when)
+                if pos is not None:
+                    xy.append(pos)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise input_error(f"cannot read places.csv ({type(exc).__name__}: {exc})", csv_path) from None
-    if not rows:
+    if not images:
         raise input_error("places.csv lists no images", csv_path)
-    if not {"image", "place"} <= fields:
-        raise input_error(f"places.csv needs a header with columns image,place (found: {','.join(sorted(fields))})",
-                          csv_path)
-    has_time = "time" in fields
-    has_xy = {"x", "y"} <= fields
-    images: list[Path] = []
-    places: list[int] = []
-    times: list[np.datetime64] = []
-    xy: list[tuple[float, float]] = []
-    seen: set[str] = set()
-    for i, row in enumerate(rows, start=2):
-        name = (row.get("image") or "").strip()
-        if not name:
-            raise input_error(f"{csv_path}:{i}: empty image name", None)
-        if name in seen:
-            raise input_error(f"{csv_path}:{i}: image {name!r} is listed twice", None)
-        seen.add(name)
-        img = folder / name
-        if not img.is_file():
-            raise input_error(f"{csv_path}:{i}: image {name!r} does not exist", img)
-        raw = (row.get("place") or "").strip()
-        try:
-            pid = int(raw)
-        except ValueError:
-            raise input_error(f"{csv_path}:{i}: place id {raw!r} is not an integer", None) from None
-        if pid < 0:
-            raise input_error(f"{csv_path}:{i}: place id {pid} is negative (place ids are >= 0)", None)
-        images.append(img)
-        places.append(pid)
-        if has_time:
-            times.append(_parse_time(row["time"] or "", csv_path, i))
-        if has_xy:
-            try:
-                xy.append((float(row["x"]), float(row["y"])))
-            except (TypeError, ValueError):
-                raise input_error(f"{csv_path}:{i}: x,y are not numbers", None) from None
     return Traverse(
         root=folder,
         images=tuple(images),
@@ -320,6 +316,37 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
         times=np.asarray(times, dtype="datetime64[s]") if has_time else None,
         xy=np.asarray(xy, dtype=np.float64).reshape(-1, 2) if has_xy else None,
     )
+
+
+def _sidecar_row(
+    row: dict[str | Any, str | Any], folder: Path, csv_path: Path, i: int, has_time: bool, has_xy: bool,
+) -> tuple[str, int, np.datetime64 | None, tuple[float, float] | None]:
+    """One row of ``places.csv`` checked: image name, place id, time and position (line ``i``)."""
+    name = (row.get("image") or "").strip()
+    if not name:
+        raise input_error(f"{csv_path}:{i}: empty image name", None)
+    img = folder / name
+    if not img.is_file():
+        raise input_error(f"{csv_path}:{i}: image {name!r} does not exist", img)
+    raw = (row.get("place") or "").strip()
+    try:
+        pid = int(raw)
+    except ValueError:
+        raise input_error(f"{csv_path}:{i}: place id {raw!r} is not an integer", None) from None
+    if pid < 0:
+        raise input_error(f"{csv_path}:{i}: place id {pid} is negative (place ids are >= 0)", None)
+    when = _parse_time(row.get("time") or "", csv_path, i) if has_time else None
+    pos = None
+    if has_xy:
+        try:
+            pos = (float(row["x"]), float(row["y"]))
+        except (TypeError, ValueError):
+            raise input_error(f"{csv_path}:{i}: x,y are not numbers", None) from None
+        # A NaN or infinite position would poison the mean position of its place in a map for good.
+        if not (math.isfinite(pos[0]) and math.isfinite(pos[1])):
+            raise input_error(f"{csv_path}:{i}: x,y must be finite numbers, got {row['x']!r},{row['y']!r}",
+                              None)
+    return name, pid, when, pos
 
 
 def load_traverse(folder: str | Path) -> Traverse:
@@ -380,8 +407,68 @@ def probe_image_sides(traverses: Sequence[Traverse]) -> set[int]:
     return sides
 
 
+def image_header_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
+    """Width and height an encoded image announces in its header, without decoding it.
+
+    Parameters
+    ----------
+    data : bytes or ndarray of uint8
+        The encoded file (PNG, JPEG, TIFF, WebP, BMP, PPM/PGM...).
+
+    Returns
+    -------
+    (width, height) or None
+        None when Pillow does not know the format (OpenCV then decides).
+    """
+    from PIL import Image
+
+    buf = data if isinstance(data, bytes) else np.ascontiguousarray(data).data
+    try:
+        with warnings.catch_warnings():
+            # Pillow warns of (and past twice its own limit, refuses) large images: the size is what we need.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(buf)) as im:
+                width, height = im.size
+    except Image.DecompressionBombError as exc:
+        # Pillow refuses to report sizes past twice its own limit, which is above ours.
+        match = re.search(r"\((\d+) pixels\)", str(exc))
+        pixels = int(match.group(1)) if match else MAX_IMAGE_PIXELS + 1
+        return pixels, 1
+    except Exception:  # any format Pillow cannot parse is left to OpenCV
+        return None
+    return int(width), int(height)
+
+
+def check_image_size(data: bytes | np.ndarray, where: str | Path, *, context: str = "") -> None:
+    """Refuse an encoded image whose header announces more than :data:`MAX_IMAGE_PIXELS` pixels.
+
+    Parameters
+    ----------
+    data : bytes or ndarray of uint8
+        The encoded image.
+    where : str or Path
+        The file the message names.
+    context : str
+        Said before the problem (``"topic /cam, message 3: "``).
+
+    Raises
+    ------
+    TopolocError
+        One line naming ``where`` (the file, or the message of a recording).
+    """
+    size = image_header_size(data)
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+        shown = f"{size[0]}x{size[1]} pixels" if size[1] > 1 else f"{size[0]} pixels"
+        raise input_error(f"{context}image is too large to decode ({shown}, more than {MAX_IMAGE_PIXELS} pixels)",
+                          where)
+
+
 def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
     """Read an image with OpenCV.
+
+    The size announced in the file's header is checked first, so an image of
+    more than :data:`MAX_IMAGE_PIXELS` pixels is refused before any memory is
+    spent decoding it.
 
     Returns
     -------
@@ -390,7 +477,7 @@ def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
     Raises
     ------
     TopolocError
-        If the file is missing, empty or cannot be decoded.
+        If the file is missing, empty, too large or cannot be decoded.
     """
     path = Path(path)
     try:
@@ -399,7 +486,12 @@ def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
         raise input_error("cannot open image", path) from None
     if buf.size == 0:
         raise input_error("image file is empty", path)
-    img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+    check_image_size(buf, path)
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+    except cv2.error:
+        # OpenCV refuses some headers itself (a size past its own limit) with an exception.
+        img = None
     if img is None or img.size == 0:
         raise input_error("image is corrupt or not a supported format", path)
     return img

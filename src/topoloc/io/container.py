@@ -27,6 +27,7 @@ removes the temporaries of writers that are gone (a process killed mid-write).
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import struct
@@ -44,6 +45,8 @@ from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 MAGIC = b"TOPOLOC\x00"
 CONTAINER_VERSION = 2
 _ALIGN = 64
+#: Most dimensions of a stored array (NumPy's own limit is 64).
+_MAX_NDIM = 32
 _PREFIX_V1 = struct.Struct("<8sIQ")
 _PREFIX = struct.Struct("<8sIQI")
 
@@ -150,6 +153,32 @@ def write_container(
                               *blobs])
 
 
+def _whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _array_entry(e: Any, payload_nbytes: int) -> tuple[str, tuple[int, ...], np.dtype[Any], int]:
+    """Name, shape, dtype and offset of one array of the header, checked against the payload's bytes.
+
+    Done in Python integers before anything is read: a shape whose product overflows int64,
+    or one that announces more bytes than the file holds, is refused, never allocated.
+    """
+    if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not isinstance(e.get("dtype"), str):
+        raise ValueError("bad array entry")
+    shape, offset, nbytes = e.get("shape"), e.get("offset"), e.get("nbytes")
+    if not (isinstance(shape, list) and len(shape) <= _MAX_NDIM and all(_whole(n) for n in shape)):
+        raise ValueError(f"array {e['name']!r} has a bad shape {shape!r}")
+    dt = np.dtype(e["dtype"])
+    if dt.hasobject or dt.fields is not None or dt.subdtype is not None or dt.itemsize == 0:
+        raise ValueError(f"array {e['name']!r} has an unsupported dtype {e['dtype']!r}")
+    if not (_whole(offset) and _whole(nbytes)):
+        raise ValueError(f"array {e['name']!r} has a bad offset or size")
+    if math.prod(shape) * dt.itemsize != nbytes or offset + nbytes > payload_nbytes:
+        raise ValueError(f"array {e['name']!r} of shape {shape} does not fit its {nbytes} bytes at offset "
+                         f"{offset} of a {payload_nbytes}-byte payload")
+    return str(e["name"]), tuple(shape), dt, int(offset)  # type: ignore[arg-type]  # checked by _whole
+
+
 def read_container(
     path: str | Path, kind: str, kind_version: int | None = None, *, mmap: bool = False
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -205,7 +234,8 @@ def read_container(
         raise input_error(f"{kind} file has a corrupt header (checksum mismatch)", path)
     try:
         header = json.loads(raw_header)
-    except (ValueError, UnicodeDecodeError):
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        # RecursionError: JSON nested deeper than Python's parser goes (a crafted header).
         raise input_error(f"{kind} file has a corrupt header", path) from None
     if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
         raise input_error(f"{kind} file has a corrupt header", path)
@@ -230,12 +260,10 @@ def read_container(
     arrays = {}
     try:
         for e in header["arrays"]:
-            n = int(np.prod(e["shape"], dtype=np.int64))
-            dt = np.dtype(e["dtype"])
-            if dt.hasobject or int(e["offset"]) < 0:
-                raise ValueError("bad array entry")
-            arr = np.frombuffer(payload, dtype=dt, count=n, offset=int(e["offset"])) if n else np.empty(0, dt)
-            arrays[str(e["name"])] = arr.reshape(e["shape"])
+            name, shape, dt, offset = _array_entry(e, len(payload))
+            n = math.prod(shape)
+            arr = np.frombuffer(payload, dtype=dt, count=n, offset=offset) if n else np.empty(0, dt)
+            arrays[name] = arr.reshape(shape)
         meta = header["meta"]
         if not isinstance(meta, dict):
             raise ValueError("meta is not an object")

@@ -62,8 +62,11 @@ def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
     for t in tours:
         if t.xy is None:
             continue
-        rows = np.searchsorted(place_ids, t.places)
-        np.add.at(sums, rows, np.c_[t.xy, np.ones(len(t))])
+        # A frame without a position (NaN, as recordings give it) adds nothing: summed, it would
+        # make its place's mean position NaN for good, whatever later tours add.
+        known = np.isfinite(t.xy).all(axis=1)
+        rows = np.searchsorted(place_ids, t.places[known])
+        np.add.at(sums, rows, np.c_[t.xy[known], np.ones(int(known.sum()))])
     return sums
 
 
@@ -542,7 +545,8 @@ class Localizer:
     def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> None:
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
-        SequenceSpec(length=sequence, mode=sequence_mode)  # one-line errors naming the parameter
+        # One-line errors naming the parameter; the last N + 1 columns it keeps are bounded too.
+        SequenceSpec(length=sequence, mode=sequence_mode).check_memory(len(m.place_ids), online=True)
         self.map = m
         self.top_k = top_k
         self.sequence = sequence

@@ -37,6 +37,7 @@ from topoloc.bow.tfidf import (
 )
 from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.shards import ShardPart, merge_order
@@ -123,6 +124,15 @@ class BagOfWords(PlaceRecognizer):
 
     def _set_state(self, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
         restore_state(self, meta, arrays)
+        # Checked before _index allocates along the words: a stored shape costs nothing in the file.
+        n_words = self.n_words_
+        res = getattr(self, "resources_", None)
+        if res is not None and res.has_vocabulary and n_words != res.vocabulary.n_words_:
+            raise TopolocError(f"bow: stored state has {n_words!r} words, its vocabulary {res.vocabulary.n_words_}")
+        if (isinstance(n_words, bool) or not isinstance(n_words, int) or not sp.issparse(self.counts_)
+                or self.counts_.shape != (len(self.doc_places_), n_words)):
+            raise TopolocError(f"bow: stored word counts of shape {getattr(self.counts_, 'shape', None)} do not "
+                               f"match {len(self.doc_places_)} documents of {n_words!r} words")
         self._index()
 
     def _index(self) -> None:

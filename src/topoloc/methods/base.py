@@ -254,8 +254,9 @@ class PlaceRecognizer(Configurable, ABC):
         """
         rec = cls(**params)
         rec.validate_params()
-        rec._set_state(meta, arrays)
+        # Set first, so that a state can be checked against the resources (a vocabulary's size).
         rec.resources_ = resources if resources is not None else InMemoryResources()
+        rec._set_state(meta, arrays)
         return rec
 
     # -- maps built from shards (see topoloc.methods.shards) ---------------------------------

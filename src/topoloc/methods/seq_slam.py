@@ -124,7 +124,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from topoloc._params import Check, Constraint, Interval, OfType, Options
+from topoloc._params import Check, Constraint, Interval, OfType, Options, param_error
 from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
@@ -132,7 +132,13 @@ from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.shards import ShardPart, merge_order
 from topoloc.resources import Resources
 from topoloc.seqslam import difference_matrix, preprocess_image
-from topoloc.sequence.search import contrast_enhance, sequence_search, uniqueness_margin
+from topoloc.sequence.search import (
+    SEQUENCE_MEMORY_BUDGET,
+    contrast_enhance,
+    search_memory_bytes,
+    sequence_search,
+    uniqueness_margin,
+)
 
 # Query columns of the difference matrix held at once in score(): bounds the
 # memory of long routes to about 128 MiB of float32 per stage, with at least
@@ -254,6 +260,15 @@ class SeqSLAM(PlaceRecognizer):
         p = self.get_params()
         if "v_min" in p and p["v_min"] > p["v_max"]:
             raise TopolocError(f"{self.name}: v_min must be <= v_max, got {p['v_min']} > {p['v_max']}")
+        if "ds" in p and "search" in p:
+            # Before any image is read: the search's tiles grow with ds squared (or cubed).
+            need = search_memory_bytes(int(p["ds"]), mode=p["search"], v_min=float(p["v_min"]),
+                                       v_max=float(p["v_max"]), v_step=float(p["v_step"]),
+                                       max_skip=int(p["max_skip"]))
+            if need > SEQUENCE_MEMORY_BUDGET:
+                raise param_error(self.name, "ds", f"a length whose {p['search']} search fits in "
+                                  f"{SEQUENCE_MEMORY_BUDGET / 2**30:.0f} GiB (SEQUENCE_MEMORY_BUDGET; it needs "
+                                  f"{need / 2**30:.1f} GiB)", p["ds"])
 
     @property
     def _n_pixels(self) -> int:

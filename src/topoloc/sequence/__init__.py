@@ -8,9 +8,11 @@ traverse, costs as mean differences, similarities as negated costs).
 from __future__ import annotations
 
 from topoloc.sequence.search import (
+    SEQUENCE_MEMORY_BUDGET,
     acceleration_search,
     constant_velocity_search,
     contrast_enhance,
+    search_memory_bytes,
     sequence_search,
     sequence_similarity,
     similarity_to_difference,
@@ -19,9 +21,11 @@ from topoloc.sequence.search import (
 )
 
 __all__ = [
+    "SEQUENCE_MEMORY_BUDGET",
     "acceleration_search",
     "constant_velocity_search",
     "contrast_enhance",
+    "search_memory_bytes",
     "sequence_search",
     "sequence_similarity",
     "similarity_to_difference",

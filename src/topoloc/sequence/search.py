@@ -117,6 +117,15 @@ Normalize = Literal["zscore", "rank", "none"]
 # 10,000 x 10,000 among 256-2048 rows x 128-512 queries).
 _ROW_TILE = 1024
 DEFAULT_CHUNK_QUERIES = 128
+#: Most bytes the working arrays of one sequence search may hold at once (1 GiB), all threads
+#: together.  The tiles' arrays grow with the square of ``ds`` (constant velocity: a tile of
+#: ``(ds v_max + 1024) x (ds + 128)`` differences) or its cube (acceleration: ``ds v_max + 1``
+#: planes of ``(ds v_max + 256) x 128`` states), so a sequence length of a million frames would
+#: take terabytes: :func:`search_memory_bytes` is checked before anything is allocated, a search
+#: whose one tile exceeds the budget is refused, and fewer threads run at once where several
+#: tiles would (a tile's result does not depend on the thread that computes it).  The defaults
+#: (``ds = 10``) take under 4 MiB a tile.
+SEQUENCE_MEMORY_BUDGET = 1 << 30
 
 
 # --------------------------------------------------------------------------- helpers
@@ -141,6 +150,71 @@ def _check_ds(ds: int) -> int:
 
 
 
+def search_memory_bytes(
+    ds: int,
+    *,
+    mode: Mode = "constant",
+    n_db: int | None = None,
+    n_q: int | None = None,
+    v_min: float = 0.8,
+    v_max: float = 1.2,
+    v_step: float = 0.1,
+    max_skip: int = 1,
+    chunk_queries: int = DEFAULT_CHUNK_QUERIES,
+) -> int:
+    """Bytes of the working arrays of one tile of a sequence search, computed without allocating them.
+
+    An upper bound of what :func:`constant_velocity_search` (``mode="constant"``)
+    or :func:`acceleration_search` (``"acceleration"``) allocates per tile
+    besides their output (the size of ``D``), to be compared with
+    :data:`SEQUENCE_MEMORY_BUDGET` before a search starts.
+
+    Parameters
+    ----------
+    ds : int
+        Sequence length.
+    mode : {"constant", "acceleration"}
+    n_db, n_q : int, optional
+        Places and queries of ``D``; unknown (None) counts a full tile.
+    v_min, v_max, v_step, max_skip, chunk_queries
+        As for the searches.
+
+    Returns
+    -------
+    int
+    """
+    ds = max(int(ds), 0)
+    w = min(n_q, chunk_queries) if n_q is not None else chunk_queries
+    w = max(int(w), 1)
+    cols = ds + w
+    if mode == "acceleration":
+        a_max = ds * (int(max_skip) + 1)
+        if math.isfinite(v_max):
+            a_max = min(a_max, math.floor(ds * v_max + 1e-9))
+        row_tile = max(_ROW_TILE // 4, 4)
+        rows = min(n_db, row_tile) if n_db is not None else row_tile
+        nb = a_max + rows
+        # The padded tile, its +inf extension, and the state planes (E, new and a temporary).
+        cells = nb * cols + (nb + a_max) * cols + 3 * (a_max + 1) * nb * w
+        return 4 * cells
+    # One more than the last velocity's offset: v_min + k v_step may round past v_max.
+    halo = math.floor(ds * v_max + 1e-9) + 1 if math.isfinite(v_max) else ds
+    rows = min(n_db, _ROW_TILE) if n_db is not None else _ROW_TILE
+    n_v = math.floor((v_max - v_min) / v_step + 1e-9) + 1 if v_step > 0 and v_max >= v_min else 1
+    # The padded tile, the accumulator and the best so far (float32), and the velocity offsets
+    # (int64, twice over while they are made unique).
+    return 4 * ((halo + rows) * cols + 2 * rows * w) + 16 * max(n_v, 1) * (ds + 1)
+
+
+def _memory_checked(tile_bytes: int, ds: int, mode: str) -> int:
+    """Threads that fit :data:`SEQUENCE_MEMORY_BUDGET` at ``tile_bytes`` each; refuse a tile that does not fit."""
+    if tile_bytes > SEQUENCE_MEMORY_BUDGET:
+        raise ValueError(
+            f"a {mode} sequence search over ds={ds} frames needs {tile_bytes / 2**30:.1f} GiB of working memory, "
+            f"more than its budget of {SEQUENCE_MEMORY_BUDGET / 2**30:.0f} GiB (SEQUENCE_MEMORY_BUDGET)")
+    return max(1, SEQUENCE_MEMORY_BUDGET // max(tile_bytes, 1))
+
+
 def _tiles(
     n_rows: int, n_cols: int, chunk_queries: int, row_tile: int
 ) -> Iterator[tuple[int, int, int, int]]:
@@ -157,15 +231,16 @@ def _run_tiles(
     n_jobs: int,
     work: Callable[[int, int, int, int], np.ndarray],
     row_tile: int | None = None,
+    max_workers: int | None = None,
 ) -> np.ndarray:
-    """Fill ``out`` tile by tile with ``work(r0, r1, c0, c1)``, in parallel."""
+    """Fill ``out`` tile by tile with ``work(r0, r1, c0, c1)``, in parallel (at most ``max_workers`` threads)."""
     tiles = list(_tiles(out.shape[0], out.shape[1], chunk_queries, row_tile or _ROW_TILE))
 
     def run(t: tuple[int, int, int, int]) -> None:
         r0, r1, c0, c1 = t
         out[r0:r1, c0:c1] = work(r0, r1, c0, c1)
 
-    workers = min(n_workers(n_jobs), len(tiles))
+    workers = min(n_workers(n_jobs), len(tiles), max_workers or len(tiles))
     if workers <= 1:
         for t in tiles:
             run(t)
@@ -359,6 +434,17 @@ def contrast_enhance(
 
 
 # ---------------------------------------------------------- constant-velocity search
+def _check_velocities(v_min: float, v_max: float, v_step: float) -> None:
+    if not (math.isfinite(v_min) and math.isfinite(v_max) and math.isfinite(v_step)):
+        raise ValueError("velocities must be finite")
+    if v_min < 0:
+        raise ValueError(f"v_min must be >= 0 (trajectories only move forward), got {v_min}")
+    if v_max < v_min:
+        raise ValueError(f"v_max ({v_max}) must be >= v_min ({v_min})")
+    if v_step <= 0:
+        raise ValueError(f"v_step must be > 0, got {v_step}")
+
+
 def velocity_offsets(
     ds: int, v_min: float = 0.8, v_max: float = 1.2, v_step: float = 0.1
 ) -> np.ndarray:
@@ -382,14 +468,7 @@ def velocity_offsets(
         at frame ``k`` (query ``T - ds + k``); column ``ds`` is all zeros.
     """
     ds = _check_ds(ds)
-    if not (math.isfinite(v_min) and math.isfinite(v_max) and math.isfinite(v_step)):
-        raise ValueError("velocities must be finite")
-    if v_min < 0:
-        raise ValueError(f"v_min must be >= 0 (trajectories only move forward), got {v_min}")
-    if v_max < v_min:
-        raise ValueError(f"v_max ({v_max}) must be >= v_min ({v_min})")
-    if v_step <= 0:
-        raise ValueError(f"v_step must be > 0, got {v_step}")
+    _check_velocities(v_min, v_max, v_step)
     n_v = math.floor((v_max - v_min) / v_step + 1e-9) + 1
     v = v_min + v_step * np.arange(n_v)
     k = np.arange(ds + 1)
@@ -444,6 +523,11 @@ def constant_velocity_search(
     """
     D = _as_difference_matrix(D)
     ds = _check_ds(ds)
+    _check_velocities(v_min, v_max, v_step)
+    # Before the offsets and tiles are allocated (both grow with ds).
+    max_workers = _memory_checked(search_memory_bytes(
+        ds, mode="constant", n_db=D.shape[0], n_q=D.shape[1], v_min=v_min, v_max=v_max, v_step=v_step,
+        chunk_queries=chunk_queries), ds, "constant-velocity")
     offsets = velocity_offsets(ds, v_min, v_max, v_step)
     halo = int(offsets.max()) if offsets.size else 0
     neutral = _neutral(D)
@@ -468,7 +552,7 @@ def constant_velocity_search(
         return best
 
     out = np.empty(D.shape, dtype=np.float32)
-    return _run_tiles(out, chunk_queries, n_jobs, work)
+    return _run_tiles(out, chunk_queries, n_jobs, work, max_workers=max_workers)
 
 
 # --------------------------------------------------------- acceleration (Cooc-Map)
@@ -621,6 +705,9 @@ def acceleration_search(
         raise ValueError(f"step_penalty must be finite and >= 0, got {step_penalty}")
     halo = a_max
     n_a = a_max + 1
+    max_workers = _memory_checked(search_memory_bytes(
+        ds, mode="acceleration", n_db=D.shape[0], n_q=D.shape[1], v_min=v_min, v_max=v_max,
+        max_skip=int(max_skip), chunk_queries=chunk_queries), ds, "acceleration")
     neutral = _neutral(D)
 
     def work(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
@@ -686,7 +773,7 @@ def acceleration_search(
 
     out = np.empty(D.shape, dtype=np.float32)
     # Row tiles a quarter as tall: the state holds a_max + 1 planes per tile.
-    return _run_tiles(out, chunk_queries, n_jobs, work, row_tile=max(_ROW_TILE // 4, 4))
+    return _run_tiles(out, chunk_queries, n_jobs, work, row_tile=max(_ROW_TILE // 4, 4), max_workers=max_workers)
 
 
 # ------------------------------------------------------------- uniqueness margin

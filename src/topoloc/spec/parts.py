@@ -346,6 +346,38 @@ class SequenceSpec:
             raise ParameterError("sequence.length", f"must be a whole number >= 0 (0 = off), got {self.length!r}")
         if self.mode not in SEQUENCE_MODES:
             raise ParameterError("sequence.mode", f"must be one of {', '.join(SEQUENCE_MODES)}, got {self.mode!r}")
+        if self.length:
+            self.check_memory()
+
+    def check_memory(self, n_places: int | None = None, *, online: bool = False) -> None:
+        """Refuse a length whose search would take more than :data:`~topoloc.sequence.SEQUENCE_MEMORY_BUDGET`.
+
+        Checked before anything is allocated: the search's tiles grow with the
+        square (constant velocity) or cube (acceleration) of the length.
+
+        Parameters
+        ----------
+        n_places : int, optional
+            Places of the map (unknown: a full tile is counted).
+        online : bool
+            Also count what an online localiser keeps: the last ``length + 1``
+            score columns of ``n_places`` float32 each, and their stacked copy.
+
+        Raises
+        ------
+        ParameterError
+            Naming ``sequence.length``.
+        """
+        from topoloc.sequence import SEQUENCE_MEMORY_BUDGET, search_memory_bytes
+
+        need = search_memory_bytes(self.length, mode=self.mode, n_db=n_places)  # type: ignore[arg-type]
+        if online and n_places is not None:
+            need += 2 * 4 * n_places * (self.length + 1)
+        if need > SEQUENCE_MEMORY_BUDGET:
+            where = f" over {n_places} places" if n_places is not None else ""
+            raise ParameterError("sequence.length", (
+                f"{self.length} is too long: its {self.mode} search{where} would need {need / 2**30:.1f} GiB, "
+                f"more than the budget of {SEQUENCE_MEMORY_BUDGET / 2**30:.0f} GiB (SEQUENCE_MEMORY_BUDGET)"))
 
 
 # -- where the work runs --------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ import numpy as np
 
 from topoloc.datasets.projection import UTMProjection
 from topoloc.datasets.sources.base import Frame, Keyframes
+from topoloc.datasets.traverse import check_image_size
 from topoloc.errors import TopolocError, input_error
 
 IMAGE_TYPES = ("sensor_msgs/Image", "sensor_msgs/CompressedImage")
@@ -79,7 +80,12 @@ def decode_image(msg: Any, msgtype: str, *, gray: bool, where: str, path: Path) 
         fmt = str(getattr(msg, "format", ""))
         if "compresseddepth" in fmt.lower().replace(" ", ""):
             raise input_error(f"{where}: compressedDepth images are not supported (format {fmt!r})", path)
-        img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) if data.size else None
+        if data.size:
+            check_image_size(data, path, context=f"{where}: ")
+        try:
+            img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) if data.size else None
+        except cv2.error:  # OpenCV refuses some headers itself (a size past its own limit)
+            img = None
         if img is None or img.size == 0:
             raise input_error(f"{where}: compressed image (format {fmt!r}) is corrupt or not a format OpenCV "
                               "can decode", path)
