@@ -19,9 +19,16 @@ distributed run computes exactly what a local run computes.
 
 Faults
 ------
+* An address of a scheme Dask does not speak (``http://``) is refused before
+  anything is contacted (:func:`check_scheduler_address`).
 * A scheduler that cannot be reached within ``timeout_s`` (default 10 s,
-  ``TOPOLOC_SCHEDULER_TIMEOUT`` overrides it) is a one-line
+  ``TOPOLOC_SCHEDULER_TIMEOUT`` overrides it), or whose port answers but not as a
+  Dask scheduler (a web server, its dashboard), is a one-line
   :class:`~topoloc.errors.TopolocError`, raised before any work starts.
+* While tasks run, a scheduler that stays unreachable, or has no worker left,
+  for ``timeout_s`` ends the run with one line naming its address, as does a
+  scheduler that goes away (its tasks are cancelled) or a task whose workers
+  keep dying (Dask's ``KilledWorker``).  No wait on the cluster is unbounded.
 * A task that raises is retried ``retries`` times (Dask's own ``retries``);
   a worker process that dies has its tasks rescheduled on the others by the
   scheduler (Dask's ``distributed.scheduler.allowed-failures``, 3 by default).
@@ -34,9 +41,12 @@ Faults
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
 import logging
 import os
 import sys
+import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol, Self, TypeVar, runtime_checkable
@@ -61,6 +71,12 @@ DEFAULT_RETRIES = 2
 """Times a task that raised is run again before the run fails."""
 
 EXTRA_HINT = "pip install 'topoloc[distributed]'"
+
+SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
+"""Address schemes a Dask scheduler listens on; an address without ``scheme://`` is ``tcp``."""
+
+HEALTH_CHECK_S = 1.0
+"""Seconds between two looks at the scheduler while waiting for results with none arriving."""
 
 
 @runtime_checkable
@@ -173,6 +189,7 @@ class DaskExecutor(_Closing):
         self.address = address
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
+        _handshake(address, self.timeout_s)
         try:
             self.client = distributed.Client(address, timeout=self.timeout_s, set_as_default=False)
         except (OSError, TimeoutError) as exc:
@@ -181,7 +198,7 @@ class DaskExecutor(_Closing):
         try:
             self.client.wait_for_workers(1, timeout=self.timeout_s)
         except (OSError, TimeoutError):
-            self.client.close()
+            self.close()
             raise TopolocError(f"the Dask scheduler at {address} has no worker after {self.timeout_s:g} s; "
                                f"start one with `dask worker {address}`") from None
 
@@ -191,8 +208,32 @@ class DaskExecutor(_Closing):
 
     @property
     def n_workers(self) -> int:
-        info = self.client.scheduler_info()
-        return max(1, sum(int(w.get("nthreads", 1)) for w in info.get("workers", {}).values()))
+        return max(1, int(self._identity().get("total_threads", 1)))
+
+    def _identity(self) -> dict[str, Any]:
+        """The scheduler's worker and thread counts, asked within ``timeout_s`` (Dask's own call waits forever)."""
+        if self.client.status != "running":
+            raise TopolocError(self._lost())
+        try:
+            info = self.client.sync(self.client.scheduler.identity, n_workers=0, callback_timeout=self.timeout_s)
+        except (OSError, TimeoutError, RuntimeError):
+            raise TopolocError(self._lost()) from None
+        return dict(info)
+
+    def _lost(self) -> str:
+        return (f"lost the Dask scheduler at {self.address} (no answer within {self.timeout_s:g} s); "
+                f"is `dask scheduler` still running there?")
+
+    def _stalled(self) -> str | None:
+        """Why no task can finish now (no scheduler, or no worker), or None while the cluster can run them."""
+        try:
+            info = self._identity()
+        except TopolocError as exc:
+            return str(exc)
+        if int(info.get("n_workers", 0)) < 1:
+            return (f"the Dask scheduler at {self.address} has had no worker for {self.timeout_s:g} s, "
+                    f"with tasks waiting; start one with `dask worker {self.address}`")
+        return None
 
     def map(self, fn: Callable[[T], R], items: Sequence[T], *,
             advance: Callable[[int], None] | None = None) -> list[R]:
@@ -207,20 +248,89 @@ class DaskExecutor(_Closing):
         try:
             with self.client.as_current():
                 done = distributed.as_completed(futures)
-            for fut in done:
-                out[index[fut.key]] = fut.result()
-                if advance is not None:
-                    advance(1)
+            # Polled rather than iterated: Dask's iterator waits forever when the workers are gone, and
+            # only a look at the scheduler between results can tell a slow task from a dead cluster.
+            healthy_at = next_check = time.monotonic()
+            while not done.is_empty():
+                if done.has_ready():
+                    for fut in done.next_batch(block=False):
+                        out[index[fut.key]] = self._result(fut)
+                        if advance is not None:
+                            advance(1)
+                    healthy_at = time.monotonic()
+                    continue
+                time.sleep(0.02)
+                now = time.monotonic()
+                if now < next_check:
+                    continue
+                problem = self._stalled()
+                next_check = time.monotonic() + HEALTH_CHECK_S
+                if problem is None:
+                    healthy_at = now
+                elif now - healthy_at >= self.timeout_s:
+                    raise TopolocError(problem)
         except BaseException:
-            self.client.cancel(futures)
+            if self.client.status == "running":
+                self.client.cancel(futures)
             raise
         return out
 
+    def _result(self, fut: Any) -> Any:
+        """The result of a finished task; a cluster that failed under it is one line naming the scheduler."""
+        from distributed import KilledWorker
+
+        try:
+            return fut.result(timeout=self.timeout_s)
+        except KilledWorker as exc:
+            raise TopolocError(f"workers of the Dask scheduler at {self.address} died running a task "
+                               f"({exc}); see the workers' logs") from None
+        except (concurrent.futures.CancelledError, asyncio.CancelledError) as exc:
+            reason = getattr(exc, "reason", "") or "cancelled"
+            if reason == "scheduler-connection-lost":
+                raise TopolocError(f"lost the Dask scheduler at {self.address} during the run; "
+                                   f"is `dask scheduler` still running there?") from None
+            raise TopolocError(f"the Dask scheduler at {self.address} cancelled the run's tasks ({reason})") from None
+
     def close(self) -> None:
-        self.client.close()
+        # A scheduler that went away must not hold up the end of the run: close within the timeout.
+        try:
+            self.client.close(timeout=self.timeout_s)
+        except (OSError, TimeoutError, RuntimeError) as exc:
+            log.debug("closing the Dask client of %s: %s", self.address, exc)
 
     def __repr__(self) -> str:
         return f"DaskExecutor({self.address!r}, timeout_s={self.timeout_s:g}, retries={self.retries})"
+
+
+def _handshake(address: str, timeout_s: float) -> None:
+    """Open one connection to ``address`` and read its Dask greeting, within ``timeout_s`` each.
+
+    Dask's own client waits for the greeting without a limit, so a port that
+    accepts connections but speaks another protocol (a web server, the
+    scheduler's dashboard) would hang it; this asks first, on a loop of its
+    own in a thread of its own (a caller may already run an event loop).
+    """
+    from distributed.comm import connect as comm_connect
+
+    async def greet() -> None:
+        # Dask gives up connecting after timeout_s (an OSError); the greeting gets as long again.
+        comm = await asyncio.wait_for(comm_connect(address, timeout=timeout_s), 2 * timeout_s)
+        await comm.close()
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="topoloc-handshake")
+    try:
+        pool.submit(asyncio.run, greet()).result(timeout=2 * timeout_s + 5.0)
+    except (TimeoutError, concurrent.futures.TimeoutError):
+        raise TopolocError(f"{address} accepts connections but sent no Dask greeting within {timeout_s:g} s; "
+                           f"is that the scheduler's address (not a web server or its dashboard)?") from None
+    except OSError as exc:
+        raise TopolocError(f"cannot reach the Dask scheduler at {address} within {timeout_s:g} s "
+                           f"({type(exc).__name__}); is `dask scheduler` running there?") from None
+    except Exception as exc:  # the port answered with something else than Dask's protocol
+        raise TopolocError(f"{address} does not answer as a Dask scheduler ({type(exc).__name__}); "
+                           f"is that the scheduler's address?") from None
+    finally:
+        pool.shutdown(wait=False)
 
 
 def in_worker_task() -> bool:
@@ -248,6 +358,22 @@ def require_distributed() -> Any:
     except ImportError:
         raise TopolocError(f"a Dask scheduler needs the optional extra: {EXTRA_HINT}") from None
     return distributed
+
+
+def check_scheduler_address(address: str) -> str | None:
+    """What is wrong with a scheduler address (a scheme Dask does not speak, no host), or None.
+
+    ``host:port`` without a scheme is Dask's ``tcp``.
+    """
+    scheme, sep, rest = address.partition("://")
+    if not sep:
+        return None if address else "is empty"
+    if scheme.lower() not in SCHEMES:
+        return (f"has scheme {scheme}://, which is not a Dask scheduler's; use one of "
+                f"{', '.join(x + '://' for x in SCHEMES)} (e.g. tcp://host:8786), got {address!r}")
+    if not rest.strip("/"):
+        return f"names no host, got {address!r}"
+    return None
 
 
 def scheduler_address(scheduler: str | None = None) -> str | None:
@@ -289,6 +415,10 @@ def connect(scheduler: str | None = None, *, n_jobs: int = -1, timeout_s: float 
     address = scheduler_address(scheduler)
     if address is None:
         return LocalExecutor(n_jobs)
+    problem = check_scheduler_address(address)
+    if problem is not None:
+        name = "the scheduler address" if scheduler else f"${SCHEDULER_ENV}"
+        raise TopolocError(f"{name} {problem}")
     return DaskExecutor(address, timeout_s=default_timeout_s() if timeout_s is None else timeout_s,
                         retries=retries)
 
@@ -305,6 +435,6 @@ def flatten(parts: Iterable[Sequence[T]]) -> list[T]:
     return [x for part in parts for x in part]
 
 
-__all__ = ["DEFAULT_RETRIES", "DEFAULT_TIMEOUT_S", "SCHEDULER_ENV", "TIMEOUT_ENV", "DaskExecutor", "Executor",
-           "LocalExecutor", "chunks", "connect", "default_timeout_s", "flatten", "in_worker_task",
-           "require_distributed", "scheduler_address"]
+__all__ = ["DEFAULT_RETRIES", "DEFAULT_TIMEOUT_S", "SCHEDULER_ENV", "SCHEMES", "TIMEOUT_ENV", "DaskExecutor",
+           "Executor", "LocalExecutor", "check_scheduler_address", "chunks", "connect", "default_timeout_s", "flatten",
+           "in_worker_task", "require_distributed", "scheduler_address"]

@@ -38,6 +38,37 @@ class ParameterError(TopolocError):
         super().__init__(f"{param} {self.detail}")
 
 
+class WriteError(TopolocError, OSError):
+    """A file that could not be written: disk full, quota exceeded, read-only file system...
+
+    Both a :class:`TopolocError` (the command line prints its one line, exit 2)
+    and an :class:`OSError` with the original ``errno``, so code that tolerates
+    an unwritable cache (``except OSError``) still does.
+
+    Parameters
+    ----------
+    errno : int or None
+        The ``errno`` of the failed call (``errno.ENOSPC``...).
+    strerror : str or None
+        Its text (``"No space left on device"``).
+    filename : str
+        The file being written (the destination, not a temporary name).
+    """
+
+    def __init__(self, errno: int | None, strerror: str | None, filename: str) -> None:
+        # OSError's own three arguments: the error pickles (a Dask task's error travels back) and keeps errno.
+        OSError.__init__(self, errno, strerror, filename)
+
+    @classmethod
+    def of(cls, path: str | Path, exc: OSError) -> WriteError:
+        """The error of writing ``path`` that failed with ``exc``."""
+        reason = exc.strerror or str(exc) or type(exc).__name__
+        return exc if isinstance(exc, WriteError) else cls(exc.errno, reason, str(path))
+
+    def __str__(self) -> str:
+        return f"cannot write {self.filename}: {self.strerror}"
+
+
 def input_error(problem: str, path: str | Path | None = None) -> TopolocError:
     """Build a one-line :class:`TopolocError` naming ``problem`` and ``path``."""
     msg = problem if path is None else f"{problem}: {path}"

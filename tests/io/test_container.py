@@ -150,3 +150,27 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path) -> None:
         atomic_write_bytes(path, Exploding())
     assert path.read_bytes() == b"old contents"
     assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
+def test_a_full_disk_is_one_line_naming_the_file_and_keeps_the_old_one(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+    import os
+
+    from topoloc.errors import TopolocError, WriteError
+    from topoloc.io.container import atomic_write_bytes
+
+    path = tmp_path / "m.tlm"
+    atomic_write_bytes(path, b"old")
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(WriteError) as info:
+        atomic_write_bytes(path, b"new")
+    # One line naming the destination; still an OSError with its errno, for code that tolerates a full cache.
+    assert str(info.value) == f"cannot write {path}: No space left on device"
+    assert isinstance(info.value, TopolocError) and isinstance(info.value, OSError)
+    assert info.value.errno == errno.ENOSPC
+    assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["m.tlm"]

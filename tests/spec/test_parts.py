@@ -39,6 +39,8 @@ from topoloc.spec import (
     (lambda: SequenceSpec(mode="sideways"), "sequence.mode"),
     (lambda: ExecutionSpec(scheduler_timeout=0), "execution.scheduler_timeout"),
     (lambda: ExecutionSpec(scheduler_timeout=float("nan")), "execution.scheduler_timeout"),
+    (lambda: ExecutionSpec(scheduler="http://127.0.0.1:8787"), "execution.scheduler"),
+    (lambda: ExecutionSpec(scheduler="tcp://"), "execution.scheduler"),
     (lambda: parse_recall_at("0"), "recall_at"),
     (lambda: EvaluateSpec(method="bow", query=Path("q"), out=Path("o")), "maps"),
     (lambda: EvaluateSpec(maps=(Path("m"),), query=Path("q"), out=Path("o")), "method"),
@@ -64,6 +66,8 @@ def test_good_values_are_normalised() -> None:
     v = VocabularySpec(train=["a", Path("b")])  # type: ignore[arg-type]
     assert v.train == (Path("a"), Path("b")) and v.given and not VocabularySpec().given
     assert EvaluateSpec(method="bow", maps=["m"], query="q", out="o").maps == (Path("m"),)  # type: ignore[arg-type]
+    for address in ("tcp://10.0.0.5:8786", "TLS://host:8786", "127.0.0.1:8786", ""):  # no scheme: Dask's tcp
+        assert ExecutionSpec(scheduler=address).scheduler == address
 
 
 def test_feature_spec_resolves_auto_for_runs_and_for_maps(tmp_path: Path) -> None:

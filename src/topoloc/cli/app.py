@@ -6,6 +6,7 @@ Commands register on :data:`app` from :mod:`topoloc.cli.main` and :mod:`topoloc.
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import sys
@@ -53,8 +54,23 @@ def handle_errors(fn: F) -> F:
             raise _fail(str(exc)) from None
         except KeyboardInterrupt:
             raise _fail("interrupted") from None
+        except OSError as exc:
+            # The last resort for a file the library did not name (a full disk, a read-only folder):
+            # one line rather than a traceback; the writers that can name the file raise WriteError.
+            raise _fail(os_error_line(exc)) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
+
+
+def os_error_line(exc: OSError) -> str:
+    """``cannot write|read or write FILE: REASON`` for an :class:`OSError` that reached the command line."""
+    verb = "write" if exc.errno in _WRITE_ERRNOS else "read or write"
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    name = exc.filename2 if exc.filename2 is not None else exc.filename
+    return f"cannot {verb} {name}: {reason}" if name is not None else f"cannot {verb} a file: {reason}"
 
 
 def _print_version(value: bool) -> None:

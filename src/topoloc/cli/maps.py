@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -250,16 +251,54 @@ def localize(
                     "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
                     spec.map_file, spec.map_file)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode)
-    spec.out.parent.mkdir(parents=True, exist_ok=True)
     # Written line by line: a run that is stopped keeps every frame done so far.
-    with spec.execution.connect() as executor, open(spec.out, "w", encoding="utf-8") as fh, \
-            rich_progress(not quiet) as progress:
+    with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)
         for line in loc.stream(frames, executor=executor):
             fh.write(json.dumps(line) + "\n")
-            fh.flush()
             advance(1)
     typer.echo(json.dumps({"out": str(spec.out), **loc.summary()}))
+
+
+class _LineFile:
+    """A text file written one whole line at a time, straight to the file (no buffer).
+
+    A write that fails (disk full, quota) is one line naming the file, and
+    the file is cut back to its last whole line, so what is there still reads.
+    """
+
+    def __init__(self, path: Path) -> None:
+        from topoloc.errors import WriteError
+
+        self.path = path
+        self.size = 0
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        except OSError as exc:
+            raise WriteError.of(path, exc) from None
+
+    def write(self, text: str) -> None:
+        from topoloc.errors import WriteError
+
+        raw = text.encode("utf-8")
+        data = memoryview(raw)
+        try:
+            while data:
+                data = data[os.write(self.fd, data):]
+        except OSError as exc:
+            try:
+                os.ftruncate(self.fd, self.size)
+            except OSError:
+                log.debug("cannot cut %s back to its last whole line", self.path)
+            raise WriteError.of(self.path, exc) from None
+        self.size += len(raw)
+
+    def __enter__(self) -> _LineFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        os.close(self.fd)
 
 
 cache_app = typer.Typer(help="The feature and vocabulary cache (~/.cache/topoloc or TOPOLOC_CACHE_DIR).",

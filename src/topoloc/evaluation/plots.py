@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from topoloc.errors import WriteError
+
 
 def plot_pr_curves(
     curves: Sequence[tuple[str, np.ndarray, np.ndarray]], path: str | Path, title: str = ""
@@ -35,6 +37,11 @@ def plot_pr_curves(
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), frameon=False)
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, bbox_inches="tight", pad_inches=0.15)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        fig.savefig(tmp, bbox_inches="tight", pad_inches=0.15)
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise WriteError.of(path, exc) from None
+    finally:
+        plt.close(fig)

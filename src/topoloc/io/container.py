@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from topoloc.errors import input_error
+from topoloc.errors import WriteError, input_error
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 
 MAGIC = b"TOPOLOC\x00"
@@ -68,14 +68,22 @@ def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
     The file gets the permissions of any file the user creates (``0666`` less
     the umask), not the private ``0600`` of a temporary file, so that a shared
     cache or map can be read by the others it is shared with.
+
+    Raises
+    ------
+    WriteError
+        When the folder or the file cannot be written (disk full, quota,
+        read-only file system...): one line naming ``path``; any earlier file
+        at ``path`` is left as it was.  It is also an :class:`OSError`.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(chunks, bytes):
         chunks = [chunks]
-    remove_stale_temporaries(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{writer_tag()}-", suffix=".tmp", dir=path.parent)
+    tmp: str | None = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{writer_tag()}-", suffix=".tmp", dir=path.parent)
         os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, "wb") as fh:
             for chunk in chunks:
@@ -83,8 +91,12 @@ def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            # Named by its destination: the temporary name in the message would mean nothing to the user.
+            raise WriteError.of(path, exc) from None
         raise
 
 

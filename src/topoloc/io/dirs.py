@@ -40,7 +40,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from topoloc.errors import input_error
+from topoloc.errors import WriteError, input_error
 from topoloc.io.container import umask
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 
@@ -123,8 +123,12 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-{writer_tag()}-", dir=out.parent))
     try:
         yield stage
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)
+        if isinstance(exc, OSError) and exc.filename is not None and Path(exc.filename).is_relative_to(stage):
+            # Named as the user will look for it, not by the hidden folder that is gone now.
+            final = out / Path(exc.filename).relative_to(stage)
+            raise WriteError(exc.errno, exc.strerror or type(exc).__name__, str(final)) from None
         raise
     os.chmod(stage, _DIR_MODE)
     _put_in_place(stage, out)

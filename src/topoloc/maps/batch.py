@@ -124,7 +124,9 @@ def localize_on(executor: Executor, loc: Localizer,
             yield loc.step(item[2], name=item[0], time_s=item[1]), time.perf_counter() - t0
     path = str(Path(m.path).resolve())
     stamp = _stamp(path)
-    window = batch_frames * 2 * max(1, executor.n_workers)
+    threads = max(1, executor.n_workers)
+    loc.workers = max(loc.workers, threads)
+    window = batch_frames * 2 * threads
     first = 0
     while True:
         t0 = time.perf_counter()
@@ -136,6 +138,9 @@ def localize_on(executor: Executor, loc: Localizer,
                    for a in range(0, len(chunk), batch_frames)]
         first += len(chunk)
         scored = [c for part in executor.map(score_frames, batches) for c in part]
+        # The batches ran side by side: the wall clock saw only 1/parallel of their summed times.
+        parallel = min(threads, len(batches))
+        loc.ms_overlap += sum(ms_f + ms_m for _, ms_f, ms_m in scored) * (1.0 - 1.0 / parallel)
         for k, ((name, time_s, _), (col, ms_f, ms_m)) in enumerate(zip(chunk, scored, strict=True)):
             line = loc.step_scores(col, name=name, time_s=time_s, ms_features=ms_f, ms_matching=ms_m)
             yield line, decode_s if k == 0 else 0.0

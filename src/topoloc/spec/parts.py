@@ -401,6 +401,18 @@ class ExecutionSpec:
     cache_dir: Path | None = None
 
     def __post_init__(self) -> None:
+        if self.scheduler is not None:
+            from topoloc.cluster import check_scheduler_address
+
+            if not isinstance(self.scheduler, str):
+                raise ParameterError("execution.scheduler", f"must be an address such as tcp://host:8786, "
+                                                            f"got {self.scheduler!r}")
+            # Checked here, before any file is read: Dask itself fails late, with a traceback, on `http://`.
+            # An empty address means $TOPOLOC_SCHEDULER, which cluster.connect checks.
+            address = self.scheduler.strip()
+            problem = check_scheduler_address(address) if address else None
+            if problem is not None:
+                raise ParameterError("execution.scheduler", problem)
         object.__setattr__(self, "scheduler_timeout",
                            _positive("execution.scheduler_timeout", self.scheduler_timeout,
                                      what="a positive number of seconds"))
