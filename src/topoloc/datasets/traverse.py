@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import logging
 import re
 import uuid
 from collections.abc import Sequence
@@ -32,6 +33,7 @@ IMAGE_SUFFIXES = frozenset(
     {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 )
 SIDECAR = "places.csv"
+log = logging.getLogger(__name__)
 TRAVERSE_KINDS = ("files", "images", "features", "words")
 
 
@@ -313,6 +315,13 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
                 xy.append((float(row["x"]), float(row["y"])))
             except (TypeError, ValueError):
                 raise input_error(f"{csv_path}:{i}: x,y are not numbers", None) from None
+    in_folder = {p.name for p in _list_images(folder)}
+    unlisted = len(in_folder - {str(p.relative_to(folder)) for p in images})
+    if unlisted:
+        # Leaving images out is how a sidecar selects them, but 7 of 10 images silently dropped looks
+        # like a stale places.csv: say it once, with the count.
+        log.warning("%d of the %d images of %s are not in places.csv and are left out of the traverse", unlisted,
+                    len(in_folder), folder)
     return Traverse(
         root=folder,
         images=tuple(images),
