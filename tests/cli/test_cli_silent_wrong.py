@@ -186,7 +186,6 @@ def test_a_map_calibrated_with_infinity_before_still_loads_and_accepts_nothing(
     old = m.save(tmp_path / "old.tlm")  # what earlier versions wrote: Infinity in the header
     back = Map.load(old)
     assert back.threshold == math.inf and back.calibration is not None and back.calibration["threshold"] is None
-    frames = [back.recognizer.place_ids_]  # noqa: F841 - the map holds places
     info = _strict_json(cli.ok(["map", "info", str(old), "--json"]))
     assert info["calibration"]["threshold"] is None  # type: ignore[index]
     out = tmp_path / "loc.jsonl"
