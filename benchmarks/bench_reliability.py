@@ -1,6 +1,13 @@
-"""Regenerate docs/results/reliability.md: kill `evaluate`, `map build` and `slam` at random moments.
+"""Regenerate docs/results/reliability.md: bad input and faults by family, and runs killed at random moments.
 
-    .venv/bin/python -m benchmarks.bench_reliability
+    .venv/bin/python -m benchmarks.bench_reliability          # every case (about 10 minutes on 2 cores)
+    .venv/bin/python -m benchmarks.bench_reliability --fast   # the families only (a few minutes)
+
+The families of issue #26 (:data:`FAMILIES`: data loss, silent wrong, hangs,
+bombs, tracebacks, names) are cases run as a user would, each a ``topoloc``
+process with a time limit (and a memory limit for the bombs): a case *holds*
+when the command does what the family promises (one line and exit 2 for bad
+input, a user's file intact, one warning line, a page whose names are text).
 
 On a generated route (no shared data needed), each command is first run to
 completion (the reference) and timed; then, for a seeded set of kill times
@@ -14,14 +21,17 @@ equal, loop closures equal).  A case *survives* when both hold.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import os
 import platform
+import shutil
 import signal
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -88,78 +98,459 @@ def _same(a: Any, b: Any) -> bool:
     return bool(np.array_equal(a, b)) if isinstance(a, np.ndarray) else a == b
 
 
-def main() -> None:
-    from topoloc.synth import RouteConfig, generate_route
+# -- the families of issue #26: bad input and faults, each case run as a user would --------------------------
+FAMILIES = {
+    "data loss": "a user's files are never destroyed, a map update is never lost",
+    "silent wrong": "no result that looks right but is not: refused, or said in one warning line",
+    "hangs": "nothing waits forever: a bad input or an unreachable scheduler ends in one line",
+    "bombs": "an input that would take all memory is refused before it is decoded",
+    "tracebacks": "bad input is one line `topoloc: error: ...`, exit 2, never a traceback",
+    "names": "file and folder names of any characters work, and are text in the HTML page",
+}
+CASE_TIMEOUT_S = 120
+ODD = "a b ü 'q\" <script>alert(1) <!--<script> &amp;\nline"
 
-    rng = np.random.default_rng(SEED)
+
+def _run(args: list[str], env: dict[str, str], timeout: float = CASE_TIMEOUT_S,
+         memory_bytes: int | None = None) -> tuple[int | None, str, str, float]:
+    """(exit status or None if it ran past ``timeout``, stdout, stderr, seconds) of ``topoloc ARGS``."""
+
+    def limit() -> None:  # pragma: no cover - runs in the child
+        if memory_bytes is not None:
+            import resource
+
+            resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
+
+    t0 = time.perf_counter()
+    try:
+        r = subprocess.run([str(TOPOLOC), *args], capture_output=True, text=True, env=env, timeout=timeout,
+                           preexec_fn=limit if memory_bytes else None)
+    except subprocess.TimeoutExpired:
+        return None, "", "", time.perf_counter() - t0
+    return r.returncode, r.stdout, r.stderr, time.perf_counter() - t0
+
+
+def _one_line_error(rc: int | None, err: str, *needles: str) -> str:
+    """"" when the run refused with one error line holding ``needles``; else what went wrong."""
+    if rc is None:
+        return f"still running after {CASE_TIMEOUT_S} s"
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    if rc != 2 or "Traceback" in err or not lines or not lines[-1].startswith("topoloc: error:"):
+        return f"exit {rc}: {(lines or ['(no message)'])[-1][:160]}"
+    missing = [n for n in needles if n not in lines[-1]]
+    return f"message lacks {missing}: {lines[-1][:160]}" if missing else ""
+
+
+def _warnings(err: str, needle: str) -> list[str]:
+    return [ln for ln in err.splitlines() if needle in ln]
+
+
+def _copy_tour(src: Path, dst: Path, rename: Callable[[int, str], str] = lambda k, n: n) -> Path:
+    dst.mkdir(parents=True)
+    rows = list(csv.DictReader((src / "places.csv").open(newline="")))
+    for k, row in enumerate(rows):
+        new = rename(k, row["image"])
+        shutil.copy(src / row["image"], dst / new)
+        row["image"] = new
+    with (dst / "places.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return dst
+
+
+def _video(path: Path, tour: Path, damage: str = "") -> Path:
+    import cv2
+
+    imgs = [cv2.imread(str(p)) for p in sorted(tour.glob("*.jpg"))]
+    h, w = imgs[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (w, h))
+    for img in imgs * 2:
+        writer.write(img)
+    writer.release()
+    if damage:
+        data = bytearray(path.read_bytes())
+        chunks, at = [], data.find(b"00dc")
+        while at >= 0:
+            if data[at + 8:at + 10] == b"\xff\xd8":
+                chunks.append(at)
+            at = data.find(b"00dc", at + 4)
+        if damage == "frame":
+            data[chunks[4] + 208:chunks[4] + 608] = bytes(400)
+        else:
+            data = data[:chunks[len(chunks) // 2] + 50]
+        path.write_bytes(bytes(data))
+    return path
+
+
+def _png_bomb(path: Path, side: int) -> Path:
+    """A PNG whose header declares ``side`` x ``side`` grey pixels, with one compressed row of data."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(bytes(side + 1)))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def family_cases(work: Path, route: Path, env: dict[str, str]) -> list[dict[str, Any]]:
+    """Run each case of :data:`FAMILIES`; a row per case: family, case, held, seconds, detail."""
     rows: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        route = work / "route"
-        generate_route(route, config=RouteConfig(n_places=16, width=256, height=192, seed=2),
-                       tours=[("noon", 12.0), ("dusk", 18.0), ("morning", 9.0)])
-        loop = route / "loop"
-        loop.mkdir()
-        for k, p in enumerate(sorted((route / "noon").glob("*.jpg")) * 2):
-            os.link(p, loop / f"{k:05d}.jpg")  # the route driven twice: loop closures in the second lap
-        vocab = work / "vocab.tlv"
-        subprocess.run([str(TOPOLOC), "vocab", "train", str(route / "morning"), "--words", "300", "--out",
-                        str(vocab)], check=True, capture_output=True, env={**os.environ, "TOPOLOC_CACHE_DIR":
-                                                                            str(work / "cache")})
-        env = {**os.environ, "TOPOLOC_CACHE_DIR": str(work / "cache")}
-        for name in ("evaluate", "map build", "slam"):
-            ref_dir = work / f"ref_{name.replace(' ', '_')}"
-            # Warm the caches once, then time an uninterrupted run.
-            subprocess.run(_commands(route, vocab, ref_dir)[name], check=True, capture_output=True, env=env)
-            t0 = time.perf_counter()
-            subprocess.run(_commands(route, vocab, ref_dir)[name], check=True, capture_output=True, env=env)
-            duration = time.perf_counter() - t0
-            reference = _result(name, ref_dir, route)
-            out = work / f"kill_{name.replace(' ', '_')}"
-            subprocess.run(_commands(route, vocab, out)[name], check=True, capture_output=True, env=env)
-            for when in np.sort(rng.uniform(0.05, 1.0, KILLS_PER_COMMAND) * duration):
-                proc = subprocess.Popen(_commands(route, vocab, out)[name], stdout=subprocess.DEVNULL,
-                                        stderr=subprocess.DEVNULL, env=env)
-                time.sleep(float(when))
-                finished_before = proc.poll() is not None
-                if not finished_before:
-                    proc.send_signal(signal.SIGKILL)
-                proc.wait()
-                problems = _check_files(out)
-                rerun = subprocess.run(_commands(route, vocab, out)[name], capture_output=True, env=env)
-                same = rerun.returncode == 0 and _same(_result(name, out, route), reference)
-                rows.append({"command": name, "kill_after_s": round(float(when), 2),
-                             "run_s": round(duration, 2), "killed": not finished_before,
-                             "files_whole": not problems, "problems": problems, "rerun_same": same})
-                print(json.dumps(rows[-1]), flush=True)
-    tried = len(rows)
-    survived = sum(r["files_whole"] and r["rerun_same"] for r in rows)
-    summary = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-               "date": datetime.now(UTC).isoformat(timespec="seconds"), "seed": SEED, "cases": rows,
-               "tried": tried, "survived": survived}
-    (RESULTS / "reliability.json").write_text(json.dumps(summary, indent=1) + "\n")
+    noon, dusk = route / "noon", route / "dusk"
+    seq = ["--method", "seqslam", "--param", "ds=3", "--quiet"]
+
+    def case(family: str, name: str, check: Callable[[], str]) -> None:
+        t0 = time.perf_counter()
+        try:
+            detail = check()
+        except Exception as exc:  # a case that cannot even be set up did not hold
+            detail = f"{type(exc).__name__}: {exc}"
+        rows.append({"family": family, "case": name, "held": not detail, "seconds": round(time.perf_counter() - t0, 1),
+                     "detail": detail})
+        print(json.dumps(rows[-1]), flush=True)
+
+    tlm = work / "fam.tlm"
+    rc, _, err, _ = _run(["map", "build", "--map", str(noon), "--out", str(tlm), *seq], env)
+    if rc != 0:
+        raise SystemExit(f"map build for the family cases failed: {err}")
+
+    # -- data loss --
+    def out_folder_with_user_files() -> str:
+        out = work / "dl_eval"
+        out.mkdir()
+        (out / "thesis.tex").write_text("years of work")
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(out), *seq], env)
+        if not (out / "thesis.tex").is_file():
+            return f"exit {rc}: the user's file in --out is gone"
+        return "" if rc in (0, 2) and "Traceback" not in err else f"exit {rc}"
+
+    def map_out_over_a_user_file() -> str:
+        notes = work / "notes.tlm"
+        notes.write_text("my notes")
+        rc, _, err, _ = _run(["map", "build", "--map", str(noon), "--out", str(notes), *seq], env)
+        if notes.read_text(errors="replace") != "my notes":
+            return f"exit {rc}: a file that is not a map was overwritten"
+        return _one_line_error(rc, err, str(notes))
+
+    def report_out_with_user_files() -> str:
+        run = work / "dl_run"
+        rc, _, _, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(run), *seq], env)
+        out = work / "dl_report"
+        out.mkdir()
+        (out / "report.md").write_text("my own report")
+        rc, _, err, _ = _run(["report", str(run), "--out", str(out)], env)
+        if (out / "report.md").read_text() != "my own report":
+            return f"exit {rc}: the user's report.md in --out was overwritten"
+        return "" if "Traceback" not in err else "a traceback"
+
+    def concurrent_map_adds() -> str:
+        m = work / "dl_concurrent.tlm"
+        shutil.copy(tlm, m)
+        tours = [_copy_tour(dusk, work / "dl_tour_a"), _copy_tour(route / "morning", work / "dl_tour_b")]
+        procs = [subprocess.Popen([str(TOPOLOC), "map", "add", str(m), str(t), "--quiet"], env=env,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for t in tours]
+        codes = [p.wait(timeout=CASE_TIMEOUT_S) for p in procs]
+        from topoloc.maps import Map
+
+        names = [t["name"] for t in Map.load(m).tours]
+        added = sum(c == 0 for c in codes)
+        if len(names) - 1 != added:
+            return f"{added} of 2 adds reported success but the map holds {names}: an update was lost"
+        return ""
+
+    case("data loss", "evaluate --out on a folder holding a user's file keeps it", out_folder_with_user_files)
+    case("data loss", "map build --out on a file that is not a map refuses", map_out_over_a_user_file)
+    case("data loss", "report --out on a folder holding a user's report.md keeps it", report_out_with_user_files)
+    case("data loss", "two map adds at once: both tours kept, or one refused", concurrent_map_adds)
+
+    # -- silent wrong --
+    def calibrate_on_own_tour() -> str:
+        m = work / "sw_own.tlm"
+        shutil.copy(tlm, m)
+        rc, _, err, _ = _run(["map", "calibrate", str(m), "--query", str(noon), "--quiet"], env)
+        return _one_line_error(rc, err, "own tour", str(m))
+
+    def calibrate_no_threshold() -> str:
+        m = work / "sw_none.tlm"
+        shutil.copy(tlm, m)
+        n = len(list(dusk.glob("*.jpg")))
+        wrong = _copy_tour(dusk, work / "sw_wrong")
+        rows_ = list(csv.DictReader((wrong / "places.csv").open(newline="")))
+        (wrong / "places.csv").write_text("image,place\n" + "".join(
+            f"{r['image']},{(int(r['place']) + n // 2) % n}\n" for r in rows_))
+        rc, out, err, _ = _run(["map", "calibrate", str(m), "--query", str(wrong), "--tolerance", "0:0",
+                                "--precision", "1", "--quiet"], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        try:
+            cal = json.loads(out, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+        except ValueError as exc:
+            return f"output is not JSON ({exc})"
+        if len(_warnings(err, "accepts no localisation")) != 1:
+            return "no single warning line"
+        return "" if cal["threshold"] is None else f"threshold {cal['threshold']}"
+
+    def damaged_video(kind: str) -> Callable[[], str]:
+        def check() -> str:
+            video = _video(work / f"sw_{kind}.avi", noon, damage=kind)
+            rc, _, err, _ = _run(["map", "build", "--map", str(video), "--out", str(work / f"sw_{kind}.tlm"),
+                                  *seq], env)
+            return _one_line_error(rc, err, video.name, "frame")
+        return check
+
+    def places_csv_drops_images() -> str:
+        q = _copy_tour(dusk, work / "sw_partial")
+        lines = (q / "places.csv").read_text().splitlines()
+        (q / "places.csv").write_text("\n".join(lines[:6]) + "\n")
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(q), "--out", str(work / "sw_pe"),
+                              *seq[:-1]], env)
+        found = _warnings(err, "not in places.csv")
+        return "" if rc == 0 and len(found) == 1 else f"exit {rc}, {len(found)} warning lines"
+
+    def query_is_map_tour() -> str:
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(noon), "--out", str(work / "sw_self"),
+                              *seq[:-1]], env)
+        found = _warnings(err, "own images")
+        return "" if rc == 0 and len(found) == 1 else f"exit {rc}, {len(found)} warning lines"
+
+    case("silent wrong", "map calibrate on the map's own tour refuses", calibrate_on_own_tour)
+    case("silent wrong", "map calibrate reaching no threshold prints JSON null and warns", calibrate_no_threshold)
+    case("silent wrong", "MJPG video with a damaged frame: map build stops naming file and frame",
+         damaged_video("frame"))
+    case("silent wrong", "truncated video: map build stops naming file and frame", damaged_video("truncated"))
+    case("silent wrong", "places.csv leaving images out: one warning line", places_csv_drops_images)
+    case("silent wrong", "evaluate with the query equal to a map tour: one warning line", query_is_map_tour)
+
+    # -- hangs --
+    def fifo_video() -> str:
+        fifo = work / "hang.avi"
+        os.mkfifo(fifo)
+        rc, _, err, _ = _run(["map", "build", "--map", str(fifo), "--out", str(work / "hang.tlm"), *seq], env,
+                             timeout=60)
+        return _one_line_error(rc, err, "hang.avi")
+
+    def fifo_places_csv() -> str:
+        q = _copy_tour(dusk, work / "hang_csv")
+        (q / "places.csv").unlink()
+        os.mkfifo(q / "places.csv")
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(q), "--out", str(work / "hang_o"),
+                              *seq], env, timeout=60)
+        if rc is None:
+            return "still running after 60 s"
+        # A sidecar that is not a regular file may be ignored (exit 0) or refused (one line): never waited on.
+        return "" if rc == 0 and "Traceback" not in err else _one_line_error(rc, err, "places.csv")
+
+    def unreachable_scheduler() -> str:
+        rc, _, err, secs = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(work / "hang_s"),
+                                 "--scheduler", "tcp://127.0.0.1:9", "--scheduler-timeout", "3", *seq], env,
+                                timeout=60)
+        problem = _one_line_error(rc, err, "127.0.0.1:9")
+        return problem or ("" if secs < 30 else f"took {secs:.0f} s for a 3 s timeout")
+
+    case("hangs", "a named pipe as the video: one line, no wait", fifo_video)
+    case("hangs", "a named pipe as places.csv: one line, no wait", fifo_places_csv)
+    case("hangs", "unreachable --scheduler with --scheduler-timeout 3: one line within 30 s", unreachable_scheduler)
+
+    # -- bombs --
+    def png_bomb(side: int) -> Callable[[], str]:
+        def check() -> str:
+            q = _copy_tour(dusk, work / f"bomb_{side}")
+            first = sorted(q.glob("*.jpg"))[0]
+            bomb = _png_bomb(first.with_suffix(".png"), side)
+            first.unlink()
+            (q / "places.csv").write_text((q / "places.csv").read_text().replace(first.name, bomb.name))
+            rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(q), "--out",
+                                  str(work / f"bomb_o{side}"), *seq], env, memory_bytes=3 * 2**30)
+            return _one_line_error(rc, err, bomb.name)
+        return check
+
+    case("bombs", "PNG declaring 30000 x 30000 pixels (0.9 GB decoded) in a query folder", png_bomb(30000))
+    case("bombs", "PNG declaring 100000 x 100000 pixels in a query folder", png_bomb(100000))
+
+    # -- tracebacks --
+    def numbers() -> str:
+        bad = []
+        for args, needle in (
+                (["cache", "clean", "--cache-dir", str(work / "c"), "--older-than", "nan"], "--older-than"),
+                (["cache", "clean", "--cache-dir", str(work / "c"), "--max-size", "inf"], "size"),
+                (["synth", str(work / "s"), "--hours", "nan"], "--hours"),
+                (["map", "calibrate", str(tlm), "--query", str(dusk), "--precision", "nan"], "--precision"),
+                (["map", "calibrate", str(tlm), "--query", str(dusk), "--tolerance", "0:nan"], "--tolerance"),
+                (["slam", str(noon), "--out", str(work / "sl"), "--threshold", "inf"], "--threshold"),
+                (["show-match", str(next(dusk.glob("*.jpg"))), "--map", str(noon), "--method", "seqslam", "--out",
+                  str(work / "sm.png"), "--tolerance", "-1"], "--tolerance"),
+                (["bench", "coocmap", "--locations", "0"], "--locations"),
+                (["bench", "coocmap", "--tours", "-1"], "--tours"),
+                (["bench", "fabmap2", "--words", "0"], "--words"),
+                (["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(work / "n"), "--every-s", "inf",
+                  *seq], "--every-s"),
+        ):
+            rc, _, err, _ = _run(args, env, timeout=60)
+            problem = _one_line_error(rc, err, needle)
+            if problem:
+                bad.append(f"{' '.join(args[:2])} {args[-2:]}: {problem}")
+        return "; ".join(bad)
+
+    def report_other_shape() -> str:
+        run = work / "tb_run"
+        run.mkdir()
+        (run / "metrics.json").write_text('{"method": "bow", "auc": "high"}')
+        (run / "pr.csv").write_text("precision,recall\n1,0\n")
+        rc, _, err, _ = _run(["report", str(run), "--out", str(work / "tb_rep")], env)
+        return _one_line_error(rc, err, "metrics.json")
+
+    case("tracebacks", "nan, inf, -1, 0 to 11 numeric options: one line each", numbers)
+    case("tracebacks", "report of a metrics.json of another shape: one line naming it", report_other_shape)
+
+    # -- names --
+    def odd_names() -> str:
+        maps = _copy_tour(noon, work / f"map {ODD}", lambda k, n: f"{k:02d} {ODD}.jpg")
+        query = _copy_tour(dusk, work / f"query {ODD}", lambda k, n: f"{k:02d} {ODD}.jpg")
+        page = work / f"page {ODD}.html"
+        rc, _, err, _ = _run(["evaluate", "--map", str(maps), "--query", str(query), "--out", str(work / f"o {ODD}"),
+                              "--html", str(page), *seq], env)
+        if rc != 0:
+            return f"evaluate exit {rc}: {err.strip()[-160:]}"
+        text = page.read_text()
+        if "<script>alert" in text or "<!--" in text or text.count("<script") != text.count("</script>"):
+            return "a name reached the HTML page as markup"
+        m = work / f"m {ODD}.tlm"
+        rc, _, err, _ = _run(["map", "build", "--map", str(maps), "--out", str(m), *seq], env)
+        if rc != 0:
+            return f"map build exit {rc}: {err.strip()[-160:]}"
+        rc, _, err, _ = _run(["localize", str(m), str(query), "--out", str(work / f"l {ODD}.jsonl"), "--quiet"], env)
+        return "" if rc == 0 else f"localize exit {rc}: {err.strip()[-160:]}"
+
+    case("names", "folder and image names with spaces, unicode, quotes, <script>, a newline: evaluate, "
+                  "--html, map build, localize", odd_names)
+    return rows
+
+
+def _kill_cases(work: Path, route: Path, rng: np.random.Generator) -> list[dict[str, Any]]:
+    """Each command killed with SIGKILL at seeded moments, its files checked and the rerun compared."""
+    rows: list[dict[str, Any]] = []
+    vocab = work / "vocab.tlv"
+    env = {**os.environ, "TOPOLOC_CACHE_DIR": str(work / "cache")}
+    subprocess.run([str(TOPOLOC), "vocab", "train", str(route / "morning"), "--words", "300", "--out",
+                    str(vocab)], check=True, capture_output=True, env=env)
+    for name in ("evaluate", "map build", "slam"):
+        ref_dir = work / f"ref_{name.replace(' ', '_')}"
+        # Warm the caches once, then time an uninterrupted run.
+        subprocess.run(_commands(route, vocab, ref_dir)[name], check=True, capture_output=True, env=env)
+        t0 = time.perf_counter()
+        subprocess.run(_commands(route, vocab, ref_dir)[name], check=True, capture_output=True, env=env)
+        duration = time.perf_counter() - t0
+        reference = _result(name, ref_dir, route)
+        out = work / f"kill_{name.replace(' ', '_')}"
+        subprocess.run(_commands(route, vocab, out)[name], check=True, capture_output=True, env=env)
+        for when in np.sort(rng.uniform(0.05, 1.0, KILLS_PER_COMMAND) * duration):
+            proc = subprocess.Popen(_commands(route, vocab, out)[name], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL, env=env)
+            time.sleep(float(when))
+            finished_before = proc.poll() is not None
+            if not finished_before:
+                proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            problems = _check_files(out)
+            rerun = subprocess.run(_commands(route, vocab, out)[name], capture_output=True, env=env)
+            same = rerun.returncode == 0 and _same(_result(name, out, route), reference)
+            rows.append({"command": name, "kill_after_s": round(float(when), 2),
+                         "run_s": round(duration, 2), "killed": not finished_before,
+                         "files_whole": not problems, "problems": problems, "rerun_same": same})
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def _page(summary: dict[str, Any]) -> str:
+    """docs/results/reliability.md from the summary written to reliability.json."""
+    cases, kills = summary["family_cases"], summary["cases"]
+    held = sum(c["held"] for c in cases)
     text = [
-        "# Reliability: runs killed at random moments\n\n",
-        "Generated by `.venv/bin/python -m benchmarks.bench_reliability`; do not edit by hand "
+        "# Reliability: bad input, faults, and runs killed at random moments\n\n",
+        "Generated by `.venv/bin/python -m benchmarks.bench_reliability"
+        f"{' --fast' if summary['fast'] else ''}`; do not edit by hand "
         f"({summary['machine']}, {summary['date']}, seed {SEED}). Raw: [reliability.json](reliability.json).\n\n",
+        "## Bad input and faults, by family\n\n",
+        "Each case runs `topoloc` as a user would, on a generated 12-place route, as its own process with a "
+        f"time limit ({CASE_TIMEOUT_S} s; 60 s for the hangs) and, for the bombs, a 3 GiB address-space limit "
+        "(`COLUMNS=1000`, so that the log handler does not wrap a warning line). "
+        "A case *holds* when the command keeps the family's promise.\n\n",
+        f"**{held} of {len(cases)} cases held.**\n\n",
+        "| family | what must hold | tried | held |\n| --- | --- | --- | --- |\n",
+    ]
+    for fam, promise in FAMILIES.items():
+        mine = [c for c in cases if c["family"] == fam]
+        text.append(f"| {fam} | {promise} | {len(mine)} | {sum(c['held'] for c in mine)} |\n")
+    text.append("\n| family | case | held | s | what went wrong |\n| --- | --- | --- | --- | --- |\n")
+    for c in cases:
+        detail = c["detail"].replace("|", "/").replace("\n", " ")
+        text.append(f"| {c['family']} | {c['case'].replace('|', '/')} | {c['held']} | {c['seconds']} | {detail} |\n")
+    text.append("\n## Runs killed at random moments\n\n")
+    if not kills:
+        text.append("Not run in this regeneration (`--fast`: the families only, to stay within a few minutes); "
+                    "run the benchmark without `--fast` for them.\n")
+        return "".join(text)
+    survived = sum(r["files_whole"] and r["rerun_same"] for r in kills)
+    text += [
         "Each command runs on a generated 16-place route; it is killed with SIGKILL at a seeded moment "
         "within its uninterrupted duration, the files it left are checked (JSON parses, `.npy` loads, the map "
         "file loads with its checksums, CSV lines are complete; hidden staging files are ignored), then it is "
         "run again and its result compared with an uninterrupted run's.\n\n",
-        f"**{survived} of {tried} cases survived** (files whole and rerun identical).\n\n",
+        f"**{survived} of {len(kills)} cases survived** (files whole and rerun identical).\n\n",
         "| command | killed after s | uninterrupted run s | killed before it finished | files whole "
         "| rerun identical |\n",
         "| --- | --- | --- | --- | --- | --- |\n",
     ]
-    for r in rows:
+    for r in kills:
         text.append(f"| {r['command']} | {r['kill_after_s']} | {r['run_s']} | {r['killed']} | {r['files_whole']} "
                     f"| {r['rerun_same']} |\n")
-    bad = [r for r in rows if r["problems"]]
+    bad = [r for r in kills if r["problems"]]
     if bad:
         text.append("\nProblems found:\n\n"
                     + "".join(f"- {r['command']}: {'; '.join(r['problems'])}\n" for r in bad))
-    (RESULTS / "reliability.md").write_text("".join(text))
-    print(f"{survived} of {tried} survived; wrote {RESULTS / 'reliability.md'}")
+    return "".join(text)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from topoloc.synth import RouteConfig, generate_route
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--fast", action="store_true", help="The families only, not the runs killed at random.")
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(SEED)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        small = work / "small"
+        generate_route(small, config=RouteConfig(n_places=12, width=160, height=120, seed=2),
+                       tours=[("noon", 12.0), ("dusk", 18.0), ("morning", 9.0)])
+        fam_work = work / "families"
+        fam_work.mkdir()
+        # Wide columns: the log handler wraps a warning at the terminal's width, and a case looks for it whole.
+        cases = family_cases(fam_work, small, {**os.environ, "TOPOLOC_CACHE_DIR": str(work / "fcache"),
+                                               "COLUMNS": "1000"})
+        kills: list[dict[str, Any]] = []
+        if not args.fast:
+            route = work / "route"
+            generate_route(route, config=RouteConfig(n_places=16, width=256, height=192, seed=2),
+                           tours=[("noon", 12.0), ("dusk", 18.0), ("morning", 9.0)])
+            loop = route / "loop"
+            loop.mkdir()
+            for k, p in enumerate(sorted((route / "noon").glob("*.jpg")) * 2):
+                os.link(p, loop / f"{k:05d}.jpg")  # the route driven twice: loop closures in the second lap
+            kills = _kill_cases(work, route, rng)
+    summary = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+               "date": datetime.now(UTC).isoformat(timespec="seconds"), "seed": SEED, "fast": args.fast,
+               "family_cases": cases, "families_tried": len(cases), "families_held": sum(c["held"] for c in cases),
+               "cases": kills, "tried": len(kills),
+               "survived": sum(r["files_whole"] and r["rerun_same"] for r in kills)}
+    (RESULTS / "reliability.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (RESULTS / "reliability.md").write_text(_page(summary))
+    print(f"{summary['families_held']} of {len(cases)} family cases held; {summary['survived']} of {len(kills)} "
+          f"kill cases survived; wrote {RESULTS / 'reliability.md'}")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
@@ -36,6 +37,7 @@ from topoloc.cli.options import (
     VocabOption,
     VocabTrainOption,
     VocabWordsOption,
+    at_least,
     parse_params,
     spec_from_cli,
 )
@@ -257,6 +259,8 @@ def _tours(hours: str) -> list[tuple[str, float]]:
         hs = [float(h) for h in hours.split(",") if h.strip()]
     except ValueError:
         raise TopolocError(f"--hours {hours!r} is not a comma-separated list of numbers") from None
+    if not all(math.isfinite(h) for h in hs):
+        raise TopolocError(f"--hours {hours!r} needs finite hours of the day in [0, 24]")
     return [(f"tour_{int(h):02d}{round((h % 1) * 60):02d}", h) for h in hs]
 
 
@@ -354,6 +358,7 @@ def show_match_cmd(
     from topoloc.spec.setup import build_method, make_resources
 
     check_outputs([Output(out, what="PNG")], [query_image, *map, vocab, *(vocab_train or ()), cache_dir])
+    at_least("--tolerance", tolerance, 0)
     if not query_image.is_file():
         raise TopolocError(f"query image not found: {query_image}")
     rec = build_method(method, parse_params(param or []))
@@ -442,6 +447,9 @@ def bench_fabmap2_cmd(
     """FAB-MAP 2.0 (inverted index) ms per query on synthetic Zipf-distributed bag-of-words streams."""
     from topoloc.bench.fabmap_speed import bench_fabmap2
 
+    for flag, value in (("--places", places), ("--words", words), ("--words-per-image", words_per_image),
+                        ("--queries", queries)):
+        at_least(flag, value, 1)
     res = bench_fabmap2(n_places=places, n_words=words, words_per_image=words_per_image, n_queries=queries,
                         seed=seed)
     _print_bench(res, as_json)
@@ -468,6 +476,10 @@ def bench_coocmap_cmd(
     """Cooc-Map ms per localisation and map memory at the paper's size: synthetic, or real images with --real DIR..."""
     from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
 
+    for flag, value in (("--locations", locations), ("--tours", tours), ("--features", features),
+                        ("--words", words), ("--queries", 1 if queries is None else queries)):
+        at_least(flag, value, 1)
+    at_least("--compare", compare, 0)
     if real or dirs:
         if not (real and dirs):
             raise TopolocError("bench coocmap: give --real and at least one folder of images")

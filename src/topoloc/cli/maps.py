@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -351,8 +352,8 @@ def cache_clean(
 
     if not all_ and max_size is None and older_than is None:
         raise TopolocError("say what to remove: --max-size SIZE, --older-than DAYS or --all")
-    if older_than is not None and older_than < 0:
-        raise TopolocError(f"--older-than must be >= 0 days, got {older_than}")
+    if older_than is not None and not (math.isfinite(older_than) and older_than >= 0):
+        raise TopolocError(f"--older-than must be a finite number of days >= 0, got {older_than}")
     limit = parse_size(max_size) if max_size is not None else None
     res = clean_cache(cache_dir, max_bytes=limit, older_than_s=None if older_than is None else older_than * 86400)
     typer.echo(json.dumps(res))

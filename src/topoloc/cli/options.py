@@ -105,6 +105,13 @@ def parse_params(items: list[str]) -> dict[str, str]:
     return out
 
 
+def at_least(flag: str, value: int, low: int) -> int:
+    """Refuse a whole-number option below ``low`` with one line naming the flag (before any work)."""
+    if value < low:
+        raise TopolocError(f"{flag} must be a whole number >= {low}, got {value}")
+    return value
+
+
 def sequence_length(n: int | None) -> int:
     """``--sequence N``: absent means off; a given N must be >= 1 (0 would silently mean "off")."""
     if n is None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import logging
 import math
 import re
 import uuid
@@ -40,6 +41,7 @@ SIDECAR = "places.csv"
 #: pixels, 1 GB grey and 3 GB BGR once decoded.  2**28 (268 million) is above the largest camera
 #: sensors (200 megapixels, 805 MB BGR at most).
 MAX_IMAGE_PIXELS = 1 << 28
+log = logging.getLogger(__name__)
 TRAVERSE_KINDS = ("files", "images", "features", "words")
 
 
@@ -309,6 +311,13 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
         raise input_error(f"cannot read places.csv ({type(exc).__name__}: {exc})", csv_path) from None
     if not images:
         raise input_error("places.csv lists no images", csv_path)
+    in_folder = {p.name for p in _list_images(folder)}
+    unlisted = len(in_folder - {str(p.relative_to(folder)) for p in images})
+    if unlisted:
+        # Leaving images out is how a sidecar selects them, but 7 of 10 images silently dropped looks
+        # like a stale places.csv: say it once, with the count.
+        log.warning("%d of the %d images of %s are not in places.csv and are left out of the traverse", unlisted,
+                    len(in_folder), folder)
     return Traverse(
         root=folder,
         images=tuple(images),

@@ -296,8 +296,9 @@ def render_html(run_dirs: list[Path], title: str = "Results", progress: Progress
         advance(1)
     thumbs.encode_all(prog)
     payload = {"runs": runs, "thumbs": thumbs.data, "thumb_width": thumbs.width}
-    # "</" cannot end the script element early once escaped.
-    data = json.dumps(payload, separators=(",", ":")).replace("</", "<\\/")
+    # No "<" at all in the script element: "</script>" would end it early, and "<!--<script>" in a file
+    # name would put the parser where the real "</script>" no longer ends it (JSON reads \u003c as "<").
+    data = json.dumps(payload, separators=(",", ":")).replace("<", "\\u003c")
     generated = datetime.now(UTC).isoformat(timespec="seconds")
     return (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"

@@ -24,6 +24,7 @@ import logging
 import os
 import platform
 import time
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -111,9 +112,12 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     if seq.length >= len(query):
         raise ParameterError("sequence.length", f"{seq.length} needs more than {seq.length} queries; "
                                                 f"{spec.query} has {len(query)}")
+    query_fingerprint = query.fingerprint()
+    _warn_if_trained_on_query(spec, query_fingerprint, maps)
     map_xy = None
     if spec.map_file is not None:
-        method, resources, vocab_info, map_xy = _saved_map(spec, progress, executor)
+        method, resources, vocab_info, map_xy = _saved_map(spec, progress, executor,
+                                                           query_fingerprint=query_fingerprint)
         max_side, fit_s = resources.extractor.config.max_side, 0.0
         map_labels = [str(spec.map_file)]
     else:
@@ -218,8 +222,29 @@ def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> No
                     int((~has).sum()), int(has.size), int(has.sum()))
 
 
+def _warn_if_trained_on_query(spec: EvaluateSpec, query_fingerprint: str, maps: Sequence[Traverse]) -> None:
+    """One warning line when the query is a map tour, or a vocabulary is trained on folders holding it.
+
+    Neither is wrong to run (a sanity check, an upper bound), but the scores
+    then measure the method on its own training images.
+    """
+    for path, m in zip(spec.maps, maps, strict=True):
+        if m.fingerprint() == query_fingerprint:
+            log.warning("query %s is the map tour %s (same images and places): the scores are measured on the "
+                        "map's own images", spec.query, path)
+            break
+    assert spec.query is not None
+    query = spec.query.resolve()
+    for folder in spec.vocabulary.train:
+        if query.is_relative_to(folder.resolve()):
+            log.warning("vocabulary training folder %s holds the query %s: the vocabulary is trained on the "
+                        "query images, which flatters the scores", folder, spec.query)
+            break
+
+
 def _saved_map(
-    spec: EvaluateSpec, progress: ProgressFactory | None, executor: Executor | None = None
+    spec: EvaluateSpec, progress: ProgressFactory | None, executor: Executor | None = None, *,
+    query_fingerprint: str = "",
 ) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray]:
     """The recogniser, resources, vocabulary record and place positions of ``opts.map_file``.
 
@@ -228,9 +253,12 @@ def _saved_map(
     """
     from topoloc.maps import Map
 
-    assert spec.map_file is not None
+    assert spec.map_file is not None and spec.query is not None
     saved = Map.load(spec.map_file)
     rec = saved.recognizer
+    if any(t.get("fingerprint") == query_fingerprint for t in saved.tours):
+        log.warning("query %s is a tour of the map %s (same images and places): the scores are measured on the "
+                    "map's own images", spec.query, spec.map_file)
     if spec.method and spec.method != rec.name:
         raise ParameterError("method", f"{spec.method} differs from the map file's, a {rec.name} map: {spec.map_file}")
     res = saved.resources(cache_dir=spec.execution.cache_dir, progress=progress, executor=executor)

@@ -135,7 +135,32 @@ def load_run(run_dir: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
         pr = np.loadtxt(run_dir / "pr.csv", delimiter=",", skiprows=1, ndmin=2)
     except (ValueError, OSError) as exc:
         raise TopolocError(f"corrupt evaluate output ({exc.__class__.__name__}): {run_dir}") from None
+    problem = _metrics_problem(m)
+    if problem:
+        raise TopolocError(f"metrics.json is not the metrics of an evaluate run ({problem}): {mpath}")
+    if pr.shape[1] < 2:
+        raise TopolocError(f"pr.csv needs columns precision,recall: {run_dir / 'pr.csv'}")
     return m, pr[:, 0], pr[:, 1]
+
+
+#: What a report reads of each run's metrics.json, as numbers.
+REPORT_NUMBERS = ("auc", "recall_at_100_precision", "recall_at_1", "recall_at_5", "recall_at_10", "ms_per_query",
+                  "ms_features", "peak_rss_mb")
+
+
+def _metrics_problem(m: Any) -> str:
+    """What keeps ``m`` from being a run's metrics as reports read them ("" when nothing does)."""
+    if not isinstance(m, dict):
+        return f"a JSON {type(m).__name__}, not an object"
+    if not isinstance(m.get("method"), str):
+        return "no method name"
+    if not isinstance(m.get("run", {}), dict) or not isinstance(m.get("params", {}), dict):
+        return "'run' and 'params' must be objects"
+    for key in REPORT_NUMBERS:
+        value = m.get(key)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return f"{key!r} is {'missing' if value is None else 'not a number'}"
+    return ""
 
 
 def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Path:
@@ -145,7 +170,17 @@ def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Pat
     from topoloc.evaluation.columns import distinct_labels, markdown_table
 
     metrics = [m for m, _, _ in runs]
-    md = [f"# {title}\n\n", TABLE_HEADER, *(table_row(m) for m in metrics)]
+    rows = []
+    for d, m in zip(run_dirs, metrics, strict=True):
+        try:
+            rows.append(table_row(m))
+            markdown_table([m])
+            run_title(m)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            # A metrics.json of another version or edited by hand: name it rather than a traceback.
+            raise TopolocError(f"metrics.json has another shape ({type(exc).__name__}: {exc}): "
+                               f"{Path(d) / 'metrics.json'}") from None
+    md = [f"# {title}\n\n", TABLE_HEADER, *rows]
     md.append("\nHow each run was made (rows are comparable where these agree):\n\n" + markdown_table(metrics))
     md.append("\nRuns: " + ", ".join(f"`{d}`" for d in run_dirs) + "\n\n![PR curves](pr_curves.png)\n")
     labels = distinct_labels(metrics, [run_title(m) for m in metrics])

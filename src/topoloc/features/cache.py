@@ -8,6 +8,7 @@ editing it in place invalidates it.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from pathlib import Path
 
@@ -82,6 +83,8 @@ def parse_size(text: str) -> int:
         value = float(t[:-1] if mult > 1 else t)
     except ValueError:
         raise input_error(f"size {text!r} is not a number of bytes like 500M or 2G") from None
+    if not math.isfinite(value):
+        raise input_error(f"size {text!r} is not a finite number of bytes like 500M or 2G")
     if value < 0:
         raise input_error(f"size {text!r} is negative")
     return int(value * mult)

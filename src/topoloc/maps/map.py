@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
@@ -70,6 +71,16 @@ def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
     return sums
 
 
+def _json_calibration(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A stored calibration with a threshold JSON can hold: maps saved before null stood for "none reached"
+    wrote ``Infinity``, which Python's reader accepts but strict JSON does not (``map info --json``)."""
+    if calibration is None or not isinstance(calibration.get("threshold"), float):
+        return calibration
+    if math.isfinite(calibration["threshold"]):
+        return calibration
+    return {**calibration, "threshold": None}
+
+
 def check_precision(precision: float) -> None:
     """Refuse a precision outside (0, 1] (one line naming the parameter)."""
     if isinstance(precision, bool) or not isinstance(precision, int | float) or not 0 < precision <= 1:
@@ -98,7 +109,8 @@ class Map:
         :class:`~topoloc.spec.MapBuildSpec`); None for maps saved before it was recorded.
     calibration : dict or None
         ``{"threshold", "precision", "recall", "query", "ground_truth", "date"}``
-        from :meth:`calibrate`; without it every localisation is accepted.
+        from :meth:`calibrate`; without it every localisation is accepted, and
+        with a null ``threshold`` (no threshold reached the precision) none is.
     path : Path or None
         The file it was loaded from or last saved to.
     """
@@ -343,7 +355,8 @@ class Map:
             if not np.array_equal(place_ids, rec.place_ids_):
                 raise input_error("map file is inconsistent (place ids differ from the method's)", path)
             return cls(rec, features=features, vocabulary=voc, tours=list(meta["tours"]),
-                       xy_sums=np.array(arrays["places/xy_sums"]), calibration=meta.get("calibration"),
+                       xy_sums=np.array(arrays["places/xy_sums"]),
+                       calibration=_json_calibration(meta.get("calibration")),
                        created=meta.get("created"), path=path, spec=meta.get("spec"))
         except TopolocError as exc:
             msg = str(exc)
@@ -366,8 +379,15 @@ class Map:
 
     @property
     def threshold(self) -> float | None:
-        """Score above which a localisation is accepted, or None before :meth:`calibrate`."""
-        return None if self.calibration is None else float(self.calibration["threshold"])
+        """Score above which a localisation is accepted, or None before :meth:`calibrate`.
+
+        A calibration whose ``threshold`` is null reached no threshold: the
+        threshold is then infinite and nothing is accepted.
+        """
+        if self.calibration is None:
+            return None
+        value = self.calibration.get("threshold")
+        return math.inf if value is None else float(value)
 
     def info(self) -> dict[str, Any]:
         """Method, parameters, places, tours, vocabulary, features, calibration and file size."""
@@ -438,7 +458,9 @@ class Map:
         is only in ``gt.soft`` are neither right nor wrong (as in the PR curve of
         the protocol).  The threshold is the lowest best-match score at which the
         queries scoring at least that much reach ``precision``; the recall there
-        is recorded.  Where no threshold reaches it the map accepts nothing.
+        is recorded.  Where no threshold reaches it the map accepts nothing: the
+        stored ``threshold`` is null (JSON has no infinity; :attr:`threshold`
+        reads it as ``inf``) and one warning is logged.
 
         Parameters
         ----------
@@ -475,7 +497,11 @@ class Map:
             threshold, rec = float(s[k]), float(tp[k] / n_pos)
             reached = float(prec[k])
         else:
-            threshold, rec, reached = float("inf"), 0.0, 1.0
+            # JSON has no infinity: null stands for "no threshold reached", which accepts nothing.
+            threshold, rec, reached = None, 0.0, 1.0
+            log.warning("calibration on %s: no score threshold reaches precision %g, so the map now accepts no "
+                        "localisation; calibrate on a longer tour or ask for a lower --precision",
+                        query or gt.description, precision)
         self.calibration = {
             "threshold": threshold, "precision_asked": precision, "precision": reached, "recall": rec,
             "query": query, "ground_truth": ground_truth or gt.description, "n_queries": int(S.shape[1]),
@@ -503,10 +529,18 @@ class Map:
         Raises
         ------
         TopolocError
-            If no image of the tour shows a place of the map.
+            If the tour is one the map was built from (same fingerprint), or no
+            image of the tour shows a place of the map.
         """
         check_precision(precision)
         q = tour if isinstance(tour, Traverse) else load_traverse(tour)
+        fingerprint = q.fingerprint()
+        for old in self.tours:
+            if old.get("fingerprint") == fingerprint:
+                # Scores of the map's own images are near perfect: the threshold would accept anything.
+                raise input_error(f"calibration tour {label or q.name!r} is the map's own tour {old['name']!r}: "
+                                  "calibrate on a labelled tour the map was not built from",
+                                  self.path or (q.root if q.kind == "files" else q.name))
         gt = (ground_truth or GroundTruthSpec()).make(self.place_ids, q, map_xy=self.place_xy)
         if not gt.hard.any():
             raise input_error("calibration tour has no ground truth in this map (no query place is a map place)",

@@ -86,6 +86,42 @@ def test_bad_video_is_one_line(tmp_path: Path) -> None:
         open_source(_write_video(tmp_path / "v.avi", [np.zeros((32, 32), np.uint8)] * 2), every_m=1.0)
 
 
+def _frame_chunks(data: bytes) -> list[int]:
+    """Offsets of the frame chunks (``00dc`` with a JPEG after its size) of an MJPG AVI."""
+    out, at = [], data.find(b"00dc")
+    while at >= 0:
+        if data[at + 8:at + 10] == b"\xff\xd8":
+            out.append(at)
+        at = data.find(b"00dc", at + 4)
+    return out
+
+
+@pytest.mark.parametrize("damage", ["frame", "truncated"])
+def test_damaged_or_truncated_video_stops_with_file_and_frame(tmp_path: Path, recordings: dict[str, Any],
+                                                              damage: str) -> None:
+    # 20 frames; OpenCV ends the stream at the damaged frame 4 (or where the file is cut): a map of the
+    # frames before it and a localisation that writes a few lines and exits 0 would look complete.
+    video = _write_video(tmp_path / "vc.avi", recordings["frames_of"](10) + recordings["frames_of"](10, seed=1))
+    data = bytearray(video.read_bytes())
+    chunks = _frame_chunks(bytes(data))
+    assert len(chunks) == 20
+    if damage == "frame":
+        data[chunks[4] + 8 + 200:chunks[4] + 8 + 600] = bytes(400)
+    else:
+        data = data[:chunks[12] + 50]
+    video.write_bytes(bytes(data))
+    with pytest.raises(TopolocError, match=r"frame \d+ of the video cannot be read.* of its 20 frames.*vc\.avi"):
+        list(open_source(video).frames())
+    err = _cli_error(["map", "build", "--method", "seqslam", "--map", str(video), "--out", str(tmp_path / "vc.tlm"),
+                      "--quiet"], "vc.avi", "frame")
+    assert not (tmp_path / "vc.tlm").exists(), err
+    good = _write_video(tmp_path / "good.avi", recordings["frames_of"](6))
+    _cli_ok(["map", "build", "--method", "seqslam", "--param", "ds=2", "--map", str(good), "--out",
+             str(tmp_path / "g.tlm"), "--quiet"])
+    _cli_error(["localize", str(tmp_path / "g.tlm"), str(video), "--out", str(tmp_path / "loc.jsonl"), "--quiet"],
+               "vc.avi", "frame")
+
+
 # -- bags -----------------------------------------------------------------------------------------
 def _route_bag(path: Path, storage: str, rec: dict[str, Any], frames: list[np.ndarray],
                encoding: str = "mono8") -> Path:
@@ -315,8 +351,12 @@ def test_cli_bags_and_videos_as_traverses(
     # map add and map calibrate take recordings too
     added = json.loads(_cli_ok(["map", "add", str(tlm), str(bag), "--topic", CAM, "--quiet"]))
     assert added["tours"] == ["noon.avi", "q.bag"]
-    calibrated = json.loads(_cli_ok(["map", "calibrate", str(tlm), "--query", str(video), "--quiet"]))
-    assert calibrated["n_queries"] == len(tiny_route["map"])
+    # the map's own recording would calibrate on training images: refused, naming it and the map
+    _cli_error(["map", "calibrate", str(tlm), "--query", str(video), "--quiet"], "noon.avi", "own tour", "video.tlm")
+    dusk = _write_video(tmp_path / "dusk.avi", [tiny_route["query"].read(i) for i in range(len(tiny_route["query"]))],
+                        fps=5.0)
+    calibrated = json.loads(_cli_ok(["map", "calibrate", str(tlm), "--query", str(dusk), "--quiet"]))
+    assert calibrated["n_queries"] == len(tiny_route["query"])
     assert json.loads((tmp_path / "v.jsonl").read_text().splitlines()[2])["time"] == pytest.approx(0.4, abs=1e-3)
 
 

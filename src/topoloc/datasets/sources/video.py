@@ -3,6 +3,12 @@
 A frame's time is its position in the video in seconds (``CAP_PROP_POS_MSEC``, else index / fps);
 a video has no absolute clock, so its traverse has no ``times``.  Frames that are not keyframes are
 grabbed but not decoded into pixels.
+
+A damaged frame or a file cut short stops the reading with one line naming the file and the first
+frame not read, rather than a map or a localisation of the frames before it that looks complete:
+OpenCV ends the stream at the first frame it cannot demultiplex or decode, and containers that
+record their number of frames (:data:`COUNTED_SUFFIXES`) tell that the stream ended early.  Other
+containers only estimate it from their duration, so there a short stream is taken as it is.
 """
 
 from __future__ import annotations
@@ -16,6 +22,9 @@ import numpy as np
 
 from topoloc.datasets.sources.base import Frame, Keyframes
 from topoloc.errors import input_error
+
+#: Containers whose header states the number of frames, so that a stream ending before it is damage.
+COUNTED_SUFFIXES = frozenset({".avi", ".mp4", ".m4v", ".mov"})
 
 
 class VideoSource:
@@ -73,5 +82,8 @@ class VideoSource:
                         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
                     yield Frame(t, np.ascontiguousarray(img), f"{name}#{k}", None)
                 k += 1
+            if k < self._count and self.path.suffix.lower() in COUNTED_SUFFIXES:
+                raise input_error(f"frame {k} of the video cannot be read (damaged, or the file ends early: "
+                                  f"{k} of its {self._count} frames read)", self.path)
         finally:
             cap.release()
