@@ -146,3 +146,11 @@ def test_convert_synth_and_demo_never_write_into_a_users_folder(cli: Cli, proj: 
     cli.ok(["synth", str(out), "--hours", "9", "--places", "3", "--width", "64", "--height", "48"])
     cli.ok(["synth", str(out), "--hours", "9", "--places", "3", "--width", "64", "--height", "48"])
     assert os.path.isfile(out / "tour_0900" / "places.csv")
+
+
+def test_map_build_refuses_to_overwrite_a_file_that_is_not_a_map(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    cli.error(["map", "build", "--method", "bow", "--map", str(rf["map"]), "--vocab", str(rf["vocab"]),
+               "--out", str(notes), "-q"], "not an earlier output of this command")
+    assert notes.read_text() == "my notes\n"

@@ -118,3 +118,31 @@ def test_names_near_the_file_system_limit_and_twice_the_same_output(tmp_path: Pa
     check_outputs([Output(tmp_path / ("a" * (limit - 40)))], [])
     with pytest.raises(TopolocError, match="also another output"):
         check_outputs([Output(tmp_path / "x"), Output(tmp_path / "." / "x")], [])
+
+
+def test_an_output_file_replaces_only_an_earlier_output_of_its_kind(tmp_path: Path) -> None:
+    import numpy as np
+
+    from topoloc.io.container import container_kind, write_container
+    from topoloc.io.dirs import container_marker, jsonl_marker
+
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    a_map = tmp_path / "old.tlm"
+    write_container(a_map, "map", 1, {"x": np.zeros(3)})
+    assert container_kind(a_map) == "map" and container_kind(notes) is None
+    with pytest.raises(TopolocError, match="is not an earlier output of this command") as info:
+        check_outputs([Output(notes, what="map file", earlier=container_marker("map"))], [])
+    assert str(notes) in str(info.value) and notes.read_text() == "my notes\n"
+    check_outputs([Output(a_map, what="map file", earlier=container_marker("map"))], [])  # a rebuild
+    with pytest.raises(TopolocError, match="not an earlier output"):
+        check_outputs([Output(a_map, what="vocabulary file", earlier=container_marker("vocabulary"))], [])
+    lines = tmp_path / "results.jsonl"
+    lines.write_text(json.dumps({"frame": 0, "place": 3}) + "\n")
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("")
+    for ok in (lines, empty, tmp_path / "new.jsonl"):
+        check_outputs([Output(ok, earlier=jsonl_marker("frame"))], [])
+    with pytest.raises(TopolocError, match="not an earlier output"):
+        check_outputs([Output(notes, earlier=jsonl_marker("frame"))], [])
+

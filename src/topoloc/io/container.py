@@ -191,6 +191,32 @@ def _array_entry(e: Any, payload_nbytes: int) -> tuple[str, tuple[int, ...], np.
     return str(e["name"]), tuple(shape), dt, int(offset)  # type: ignore[arg-type]  # checked by _whole
 
 
+def container_kind(path: str | Path) -> str | None:
+    """The ``kind`` a topoloc container file holds, from its fixed part and header only; None if it is not one.
+
+    For recognising a file cheaply (an output that may be replaced); :func:`read_container`
+    is what checks a file before use.
+    """
+    try:
+        with open(path, "rb") as fh:
+            fixed = fh.read(_PREFIX.size)
+            if len(fixed) < _PREFIX_V1.size:
+                return None
+            magic, version, n = _PREFIX_V1.unpack_from(fixed)
+            if magic != MAGIC or n > _HEADER_PEEK_MAX:
+                return None
+            fh.seek(_PREFIX_V1.size if version == 1 else _PREFIX.size)
+            header = json.loads(fh.read(n))
+    except (OSError, ValueError, UnicodeDecodeError, RecursionError):
+        return None
+    kind = header.get("kind") if isinstance(header, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
+# Headers are small (array names, shapes, metadata); a larger length field means another file.
+_HEADER_PEEK_MAX = 64 * 2**20
+
+
 def read_container(
     path: str | Path, kind: str, kind_version: int | None = None, *, mmap: bool = False
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

@@ -206,8 +206,9 @@ class Output:
         For ``"folder"``: the entries the command writes in it; None when any
         entry may be written (e.g. images linked by ``convert``).
     earlier : callable, optional
-        For ``"folder"`` and ``"run"``: whether a folder is an earlier output of
-        the same command, which may be replaced (see :func:`json_marker`).
+        Whether an existing file or folder is an earlier output of the same
+        command, which may be replaced (:func:`json_marker`, :func:`container_marker`,
+        :func:`jsonl_marker`); a ``"file"`` without it may replace any file.
     what : str
         How the refusal names the command's output (``"run folder"``).
     """
@@ -245,6 +246,43 @@ def json_marker(name: str, key: str) -> Earlier:
 
 
 _MARKER_MAX = 16 * 2**20
+
+
+def container_marker(kind: str) -> Earlier:
+    """A test of an earlier output file: a topoloc container holding ``kind`` (``"map"``, ``"vocabulary"``).
+
+    Only the fixed part and the header are read, so a large map costs nothing to recognise.
+    """
+
+    def earlier(file: Path) -> bool:
+        from topoloc.io.container import container_kind
+
+        return container_kind(file) == kind
+
+    return earlier
+
+
+def jsonl_marker(key: str) -> Earlier:
+    """A test of an earlier output file: empty, or JSON lines whose first line is an object with ``key``.
+
+    ``jsonl_marker("frame")`` recognises what ``localize`` writes; a user's text file is not.
+    """
+
+    def earlier(file: Path) -> bool:
+        try:
+            with open(file, "rb") as fh:
+                first = fh.readline(_MARKER_MAX)
+        except OSError:
+            return False
+        if not first.strip():
+            return True
+        try:
+            data = json.loads(first)
+        except ValueError:
+            return False
+        return isinstance(data, dict) and key in data
+
+    return earlier
 
 
 def _resolved(path: Path) -> Path:
@@ -369,6 +407,9 @@ def check_outputs(outputs: Iterable[Output], inputs: Iterable[str | Path | None]
         if out.kind == "file":
             _not_special(path, what, folder=False)
             _check_against_inputs(path, ins, what, path)
+            if out.earlier is not None and path.is_file() and not out.earlier(path):
+                raise input_error(f"{what} exists and is not an earlier output of this command, which would "
+                                  "overwrite it: name a new file", path)
             check_output_file(path)
             continue
         _not_special(path, what, folder=True)

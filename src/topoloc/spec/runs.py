@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.errors import ParameterError
-from topoloc.io.dirs import Output, check_outputs, json_marker
+from topoloc.io.dirs import Output, check_outputs, container_marker, json_marker, jsonl_marker
 from topoloc.spec.parts import (
     ExecutionSpec,
     FeatureSpec,
@@ -201,7 +201,8 @@ class MapBuildSpec(_ChecksOutputs):
 
     def outputs(self) -> tuple[Output, ...]:
         """The map file (none for a map built from Python, not yet saved)."""
-        return () if self.out is None else (Output(self.out, what="map file"),)
+        # An existing file is replaced only when it is a map (a rebuild), never a user's other file.
+        return () if self.out is None else (Output(self.out, what="map file", earlier=container_marker("map")),)
 
 
 @dataclass(frozen=True)
@@ -248,7 +249,7 @@ class LocalizeSpec(_ChecksOutputs):
     def outputs(self) -> tuple[Output, ...]:
         """The JSON-lines file."""
         assert self.out is not None
-        return (Output(self.out, what="output"),)
+        return (Output(self.out, what="output", earlier=jsonl_marker("frame")),)
 
 
 @dataclass(frozen=True)
@@ -288,7 +289,7 @@ class VocabTrainSpec(_ChecksOutputs):
     def outputs(self) -> tuple[Output, ...]:
         """The vocabulary file."""
         assert self.out is not None
-        return (Output(self.out, what="vocabulary file"),)
+        return (Output(self.out, what="vocabulary file", earlier=container_marker("vocabulary")),)
 
 
 RUN_SPECS: dict[str, type] = {
