@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 from topoloc.evaluation.pipeline import evaluate
 from topoloc.evaluation.report import build_report
-from topoloc.methods import available_methods
+from topoloc.methods import available_methods, get_method
 from topoloc.progress import ProgressFactory
 
 log = logging.getLogger(__name__)
@@ -56,7 +57,10 @@ def run_demo(out: Path, *, n_places: int = 60, progress: ProgressFactory | None 
     run_dirs = []
     for i, (method, maps, query) in enumerate(_runs(route)):
         run_dir = out / "runs" / f"{i:02d}_{method}_{query.name}"
-        evaluate(method=method, maps=maps, query=query, out=run_dir, vocab_train=[train], vocab_words=VOCAB_WORDS,
-                 max_features=MAX_FEATURES, tolerance="0:1", cache_dir=out / "cache", progress=progress)
+        # Only methods that read visual words get the training folder: the others would warn that it is ignored.
+        words: dict[str, Any] = (
+            {"vocab_train": [train], "vocab_words": VOCAB_WORDS} if get_method(method).uses_vocabulary else {})
+        evaluate(method=method, maps=maps, query=query, out=run_dir, max_features=MAX_FEATURES, tolerance="0:1",
+                 cache_dir=out / "cache", progress=progress, **words)
         run_dirs.append(run_dir)
     return build_report(run_dirs, out, title="topoloc demo: synthetic street, tours at 9, 13, 17, 22 h")
