@@ -31,8 +31,6 @@ from topoloc.cli.options import (
     SchedulerTimeoutOption,
     SequenceModeOption,
     SequenceOption,
-    ToleranceMOption,
-    ToleranceOption,
     TopicOption,
     VocabOption,
     VocabTrainOption,
@@ -149,8 +147,13 @@ def map_add(
         t = inputs.load([tour])[0]
         with execution.connect() as executor, rich_progress(not quiet) as progress:
             m.add_tour(t, cache_dir=execution.cache_dir, progress=progress, executor=executor)
-    typer.echo(json.dumps({"out": str(map_file), "places": len(m.place_ids),
-                           "tours": [x["name"] for x in m.tours]}))
+    out: dict[str, Any] = {"out": str(map_file), "places": len(m.place_ids), "tours": [x["name"] for x in m.tours]}
+    if m.calibration_stale:
+        # Kept (the map still accepts by it), but chosen on the scores before this tour.
+        out["calibration_stale"] = True
+        log.warning("%s: the calibration predates the tour just added; run `topoloc map calibrate` again",
+                    map_file)
+    typer.echo(json.dumps(out))
 
 
 @map_app.command("info")
@@ -174,6 +177,9 @@ def map_info(
                 typer.echo(f"  - {t['name']}: {t['n_images']} images, {t['n_places']} places{when} ({t['root']})")
         else:
             typer.echo(f"{key}: {json.dumps(value, default=str) if isinstance(value, dict | list) else value}")
+        if key == "calibration" and isinstance(value, dict) and value.get("stale"):
+            typer.echo(f"  stale: tours added since it was made ({', '.join(value.get('tours_added_since', []))}); "
+                       "run `topoloc map calibrate` again")
 
 
 @map_app.command("calibrate")
@@ -182,8 +188,13 @@ def map_calibrate(
     map_file: Annotated[Path, typer.Argument(help="Map file (rewritten atomically with the threshold).")],
     query: Annotated[Path, typer.Option(help="A labelled tour (places.csv or natural order) not in the map.")],
     precision: Annotated[float, typer.Option(help="Precision the accepted localisations must reach.")] = 0.99,
-    tolerance: ToleranceOption = "0:8",
-    tolerance_m: ToleranceMOption = None,
+    tolerance: Annotated[str, typer.Option(
+        help="A match within N place ids of the query's place is right, any other is wrong (default 8); "
+             "the reported precision and recall are what `localize` then accepts on this tour. HARD:SOFT "
+             "is still read (a match HARD..SOFT away is neither right nor wrong); N is N:N.")] = "8",
+    tolerance_m: Annotated[str | None, typer.Option(
+        "--tolerance-m", help="The same in metres (needs x,y): within M metres is right; replaces --tolerance.")
+    ] = None,
     cache_dir: CacheDirOption = None,
     quiet: QuietOption = False,
     topic: TopicOption = None,
@@ -191,14 +202,18 @@ def map_calibrate(
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
 ) -> None:
-    """Choose the score threshold that reaches --precision on a labelled tour and store it in the map."""
+    """Choose the score threshold that reaches --precision on a labelled tour and store it in the map.
+
+    Precision is right accepted frames over accepted frames; recall is right accepted frames over the frames
+    that have a right place in the map.  Calibrating again clears a calibration that `map add` marked stale.
+    """
     from topoloc.io.dirs import Output, check_outputs
     from topoloc.maps import Map
     from topoloc.maps.map import check_precision
     from topoloc.spec import GroundTruthSpec, InputSpec
 
     check_precision(precision)
-    gt = GroundTruthSpec(tolerance=tolerance, tolerance_m=tolerance_m)
+    gt = GroundTruthSpec.for_calibration(tolerance, tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     with Map.update(map_file) as m:  # no tour another writer adds meanwhile is lost
         check_outputs([Output(map_file, what="map file")], [query, cache_dir])
@@ -251,6 +266,11 @@ def localize(
         log.warning("%s is not calibrated: every frame is marked accepted; run `topoloc map calibrate %s "
                     "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
                     spec.map_file, spec.map_file)
+    elif m.calibration_stale:
+        assert m.calibration is not None
+        log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
+                    "`topoloc map calibrate %s --query FOLDER` again", spec.map_file,
+                    ", ".join(m.calibration.get("tours_added_since", [])), spec.map_file)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode)
     # Written line by line: a run that is stopped keeps every frame done so far.
     with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:

@@ -135,6 +135,29 @@ def parse_tolerance(text: str) -> tuple[float, float]:
     return hard, soft
 
 
+def calibration_tolerance(text: str) -> str:
+    """A calibration tolerance as ``"HARD:SOFT"``: a single number N is ``N:N`` ("within N is right").
+
+    Calibration reports what localisation then does, where a match is either
+    right or wrong; so, unlike ``evaluate``, a single number is not ambiguous
+    here.  ``HARD:SOFT`` is kept for compatibility (checked by :func:`parse_tolerance`).
+    """
+    t = str(text).strip()
+    return f"{t}:{t}" if t and ":" not in t else str(text)
+
+
+def tolerance_words(hard: float, soft: float, unit: str) -> str:
+    """What a tolerance means, as a user reads it: ``"within 8 places"``, ``"within 5 m"``.
+
+    ``unit`` is ``"places"`` or ``"m"``; with ``soft > hard`` the band between
+    is named as neither right nor wrong.
+    """
+    within = f"within {hard:g} {'place' if unit == 'places' and hard == 1 else unit}"
+    if soft <= hard:
+        return within
+    return f"{within} is right; over {hard:g} and within {soft:g} {unit} is neither right nor wrong"
+
+
 def ground_truth_from_places(
     map_places: np.ndarray, query_places: np.ndarray, hard: float = 0, soft: float = 8
 ) -> GroundTruth:

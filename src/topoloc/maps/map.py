@@ -245,7 +245,26 @@ class Map:
         sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
         self.xy_sums = sums
         self.tours.append(rec)
+        self._mark_stale(rec["name"])
         return self
+
+    def _mark_stale(self, tour_name: str) -> None:
+        """Keep the calibration, marked stale: a tour added since changes the scores it was chosen on.
+
+        ``stale_since`` names the first tour added after it, ``tours_added_since`` all of them;
+        :meth:`calibrate` again clears both.
+        """
+        if self.calibration is None:
+            return
+        added = [*self.calibration.get("tours_added_since", []), tour_name]
+        self.calibration = {**self.calibration, "stale": True,
+                            "stale_since": self.calibration.get("stale_since", tour_name),
+                            "tours_added_since": added}
+
+    @property
+    def calibration_stale(self) -> bool:
+        """Whether tours were added after the calibration (its threshold was chosen on other scores)."""
+        return bool(self.calibration and self.calibration.get("stale"))
 
     # -- persistence ------------------------------------------------------------------------
     def save(self, path: str | Path, *, timeout: float | None = None) -> Path:
@@ -450,7 +469,7 @@ class Map:
 
     # -- confidence -------------------------------------------------------------------------
     def calibrate(self, S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
-                  query: str = "", ground_truth: str = "") -> dict[str, Any]:
+                  query: str = "", ground_truth: str = "", tolerance: str = "") -> dict[str, Any]:
         """Choose the acceptance threshold from a labelled tour's scores and store it in the map.
 
         Each query's best place (the raw argmax of its column, as :meth:`localize`
@@ -458,7 +477,13 @@ class Map:
         is only in ``gt.soft`` are neither right nor wrong (as in the PR curve of
         the protocol).  The threshold is the lowest best-match score at which the
         queries scoring at least that much reach ``precision``; the recall there
-        is recorded.  Where no threshold reaches it the map accepts nothing: the
+        is recorded: right accepted queries over the queries that have a right
+        place in the map (``n_with_right_place``; a query whose place the map
+        lacks cannot be found, and does not count against recall).  With no
+        soft band (``gt.soft == gt.hard``, as ``map calibrate --tolerance N``
+        gives) these are exactly the precision and recall that :meth:`localize`
+        then reaches on the same tour, counting a match within the tolerance as right.
+        Where no threshold reaches it the map accepts nothing: the
         stored ``threshold`` is null (JSON has no infinity; :attr:`threshold`
         reads it as ``inf``) and one warning is logged.
 
@@ -470,11 +495,13 @@ class Map:
             Of the same shape.
         precision : float
             In (0, 1].
+        tolerance : str
+            What counts as right, in words (``"within 8 places"``); default: ``gt``'s description.
 
         Returns
         -------
         dict
-            The calibration stored in the map.
+            The calibration stored in the map (a new one: not stale).
         """
         check_precision(precision)
         if S.shape != gt.shape:
@@ -504,7 +531,10 @@ class Map:
                         query or gt.description, precision)
         self.calibration = {
             "threshold": threshold, "precision_asked": precision, "precision": reached, "recall": rec,
-            "query": query, "ground_truth": ground_truth or gt.description, "n_queries": int(S.shape[1]),
+            "query": query, "ground_truth": ground_truth or gt.description,
+            "tolerance": tolerance or gt.description, "n_queries": int(S.shape[1]),
+            "n_with_right_place": n_pos,
+            "recall_of": "queries with a right place in the map (n_with_right_place)",
             "date": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         return self.calibration
@@ -519,8 +549,9 @@ class Map:
         tour : Traverse or folder
             A tour with ground truth (``places.csv``, or natural order) that is not in the map.
         ground_truth : GroundTruthSpec, optional
-            The tolerance (default ``0:8`` in place ids); in metres it uses the
-            map's place positions.
+            The tolerance (default: within 8 place ids is right,
+            ``GroundTruthSpec.for_calibration()``); in metres it uses the map's
+            place positions.
         precision : float
             In (0, 1].
         label : str
@@ -541,13 +572,14 @@ class Map:
                 raise input_error(f"calibration tour {label or q.name!r} is the map's own tour {old['name']!r}: "
                                   "calibrate on a labelled tour the map was not built from",
                                   self.path or (q.root if q.kind == "files" else q.name))
-        gt = (ground_truth or GroundTruthSpec()).make(self.place_ids, q, map_xy=self.place_xy)
+        spec = ground_truth or GroundTruthSpec.for_calibration()
+        gt = spec.make(self.place_ids, q, map_xy=self.place_xy)
         if not gt.hard.any():
             raise input_error("calibration tour has no ground truth in this map (no query place is a map place)",
                               q.root)
         S = self.recognizer.similarity(q, resources=self.resources(cache_dir=cache_dir, progress=progress,
                                                                    executor=executor))
-        return self.calibrate(S, gt, precision=precision,
+        return self.calibrate(S, gt, precision=precision, tolerance=spec.words(),
                               query=label or (str(q.root) if q.kind == "files" else q.name))
 
     def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:

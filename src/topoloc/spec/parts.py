@@ -294,6 +294,24 @@ class GroundTruthSpec:
         if self.file is not None and not self.file.is_file():
             raise ParameterError("ground_truth.file", f"names no file: {self.file}")
 
+    @classmethod
+    def for_calibration(cls, tolerance: str = "8", tolerance_m: str | None = None) -> GroundTruthSpec:
+        """The ground truth of ``map calibrate``: a single number N is ``N:N``, "within N is right"."""
+        from topoloc.datasets.groundtruth import calibration_tolerance
+
+        return cls(tolerance=calibration_tolerance(tolerance),
+                   tolerance_m=None if tolerance_m is None else calibration_tolerance(tolerance_m))
+
+    def words(self) -> str:
+        """What counts as right, as a user reads it: ``"within 8 places"``, ``"within 5 m"``."""
+        from topoloc.datasets.groundtruth import parse_tolerance, tolerance_words
+
+        if self.file is not None:
+            return f"as in {self.file}"
+        if self.tolerance_m is not None:
+            return tolerance_words(*parse_tolerance(self.tolerance_m), "m")
+        return tolerance_words(*parse_tolerance(self.tolerance), "places")
+
     def make(self, place_ids: np.ndarray, query: Traverse, *, maps: Sequence[Traverse] = (),
              map_xy: np.ndarray | None = None) -> GroundTruth:
         """Ground truth of shape (n_places, len(query)) from the file, the metric or the place-id tolerance.
