@@ -22,6 +22,7 @@ from topoloc.cli.options import (
     MaxSideAutoOption,
     MaxSideOption,
     MethodOption,
+    PairsOutOption,
     ParamOption,
     PoseTopicOption,
     PreprocessOption,
@@ -73,6 +74,7 @@ def evaluate(
     top_k: Annotated[int, typer.Option(
         "--top-k", help="Keep only the K best places per query (S_topk.npz) and compute every metric from them "
                         "(a correct place outside the top K counts as not found); 0 = the whole S.")] = 0,
+    pairs_out: PairsOutOption = None,
     param: ParamOption = None,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
@@ -102,7 +104,8 @@ def evaluate(
         metrics = run(spec, progress=progress, executor=executor)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
     s_file = "S_topk.npz" if spec.top_k else "S.npy"
-    typer.echo(f"wrote {spec.out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {spec.html}" if spec.html else ""))
+    typer.echo(f"wrote {spec.out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {spec.html}" if spec.html else "")
+               + (f"; {spec.pairs_out}" if spec.pairs_out else ""))
 
 
 @app.command()

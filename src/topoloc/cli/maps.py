@@ -7,6 +7,7 @@ import logging
 import math
 import os
 import time
+from collections import deque
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -23,6 +24,7 @@ from topoloc.cli.options import (
     MaxFeaturesOption,
     MaxSideAutoOption,
     MethodOption,
+    PairsOutOption,
     ParamOption,
     PoseTopicOption,
     PreprocessOption,
@@ -233,6 +235,7 @@ def localize(
         help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order.")] = None,
     out: Annotated[Path | None, typer.Option(help="JSON lines file, one line per frame, written as it goes.")] = None,
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
+    pairs_out: PairsOutOption = None,
     sequence: SequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     quiet: QuietOption = False,
@@ -257,7 +260,8 @@ def localize(
     spec = spec_from_cli(LocalizeSpec, ctx, values, config=config)
     assert spec.map_file is not None and spec.out is not None
     m = Map.load(spec.map_file)
-    total, frames = spec.inputs.frames(spec.images)
+    names: deque[str] = deque()  # the pairs name of each frame read and not yet written (lines keep its order)
+    total, frames = spec.inputs.frames(spec.images, on_frame=names.append if spec.pairs_out else None)
     # The map file is memory-mapped while the lines are written: truncating it would kill the run.
     spec.check_outputs()
     if m.threshold is None:
@@ -275,10 +279,20 @@ def localize(
     # Written line by line: a run that is stopped keeps every frame done so far.
     with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)
+        pairs: list[tuple[str, str]] = []
+        place_images = dict(zip(m.place_ids.tolist(), m.place_image_names(), strict=True)) if spec.pairs_out else {}
         for line in loc.stream(frames, executor=executor):
             fh.write(json.dumps(line) + "\n")
+            if spec.pairs_out is not None:
+                query = names.popleft()
+                pairs.extend((query, place_images[int(p)]) for p, _ in line["top"])
             advance(1)
-    typer.echo(json.dumps({"out": str(spec.out), **loc.summary()}))
+    if spec.pairs_out is not None:
+        from topoloc.evaluation.pairs import write_pairs
+
+        write_pairs(spec.pairs_out, pairs)
+    typer.echo(json.dumps({"out": str(spec.out), **({"pairs": str(spec.pairs_out)} if spec.pairs_out else {}),
+                           **loc.summary()}))
 
 
 class _LineFile:

@@ -51,6 +51,9 @@ SequenceOption = Annotated[int | None, typer.Option(
     help="Sequence matching over each query and the N >= 1 before it (off when not given).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
+PairsOutOption = Annotated[Path | None, typer.Option(
+    "--pairs-out", help="Also write the retrieval pairs of the top K places, 'query_image map_image' a line, as "
+                        "hloc and COLMAP read them (a place: its first map image; docs/protocol.md).")]
 # -- where it runs and what it shows ----------------------------------------------------------------------
 CacheDirOption = Annotated[Path | None, typer.Option(help="Feature/vocabulary cache folder.")]
 QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]

@@ -6,7 +6,7 @@ nothing is held in memory but the frame being decoded.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -54,12 +54,16 @@ def read_frame(path: Path) -> np.ndarray:
 
 def frame_stream(
     inputs: Sequence[Path], *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
-    pose_topic: str | None = None,
+    pose_topic: str | None = None, on_frame: Callable[[str], None] | None = None,
 ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
     """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
 
     Every input is opened and checked before the first frame; bags and videos
-    are then streamed (one frame decoded at a time, nothing kept).
+    are then streamed (one frame decoded at a time, nothing kept).  ``on_frame``,
+    when given, is called before each frame is yielded with the frame's name
+    under one image root: ``<folder name>/<file name>`` for an image file
+    (named or in a folder), ``<recording stem>/<frame name>`` for a bag or video
+    (what ``localize --pairs-out`` writes).
     """
     from topoloc.datasets.sources import FrameSource, is_stream_input, open_source
 
@@ -75,9 +79,14 @@ def frame_stream(
         for part in parts:
             if isinstance(part, list):
                 for path in part:
-                    yield path.name, None, read_frame(path)
+                    image = read_frame(path)
+                    if on_frame is not None:
+                        on_frame(f"{path.resolve().parent.name}/{path.name}")
+                    yield path.name, None, image
             else:
                 for f in part.frames():
+                    if on_frame is not None:
+                        on_frame(f"{Path(part.path).stem}/{f.name}")
                     yield f.name, f.time_s, f.image
 
     return total, frames()

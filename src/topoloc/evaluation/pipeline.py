@@ -14,6 +14,9 @@ This is the single door of ``docs/protocol.md``.  Outputs under ``out``:
     the precision-recall curve (``pr.csv``: columns precision,recall).
 ``report.md``
     the table and what was run, including the vocabulary's provenance.
+
+With ``pairs_out`` (and ``top_k``) the K best places of each query are also written
+there as retrieval pairs in hloc's format (:mod:`topoloc.evaluation.pairs`).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import ParameterError, TopolocError
 from topoloc.evaluation.metrics import Scores, compute_metrics
+from topoloc.evaluation.pairs import first_images, image_names, place_names, retrieval_pairs, write_pairs
 from topoloc.evaluation.plots import plot_pr_curves
 from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
@@ -115,9 +119,10 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     query_fingerprint = query.fingerprint()
     _warn_if_trained_on_query(spec, query_fingerprint, maps)
     map_xy = None
+    place_images: list[str] | None = None
     if spec.map_file is not None:
-        method, resources, vocab_info, map_xy = _saved_map(spec, progress, executor,
-                                                           query_fingerprint=query_fingerprint)
+        method, resources, vocab_info, map_xy, place_images = _saved_map(spec, progress, executor,
+                                                                         query_fingerprint=query_fingerprint)
         max_side, fit_s = resources.extractor.config.max_side, 0.0
         map_labels = [str(spec.map_file)]
     else:
@@ -197,6 +202,11 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     # All files of the run appear together, replacing an earlier run's whole (never a mixture).
     with staged_dir(out) as stage:
         write_outputs(stage, S, place_ids, query.places, metrics, scores, None if top is not None else gt, top=top)
+    if spec.pairs_out is not None:
+        assert top is not None  # EvaluateSpec refuses pairs_out without top_k
+        if place_images is None:
+            place_images = place_names(place_ids, (first_images(m) for m in maps))
+        write_pairs(spec.pairs_out, retrieval_pairs(image_names(query), top.rows, place_images))
     if spec.html is not None:
         from topoloc.evaluation.html import build_html_report
 
@@ -245,8 +255,8 @@ def _warn_if_trained_on_query(spec: EvaluateSpec, query_fingerprint: str, maps: 
 def _saved_map(
     spec: EvaluateSpec, progress: ProgressFactory | None, executor: Executor | None = None, *,
     query_fingerprint: str = "",
-) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray]:
-    """The recogniser, resources, vocabulary record and place positions of ``opts.map_file``.
+) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray, list[str]]:
+    """The recogniser, resources, vocabulary record, place positions and place images of ``spec.map_file``.
 
     A saved map fixes the method, its parameters, the features and the
     vocabulary: options that would change them are refused, not ignored.
@@ -265,7 +275,7 @@ def _saved_map(
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
         voc.update({"file": f"embedded in {spec.map_file}", **saved.vocabulary.provenance_})
-    return rec, res, voc, saved.place_xy
+    return rec, res, voc, saved.place_xy, saved.place_image_names()
 
 
 def write_outputs(

@@ -285,6 +285,26 @@ def jsonl_marker(key: str) -> Earlier:
     return earlier
 
 
+def pairs_marker() -> Earlier:
+    """A test of an earlier pairs file (``--pairs-out``): empty, or a first line of two names (``query map``).
+
+    A user's text file whose first line is not two words is not replaced.
+    """
+
+    def earlier(file: Path) -> bool:
+        try:
+            with open(file, "rb") as fh:
+                first = fh.readline(_MARKER_MAX)
+        except OSError:
+            return False
+        try:
+            return not first.strip() or len(first.decode("utf-8").split()) == 2
+        except UnicodeDecodeError:
+            return False
+
+    return earlier
+
+
 def _resolved(path: Path) -> Path:
     # strict=False: the part that does not exist yet is kept as written, under the real parents.
     return Path(os.path.realpath(path))

@@ -46,11 +46,18 @@ log = logging.getLogger(__name__)
 
 
 def tour_record(tour: Traverse) -> dict[str, Any]:
-    """What a map remembers of a tour: name, size, times and a fingerprint of its images and places."""
+    """What a map remembers of a tour: name, size, times and a fingerprint of its images and places.
+
+    ``place_images`` lists ``[place id, image]``: the first image of each place of the tour
+    (:func:`topoloc.evaluation.pairs.image_name`), what ``localize --pairs-out`` writes for the place.
+    """
+    from topoloc.evaluation.pairs import first_images
+
     rec: dict[str, Any] = {
         "name": tour.name, "root": str(tour.root) if tour.kind == "files" else f"<{tour.kind} in memory>",
         "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": tour.fingerprint(),
         "median_hour": tour.median_time_of_day(), "start": None, "end": None,
+        "place_images": [[p, name] for p, name in sorted(first_images(tour).items())],
     }
     if tour.times is not None and len(tour.times):
         rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
@@ -408,6 +415,17 @@ class Map:
         value = self.calibration.get("threshold")
         return math.inf if value is None else float(value)
 
+    def place_image_names(self) -> list[str]:
+        """The map image each place is written as in a pairs file (:mod:`topoloc.evaluation.pairs`).
+
+        The first image of the place in the first tour recording one; ``place-<id>`` for a
+        place no tour record names (maps saved before tours recorded ``place_images``).
+        """
+        from topoloc.evaluation.pairs import place_names
+
+        return place_names(self.place_ids, ({int(p): str(n) for p, n in t.get("place_images") or ()}
+                                            for t in self.tours))
+
     def info(self) -> dict[str, Any]:
         """Method, parameters, places, tours, vocabulary, features, calibration and file size."""
         voc = None
@@ -421,7 +439,9 @@ class Map:
             "method": self.recognizer.name, "params": self.recognizer.get_params(),
             "places": len(self.place_ids), "places_with_position": xy_known,
             "place_id_range": [int(self.place_ids.min()), int(self.place_ids.max())] if len(self.place_ids) else None,
-            "tours": self.tours, "vocabulary": voc, "features": asdict(self.features),
+            # One image name per place is for pairs files (place_image_names), not for reading here.
+            "tours": [{k: v for k, v in t.items() if k != "place_images"} for t in self.tours],
+            "vocabulary": voc, "features": asdict(self.features),
             "calibration": self.calibration or "none: every localisation is accepted (run `topoloc map calibrate`)",
             "created": self.created, "spec": self.spec,
         }

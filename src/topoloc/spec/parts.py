@@ -19,7 +19,7 @@ names the flag instead (``topoloc.cli.options``).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -244,18 +244,20 @@ class InputSpec:
         return [load_input(p, topic=self.topic, every_s=self.every_s, every_m=self.every_m,
                            pose_topic=self.pose_topic) for p in items]
 
-    def frames(self, inputs: Sequence[str | Path]) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
+    def frames(self, inputs: Sequence[str | Path], *, on_frame: Callable[[str], None] | None = None,
+               ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
         """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
 
         Every input is opened and checked before the first frame; bags and
         videos are then streamed (one frame decoded at a time, nothing kept).
+        ``on_frame``: see :func:`topoloc.datasets.frames.frame_stream`.
         """
         from topoloc.datasets.frames import frame_stream
 
         items = [Path(p) for p in inputs]
         self.check(items)
         return frame_stream(items, topic=self.topic, every_s=self.every_s, every_m=self.every_m,
-                            pose_topic=self.pose_topic)
+                            pose_topic=self.pose_topic, on_frame=on_frame)
 
 
 # -- ground truth ---------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.errors import ParameterError
-from topoloc.io.dirs import Output, check_outputs, container_marker, json_marker, jsonl_marker
+from topoloc.io.dirs import Output, check_outputs, container_marker, json_marker, jsonl_marker, pairs_marker
 from topoloc.spec.parts import (
     ExecutionSpec,
     FeatureSpec,
@@ -100,6 +100,9 @@ class EvaluateSpec(_ChecksOutputs):
         Keep only the K best places per query (0 = the whole S).
     html : Path, optional
         Also write the browsable HTML page of the run here.
+    pairs_out : Path, optional
+        Also write the ``top_k`` retrieval pairs of each query in hloc's format
+        (:mod:`topoloc.evaluation.pairs`); needs ``top_k``.
     features, vocabulary, inputs, ground_truth, sequence, execution
         The parts (:mod:`topoloc.spec.parts`).
     """
@@ -113,6 +116,7 @@ class EvaluateSpec(_ChecksOutputs):
     recall_at: str = "1,5,10"
     top_k: int = 0
     html: Path | None = None
+    pairs_out: Path | None = None
     features: FeatureSpec = field(default_factory=FeatureSpec)
     vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
     inputs: InputSpec = field(default_factory=InputSpec)
@@ -122,7 +126,7 @@ class EvaluateSpec(_ChecksOutputs):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "maps", _paths(self.maps))
-        for name in ("query", "out", "map_file", "html"):
+        for name in ("query", "out", "map_file", "html", "pairs_out"):
             object.__setattr__(self, name, _opt_path(getattr(self, name)))
         object.__setattr__(self, "params", dict(self.params or {}))
         if self.map_file is not None and self.maps:
@@ -137,6 +141,8 @@ class EvaluateSpec(_ChecksOutputs):
             raise ParameterError("out", "is needed: the output folder")
         parse_recall_at(self.recall_at)
         _whole("top_k", self.top_k, 0)
+        if self.pairs_out is not None and not self.top_k:
+            raise ParameterError("pairs_out", "writes the K best map images of each query: give top_k too")
         if self.top_k and self.html is not None:
             raise ParameterError("html", "draws the whole S: leave out top_k, or html")
         if self.map_file is not None and (self.params or self.vocabulary.given):
@@ -149,12 +155,14 @@ class EvaluateSpec(_ChecksOutputs):
                         self.ground_truth.file, self.execution.cache_dir)
 
     def outputs(self) -> tuple[Output, ...]:
-        """The run folder (replaced whole: empty, new, or an earlier run) and the HTML page."""
+        """The run folder (replaced whole: empty, new, or an earlier run), the HTML page and the pairs file."""
         assert self.out is not None
-        run = Output(self.out, "run", earlier=EARLIER_RUN, what="run folder")
-        if self.html is None:
-            return (run,)
-        return run, Output(html_page(self.html, self.out), what="HTML page")
+        outs = [Output(self.out, "run", earlier=EARLIER_RUN, what="run folder")]
+        if self.html is not None:
+            outs.append(Output(html_page(self.html, self.out), what="HTML page"))
+        if self.pairs_out is not None:
+            outs.append(Output(self.pairs_out, what="pairs file", earlier=pairs_marker()))
+        return tuple(outs)
 
 
 @dataclass(frozen=True)
@@ -218,6 +226,9 @@ class LocalizeSpec(_ChecksOutputs):
         The JSON-lines file.
     top_k : int
         Places listed per frame.
+    pairs_out : Path, optional
+        Also write each frame's ``top_k`` places as retrieval pairs in hloc's
+        format, a place as its first map image (:mod:`topoloc.evaluation.pairs`).
     sequence, inputs, execution
         The parts (:mod:`topoloc.spec.parts`).
     """
@@ -226,6 +237,7 @@ class LocalizeSpec(_ChecksOutputs):
     images: tuple[Path, ...] = ()
     out: Path | None = None
     top_k: int = 5
+    pairs_out: Path | None = None
     sequence: SequenceSpec = field(default_factory=SequenceSpec)
     inputs: InputSpec = field(default_factory=InputSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
@@ -234,6 +246,7 @@ class LocalizeSpec(_ChecksOutputs):
         object.__setattr__(self, "images", _paths(self.images))
         object.__setattr__(self, "map_file", _opt_path(self.map_file))
         object.__setattr__(self, "out", _opt_path(self.out))
+        object.__setattr__(self, "pairs_out", _opt_path(self.pairs_out))
         if self.map_file is None:
             raise ParameterError("map_file", "is needed: the map to localise against")
         if not self.images:
@@ -247,9 +260,12 @@ class LocalizeSpec(_ChecksOutputs):
         return _present(self.map_file, *self.images)
 
     def outputs(self) -> tuple[Output, ...]:
-        """The JSON-lines file."""
+        """The JSON-lines file and the pairs file."""
         assert self.out is not None
-        return (Output(self.out, what="output", earlier=jsonl_marker("frame")),)
+        lines = Output(self.out, what="output", earlier=jsonl_marker("frame"))
+        if self.pairs_out is None:
+            return (lines,)
+        return lines, Output(self.pairs_out, what="pairs file", earlier=pairs_marker())
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,102 @@
+"""Retrieval pairs in hloc's format: ``--pairs-out FILE`` of ``evaluate --top-k K`` and ``localize``.
+
+hloc (``pairs_from_retrieval``) and COLMAP's custom matching read one pair a
+line, ``query_image map_image``, the names relative to one image root and
+separated by a space.  topoloc names an image by its traverse folder's name
+and its path under that folder (``day/0001.png``, ``night/sub/0007.png``), so
+one image root holding the query and map folders serves both.  Recordings and
+in-memory traverses have no files: their images are named ``<name>/<k>``.
+
+A map stores places, not images: a place is written as its first map image
+(the first image of the place in the first tour that shows it, the map's tours
+in the order they were added).  A map saved before it recorded image names,
+or a place no tour record names, is written as ``place-<id>``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
+from topoloc.io.container import atomic_write_bytes
+
+
+def image_name(traverse: Traverse, i: int) -> str:
+    """The name of image ``i`` of ``traverse`` in a pairs file: ``<folder name>/<path under the folder>``."""
+    img = Path(traverse.images[i])
+    if traverse.kind != "files":
+        return img.as_posix()  # already <name>/<k>
+    try:
+        rel = img.relative_to(traverse.root).as_posix()
+    except ValueError:
+        rel = img.name
+    return f"{traverse.root.name or traverse.name}/{rel}"
+
+
+def image_names(traverse: Traverse) -> list[str]:
+    """:func:`image_name` of every image of ``traverse``, in order."""
+    return [image_name(traverse, i) for i in range(len(traverse.images))]
+
+
+def first_images(traverse: Traverse) -> dict[int, str]:
+    """The first image of each place of ``traverse``: place id -> :func:`image_name`."""
+    out: dict[int, str] = {}
+    for i, p in enumerate(np.asarray(traverse.places).tolist()):
+        if int(p) not in out:
+            out[int(p)] = image_name(traverse, i)
+    return out
+
+
+def place_names(place_ids: Sequence[int] | np.ndarray, tours: Iterable[Mapping[int, str]]) -> list[str]:
+    """The image each place is written as: the first of ``tours`` (place -> image) naming it, else ``place-<id>``."""
+    known: dict[int, str] = {}
+    for tour in tours:
+        for p, name in tour.items():
+            known.setdefault(int(p), name)
+    return [known.get(int(p), f"place-{int(p)}") for p in np.asarray(place_ids).tolist()]
+
+
+def retrieval_pairs(query_names: Sequence[str], rows: np.ndarray, row_names: Sequence[str]) -> list[tuple[str, str]]:
+    """``(query, map image)`` for each query and each of its rows (best first): ``rows`` has shape (queries, K)."""
+    rows = np.asarray(rows)
+    if rows.ndim != 2 or rows.shape[0] != len(query_names):
+        raise ValueError(f"rows must have shape ({len(query_names)}, K), got {rows.shape}")
+    return [(q, row_names[int(r)]) for q, rs in zip(query_names, rows.tolist(), strict=True) for r in rs]
+
+
+def format_pairs(pairs: Iterable[tuple[str, str]]) -> bytes:
+    """The text of a pairs file: ``query map`` a line.  A name holding white space is refused (hloc splits on it)."""
+    lines = []
+    for q, m in pairs:
+        for name in (q, m):
+            if not name or any(c.isspace() for c in name):
+                raise TopolocError(f"image name {name!r} is empty or holds white space, which a pairs file "
+                                   "cannot hold: rename the image")
+        lines.append(f"{q} {m}\n")
+    return "".join(lines).encode("utf-8")
+
+
+def write_pairs(path: str | Path, pairs: Iterable[tuple[str, str]]) -> None:
+    """Write ``pairs`` to ``path`` in hloc's format, atomically (:func:`format_pairs`)."""
+    atomic_write_bytes(Path(path), format_pairs(pairs))
+
+
+def read_pairs(path: str | Path) -> list[tuple[str, str]]:
+    """The pairs of a pairs file, as hloc reads them (``line.split()``; blank lines and ``#`` comments skipped)."""
+    out = []
+    for n, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise TopolocError(f"{path}:{n}: a pairs line is 'query_image map_image', got {line!r}")
+        out.append((parts[0], parts[1]))
+    return out
+
+
+__all__ = ["first_images", "format_pairs", "image_name", "image_names", "place_names", "read_pairs",
+           "retrieval_pairs", "write_pairs"]
