@@ -44,11 +44,9 @@ def image_names(traverse: Traverse) -> list[str]:
 
 def first_images(traverse: Traverse) -> dict[int, str]:
     """The first image of each place of ``traverse``: place id -> :func:`image_name`."""
-    out: dict[int, str] = {}
-    for i, p in enumerate(np.asarray(traverse.places).tolist()):
-        if int(p) not in out:
-            out[int(p)] = image_name(traverse, i)
-    return out
+    # np.unique's return_index is the first occurrence: one name built per place, not per image.
+    ids, first = np.unique(np.asarray(traverse.places), return_index=True)
+    return {int(p): image_name(traverse, int(i)) for p, i in zip(ids.tolist(), first.tolist(), strict=True)}
 
 
 def place_names(place_ids: Sequence[int] | np.ndarray, tours: Iterable[Mapping[int, str]]) -> list[str]:

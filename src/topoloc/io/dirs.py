@@ -262,6 +262,15 @@ def container_marker(kind: str) -> Earlier:
     return earlier
 
 
+def _first_line(file: Path) -> bytes | None:
+    """The first line of ``file`` (at most ``_MARKER_MAX`` bytes), or None when it cannot be read."""
+    try:
+        with open(file, "rb") as fh:
+            return fh.readline(_MARKER_MAX)
+    except OSError:
+        return None
+
+
 def jsonl_marker(key: str) -> Earlier:
     """A test of an earlier output file: empty, or JSON lines whose first line is an object with ``key``.
 
@@ -269,10 +278,8 @@ def jsonl_marker(key: str) -> Earlier:
     """
 
     def earlier(file: Path) -> bool:
-        try:
-            with open(file, "rb") as fh:
-                first = fh.readline(_MARKER_MAX)
-        except OSError:
+        first = _first_line(file)
+        if first is None:
             return False
         if not first.strip():
             return True
@@ -292,10 +299,8 @@ def pairs_marker() -> Earlier:
     """
 
     def earlier(file: Path) -> bool:
-        try:
-            with open(file, "rb") as fh:
-                first = fh.readline(_MARKER_MAX)
-        except OSError:
+        first = _first_line(file)
+        if first is None:
             return False
         try:
             return not first.strip() or len(first.decode("utf-8").split()) == 2

@@ -38,6 +38,7 @@ from topoloc.progress import ProgressFactory
 from topoloc.ranking import threshold_sweep, top_rows
 from topoloc.resources import CachedResources, InMemoryResources, Resources
 from topoloc.spec import FeatureSpec, GroundTruthSpec, MapBuildSpec, SequenceSpec, VocabularySpec, spec_to_dict
+from topoloc.spec.parts import NOT_BOTH
 from topoloc.spec.setup import build_method, make_resources
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
@@ -193,7 +194,7 @@ class Map:
         voc_source: VocabularySpec | Vocabulary | None
         if isinstance(vocabulary, Vocabulary):
             if vocab_train:
-                raise ParameterError("vocabulary", "is either a file or folders to train one on, not both")
+                raise ParameterError("vocabulary", NOT_BOTH)
             voc_source = vocabulary
         else:
             voc_source = VocabularySpec(file=None if vocabulary is None else Path(vocabulary),

@@ -79,7 +79,7 @@ def spec_from_dict(cls: type[S], data: Mapping[str, Any], *, source: str | Path 
     Parameters
     ----------
     cls : type
-        One of :data:`topoloc.spec.runs.RUN_SPECS`.
+        A run specification of :mod:`topoloc.spec.runs` (``EvaluateSpec``, ``MapBuildSpec``...).
     data : mapping
         Fields of ``cls``; the parts as mappings of their own fields.
     source : path, optional

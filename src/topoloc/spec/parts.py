@@ -157,6 +157,10 @@ class FeatureSpec:
         return self._config(min(sides) if sides else 0)
 
 
+#: One vocabulary source: a file (or one in memory) or folders to train on.
+NOT_BOTH = "is either a file or folders to train one on, not both"
+
+
 # -- vocabulary -----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class VocabularySpec:
@@ -183,7 +187,7 @@ class VocabularySpec:
         object.__setattr__(self, "file", _opt_path(self.file))
         object.__setattr__(self, "train", _paths(self.train))
         if self.file is not None and self.train:
-            raise ParameterError("vocabulary", "is either a file or folders to train one on, not both")
+            raise ParameterError("vocabulary", NOT_BOTH)
         if isinstance(self.words, bool) or not isinstance(self.words, int) or self.words < 1:
             raise ParameterError("vocabulary.words", f"must be a whole number >= 1, got {self.words!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):

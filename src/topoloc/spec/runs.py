@@ -308,8 +308,4 @@ class VocabTrainSpec(_ChecksOutputs):
         return (Output(self.out, what="vocabulary file", earlier=container_marker("vocabulary")),)
 
 
-RUN_SPECS: dict[str, type] = {
-    "evaluate": EvaluateSpec, "map build": MapBuildSpec, "localize": LocalizeSpec, "vocab train": VocabTrainSpec,
-}
-
-__all__ = ["EARLIER_RUN", "RUN_SPECS", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "VocabTrainSpec", "html_page"]
+__all__ = ["EARLIER_RUN", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "VocabTrainSpec", "html_page"]
