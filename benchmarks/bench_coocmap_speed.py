@@ -51,7 +51,7 @@ def fitted(maps: tuple[str, ...], query: str, preprocess: str) -> tuple[CoocMap,
     """The `coocmap` method with its defaults, fitted and encoded as `topoloc evaluate` does."""
     mp = [load_traverse(GP / m) for m in maps]
     qt = load_traverse(GP / query)
-    config = FeatureSpec(preprocess=preprocess).config_for_run([*mp, qt])
+    config = FeatureSpec(preprocess=preprocess).config()
     res, _ = make_resources(config, VocabularySpec(train=tuple(VOCAB_FOR_GP)), needs_vocabulary="coocmap")
     method = CoocMap().fit(mp, resources=res)
     return method, method.encode(qt, resources=res)

@@ -72,7 +72,7 @@ def _pairs() -> list[dict[str, Any]]:
 def _run_pair(pair: dict[str, Any]) -> dict[str, Any]:
     map_t, query = load_traverse(pair["map"]), load_traverse(pair["query"])
     # evaluate's default feature settings, resolved for this pair as evaluate resolves them
-    config = FeatureSpec().config_for_run([map_t, query])
+    config = FeatureSpec().config()
     resources, _ = make_resources(config)
     place_ids = map_place_ids([map_t])
     if "ground_truth" in pair:

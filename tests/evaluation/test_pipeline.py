@@ -105,14 +105,10 @@ def test_corrupt_query_image(route: Path, tmp_path: Path) -> None:
     assert not (tmp_path / "o" / "metrics.json").exists()
 
 
-def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path, tmp_path: Path) -> None:
+def test_max_side_auto_is_one_scale_per_image_whatever_the_traverses(route: Path, tmp_path: Path) -> None:
     import cv2
 
-    from topoloc.datasets.traverse import load_traverse
-    from topoloc.spec import FeatureSpec
-
-    def resolve_max_side(spec: int | str, traverses: list) -> int:
-        return FeatureSpec(max_side=spec).config_for_run(traverses).max_side
+    from topoloc.spec.parts import AUTO_MAX_SIDE
 
     # The query camera gives smaller images than the map's (like gardens_point at night).
     q = tmp_path / "small"
@@ -120,12 +116,7 @@ def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path,
     for src in sorted((route / "route" / "tour_1600").glob("*.jpg")):
         img = cv2.imread(str(src))
         cv2.imwrite(str(q / src.name), cv2.resize(img, (img.shape[1] * 3 // 4, img.shape[0] * 3 // 4)))
-    full = max(cv2.imread(str(next(q.glob("*.jpg")))).shape[:2]) * 4 // 3
-    maps = [load_traverse(route / "route" / "tour_1000")]
-    query = load_traverse(q)
-    assert resolve_max_side("auto", maps) == 0  # one size: nothing to reconcile
-    assert resolve_max_side("auto", [*maps, query]) == full * 3 // 4
-    assert resolve_max_side("0", [*maps, query]) == 0 and resolve_max_side(500, maps) == 500
+    small = max(cv2.imread(str(next(q.glob("*.jpg")))).shape[:2])
 
     def run(out: Path, *extra: str) -> dict:  # type: ignore[type-arg]
         r = runner.invoke(app, [
@@ -136,8 +127,10 @@ def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path,
         return json.loads((out / "metrics.json").read_text())
 
     auto = run(tmp_path / "auto")
-    assert auto["run"]["features"]["max_side"] == full * 3 // 4
-    assert f"downscaled to a longer side of {full * 3 // 4} px" in (tmp_path / "auto" / "report.md").read_text()
+    assert auto["run"]["features"]["max_side"] == AUTO_MAX_SIDE
+    both = run(tmp_path / "both", "--max-side", str(small))  # the map camera brought to the query's scale
+    assert both["run"]["features"]["max_side"] == small
+    assert f"downscaled to a longer side of {small} px" in (tmp_path / "both" / "report.md").read_text()
     off = run(tmp_path / "off", "--max-side", "0", "--preprocess", "clahe")
     assert off["run"]["features"]["max_side"] == 0 and off["run"]["features"]["preprocess"] == "clahe"
     assert "| bow (preprocess=clahe) |" in (tmp_path / "off" / "report.md").read_text()
@@ -146,7 +139,7 @@ def test_max_side_auto_extracts_every_traverse_at_the_smallest_size(route: Path,
 def test_corrupt_image_probed_for_its_size_is_a_one_line_error(route: Path, tmp_path: Path) -> None:
     import shutil
 
-    # The first image is one of those `--max-side auto` reads before any extraction.
+    # An unreadable image is refused before any feature is extracted.
     q = tmp_path / "q"
     shutil.copytree(route / "route" / "tour_1600", q)
     bad = sorted(q.glob("*.jpg"))[0]

@@ -70,19 +70,10 @@ def test_good_values_are_normalised() -> None:
         assert ExecutionSpec(scheduler=address).scheduler == address
 
 
-def test_feature_spec_resolves_auto_for_runs_and_for_maps(tmp_path: Path) -> None:
-    import cv2
-    import numpy as np
+def test_feature_spec_auto_is_one_rule_per_image() -> None:
+    from topoloc.spec.parts import AUTO_MAX_SIDE
 
-    from topoloc.datasets.traverse import load_traverse
-
-    for name, (w, h) in (("big", (96, 64)), ("small", (72, 48))):
-        (tmp_path / name).mkdir()
-        for i in range(3):
-            cv2.imwrite(str(tmp_path / name / f"{i}.png"), np.full((h, w), 100 + i, np.uint8))
-    big, small = load_traverse(tmp_path / "big"), load_traverse(tmp_path / "small")
-    spec = FeatureSpec()
-    assert spec.config_for_run([big]).max_side == 0  # one size: nothing to reconcile
-    assert spec.config_for_run([big, small]).max_side == 72
-    assert spec.config_for_map([big]).max_side == 96  # a map records its scale
-    assert FeatureSpec(max_side=50).config_for_map([big]).max_side == 50
+    # Whatever tours a run or a map holds: the scale never depends on them (issue 27).
+    assert FeatureSpec().config().max_side == AUTO_MAX_SIDE
+    assert FeatureSpec(max_side=50).config().max_side == 50
+    assert FeatureSpec(max_side="0").config().max_side == 0

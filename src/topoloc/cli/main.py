@@ -202,7 +202,7 @@ def vocab_train_cmd(
     spec = spec_from_cli(VocabTrainSpec, ctx, values, config=config, names=VOCAB_TRAIN_NAMES)
     assert spec.out is not None
     spec.check_outputs()
-    config_ = spec.features.config_for_run([])
+    config_ = spec.features.config()
     extractor = FeatureExtractor(config_, cache_dir=spec.execution.cache_dir)
     with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
         voc = train_vocabulary(list(spec.folders), extractor=extractor, n_words=spec.vocabulary.words,
@@ -368,7 +368,7 @@ def show_match_cmd(
     voc_spec = VocabularySpec(file=vocab, train=tuple(vocab_train or ()), words=vocab_words)
     feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     maps = [load_traverse(m) for m in map]
-    config_ = feature_spec.config_for_run(maps, images=[query_image])
+    config_ = feature_spec.config()
     with rich_progress() as progress:
         resources, _ = make_resources(
             config_, voc_spec, cache_dir=cache_dir,
@@ -425,7 +425,7 @@ def slam(
     check_outputs(outputs, [traverse, vocab, *(vocab_train or ()), model, cache_dir])
     trav = load_traverse(traverse)
     with rich_progress(not quiet) as progress:
-        resources, _ = make_resources(feature_spec.config_for_run([]), voc_spec, cache_dir=cache_dir,
+        resources, _ = make_resources(feature_spec.config(), voc_spec, cache_dir=cache_dir,
                                       needs_vocabulary="slam", progress=progress)
         result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
                           threshold=threshold, p_new=p_new, min_gap=min_gap)

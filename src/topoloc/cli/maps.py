@@ -93,7 +93,7 @@ def map_build(
         v = spec.vocabulary
         m = Map.build(executor=executor, method=spec.method, tours=tours, params=params, vocabulary=v.file,
                       vocab_train=v.train, vocab_words=v.words, seed=v.seed,
-                      features=spec.features.config_for_map(tours), cache_dir=spec.execution.cache_dir,
+                      features=spec.features.config(), cache_dir=spec.execution.cache_dir,
                       progress=progress, shards=spec.shards)
     m.spec = spec_to_dict(spec)
     m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces

@@ -32,8 +32,8 @@ ConfigOption = Annotated[Path | None, typer.Option(
 FeaturesOption = Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")]
 MaxFeaturesOption = Annotated[int, typer.Option(help="Cap on features per image.")]
 MaxSideAutoOption = Annotated[str, typer.Option(
-    help="Downscale images to this longer side before extraction; 'auto' = the smallest size among "
-         "the traverses when their sizes differ (a map: the smallest among its tours), 0 = never.")]
+    help="Downscale images to this longer side before extraction; 'auto' = 640 (smaller images "
+         "are kept as they are), 0 = never.")]
 MaxSideOption = Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")]
 PreprocessOption = Annotated[str, typer.Option(
     help="Photometric preprocessing: auto (default; CLAHE weighted per image by how far its "

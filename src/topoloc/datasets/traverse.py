@@ -402,20 +402,6 @@ def find_images(folders: list[Path] | list[str]) -> list[Path]:
     return out
 
 
-def probe_image_sides(traverses: Sequence[Traverse]) -> set[int]:
-    """Longer image sides found in the first, middle and last image of each traverse.
-
-    Traverses of features or words have no size and add nothing; a corrupt
-    probed image is a one-line :class:`~topoloc.errors.TopolocError`.
-    """
-    sides: set[int] = set()
-    for trav in traverses:
-        n = len(trav)
-        if trav.kind in ("files", "images"):
-            sides |= {max(trav.read(i).shape[:2]) for i in (sorted({0, n // 2, n - 1}) if n else [])}
-    return sides
-
-
 def image_header_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
     """Width and height an encoded image announces in its header, without decoding it.
 

@@ -129,7 +129,7 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         method = build_method(spec.method, spec.params)
         if not method.uses_vocabulary and spec.vocabulary.given:
             log.warning("method %s uses no visual vocabulary: the vocabulary given is ignored", method.name)
-        config = spec.features.config_for_run([*maps, query])
+        config = spec.features.config()
         max_side = config.max_side
         resources, vocab_info = make_resources(
             config, spec.vocabulary, cache_dir=spec.execution.cache_dir,

@@ -87,7 +87,7 @@ def table_row(m: dict[str, Any]) -> str:
 
 def _features_line(f: dict[str, Any]) -> str:
     side = int(f.get("max_side", 0))
-    resize = f"images downscaled to a longer side of {side} px" if side else "images at full size"
+    resize = f"images longer than {side} px downscaled to a longer side of {side} px" if side else "images at full size"
     if "max_side_option" in f:
         resize += f" (--max-side {f['max_side_option']})"
     return (f"{f['method']}, at most {f['max_features']} per image, {resize}, "

@@ -171,9 +171,9 @@ class Map:
             Train a vocabulary on these images instead (cached); FAB-MAP also
             learns its word statistics from them.
         features : FeatureConfig or FeatureSpec, optional
-            Default ``FeatureSpec()``: SIFT, 1000 per image, ``max_side="auto"``,
-            which a map resolves to the smallest longer image side found among
-            the tours (:meth:`FeatureSpec.config_for_map`).
+            Default ``FeatureSpec()``: SIFT, 1000 per image, ``max_side="auto"``
+            (every image's longer side at most
+            :data:`~topoloc.spec.parts.AUTO_MAX_SIDE`, whatever the tours).
         shards : int
             Build the map as this many partial models of contiguous place
             ranges (one task each on ``executor``) and merge them; the map
@@ -201,7 +201,7 @@ class Map:
                                         train=tuple(Path(f) for f in vocab_train), words=vocab_words,
                                         seed=seed)
         spec = features if isinstance(features, FeatureSpec) else None
-        config = features if isinstance(features, FeatureConfig) else (spec or FeatureSpec()).config_for_map(maps)
+        config = features if isinstance(features, FeatureConfig) else (spec or FeatureSpec()).config()
         res, _ = make_resources(config, voc_source, cache_dir=cache_dir, progress=progress, executor=executor,
                                 needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "")
         if shards > 1:

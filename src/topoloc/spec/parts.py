@@ -76,6 +76,14 @@ def parse_recall_at(text: str | Sequence[int]) -> tuple[int, ...]:
 
 
 # -- features -------------------------------------------------------------------------------------------
+#: Longer image side ``max_side="auto"`` extracts features at: larger images are downscaled to it,
+#: smaller ones kept.  A rule per image, so a map's scale does not depend on which tours it was built
+#: from first; it also brings cameras of different sizes above it to one scale (gardens_point:
+#: 960 x 540 by day, 640 x 360 at night) and, at about half the pixels of 960 x 540, keeps SIFT
+#: within a camera's frame time on 2 cores (benchmarks/bench_camera_rate.py, docs/results/performance.md).
+AUTO_MAX_SIDE = 640
+
+
 def parse_max_side(value: int | str) -> int | str:
     """``"auto"`` or a number of pixels >= 0 (0 = no resizing), from a user's text or number."""
     text = str(value).strip().lower()
@@ -101,8 +109,8 @@ class FeatureSpec:
         Strongest keypoints kept per image.
     max_side : int or "auto"
         Longer image side to downscale to before extraction (0 = never);
-        ``"auto"`` reconciles the image sizes of the run's traverses
-        (:meth:`config_for_run`, :meth:`config_for_map`).
+        ``"auto"`` downscales every image whose longer side exceeds
+        :data:`AUTO_MAX_SIDE` to that side (:meth:`config`).
     preprocess : {"auto", "none", "clahe", "equalize"}
         Photometric preprocessing (:class:`~topoloc.features.FeatureConfig`).
     """
@@ -125,36 +133,16 @@ class FeatureSpec:
         except ParameterError as exc:
             raise ParameterError(f"features.{exc.param.rsplit('.', 1)[-1]}", exc.detail) from None
 
-    def config_for_run(self, traverses: Sequence[Traverse], *, images: Sequence[Path] = ()) -> FeatureConfig:
-        """Feature settings for an evaluation of these traverses (and single ``images``).
+    def config(self) -> FeatureConfig:
+        """The feature settings this spec resolves to: ``"auto"`` is :data:`AUTO_MAX_SIDE`.
 
-        SIFT and its kin are scale-invariant only up to their sampling of scale
-        space: the same scene imaged at 960 and at 640 pixels yields different
-        keypoints, which costs matches between traverses taken with different
-        cameras (on gardens_point the night traverse is 640 x 360, the day ones
-        960 x 540).  ``"auto"`` therefore extracts every traverse at the smallest
-        longer side found when the sizes differ, and does not resize when they
-        agree.  The first, middle and last image of each traverse are read.
+        One rule per image, whatever other images a run or a map holds, so a
+        map built from tours A and B describes every image as one built from A
+        and then given B does, and a query is described as it would be in any
+        other run (issue 27).  Images whose longer side is at most
+        :data:`AUTO_MAX_SIDE` are not resized.
         """
-        if self.max_side != "auto":
-            return self._config(int(self.max_side))
-        from topoloc.datasets.traverse import probe_image_sides, read_image
-
-        sides = {max(read_image(path).shape[:2]) for path in images} | probe_image_sides(traverses)
-        return self._config(min(sides) if len(sides) > 1 else 0)
-
-    def config_for_map(self, tours: Sequence[Traverse]) -> FeatureConfig:
-        """Feature settings a map records: ``"auto"`` is the smallest longer side among its tours.
-
-        The map keeps this scale, so that later queries from a larger camera
-        are described at the map's scale.
-        """
-        if self.max_side != "auto":
-            return self._config(int(self.max_side))
-        from topoloc.datasets.traverse import probe_image_sides
-
-        sides = probe_image_sides(tours)
-        return self._config(min(sides) if sides else 0)
+        return self._config(AUTO_MAX_SIDE if self.max_side == "auto" else int(self.max_side))
 
 
 #: One vocabulary source: a file (or one in memory) or folders to train on.
@@ -456,6 +444,6 @@ PARTS: dict[str, type] = {
 
 
 __all__ = [
-    "PARTS", "SEQUENCE_MODES", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec", "SequenceSpec",
+    "AUTO_MAX_SIDE", "PARTS", "SEQUENCE_MODES", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec", "SequenceSpec",
     "VocabularySpec", "parse_max_side", "parse_recall_at",
 ]

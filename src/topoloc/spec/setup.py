@@ -56,7 +56,7 @@ def make_resources(
     Parameters
     ----------
     features : FeatureConfig
-        The resolved feature settings (:meth:`FeatureSpec.config_for_run`, ``config_for_map``).
+        The resolved feature settings (:meth:`FeatureSpec.config`).
     vocabulary : VocabularySpec or Vocabulary, optional
         A file (loaded and checked against the descriptors now), folders to train
         one on (trained on first use, inside ``fit``, and cached under
