@@ -60,7 +60,7 @@ QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help="No progress ba
 SchedulerOption = Annotated[str | None, typer.Option(
     "--scheduler", help="Dask scheduler address (tcp://host:8786): feature extraction and quantisation run on its "
                         "workers, which must see the cache folder at the same path; default $TOPOLOC_SCHEDULER, "
-                        "else this machine's threads. Needs pip install 'topoloc\\[distributed]'.")]
+                        "else this machine's threads. Needs pip install 'topoloc[distributed]'.")]
 SchedulerTimeoutOption = Annotated[float | None, typer.Option(
     "--scheduler-timeout", help="Seconds to wait for the scheduler and a worker before a one-line error "
                                 "(default $TOPOLOC_SCHEDULER_TIMEOUT, else 10).")]

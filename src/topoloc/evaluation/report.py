@@ -15,6 +15,7 @@ import numpy as np
 
 from topoloc._params import keyword_defaults
 from topoloc.errors import TopolocError
+from topoloc.evaluation.columns import uses_local_features
 from topoloc.evaluation.plots import plot_pr_curves
 from topoloc.features import FeatureConfig
 from topoloc.io.container import atomic_write_bytes
@@ -47,11 +48,12 @@ def _method_label(m: dict[str, Any]) -> str:
         tags = [f"{k}={v}" for k, v in params.items() if k in defaults and defaults[k] != v]
     except TopolocError:
         pass  # a method this installation does not know: show the bare name
-    feats = m.get("run", {}).get("features", {})
+    # Feature settings say nothing of a method that reads no local features (SeqSLAM, descriptors).
+    feats = m.get("run", {}).get("features", {}) if uses_local_features(m) else {}
     if feats.get("method", "sift") != "sift":
         tags.append(feats["method"])
     # Runs written before preprocessing existed had none.
-    if feats.get("preprocess", "none") != DEFAULT_PREPROCESS:
+    if feats and feats.get("preprocess", "none") != DEFAULT_PREPROCESS:
         tags.append(f"preprocess={feats['preprocess']}")
     mode = params.pop("sequence_mode", "constant")
     if seq:
@@ -107,7 +109,8 @@ def render_run_report(m: dict[str, Any]) -> str:
         f"- map: {', '.join(f'`{x}`' for x in run['map'])}\n",
         f"- query: `{run['query']}` ({m['n_queries']} queries, {m['n_places']} map places)\n",
         f"- ground truth: {run['ground_truth']}\n",
-        f"- local features: {_features_line(run['features'])}\n",
+        f"- local features: {_features_line(run['features'])}\n" if uses_local_features(m)
+        else "- local features: none (this method does not use them; no feature settings or preprocessing apply)\n",
     ]
     if voc.get("used"):
         prov = {k: v for k, v in voc.items() if k not in {"used"}}

@@ -11,11 +11,31 @@ from topoloc._params import keyword_defaults
 from topoloc.methods import get_method
 
 _HEADING = re.compile(r"^(\w[\w ]*)\n-{3,}$", re.M)
+# Sphinx roles: :func:`~a.b.name` -> name, :class:`text <target>` -> text, :mod:`a.b` -> a.b.
+_ROLE = re.compile(r":[\w:]+:`(~?)([^`<]*?)\s*(?:<[^`>]*>)?`")
+# reST inline literals, emphasis and default roles: ``x`` / *x* / `x` -> x.
+_LITERAL = re.compile(r"``(.+?)``|(?<![\w*])\*(\S(?:.*?\S)?)\*(?![\w*])|`([^`]+)`")
+
+
+def plain_text(text: str) -> str:
+    """A docstring fragment as plain text for a terminal: Sphinx roles and reST markup reduced to their words.
+
+    ``:func:`~topoloc.a.b``` becomes ``b`` (the ``~`` form shows the last name,
+    as Sphinx does), ``:class:`Name <target>``` its text, and double back-quoted
+    literals and ``*emphasis*`` their content.
+    """
+
+    def role(m: re.Match[str]) -> str:
+        target = m.group(2)
+        return target.rsplit(".", 1)[-1] if m.group(1) else target
+
+    text = _ROLE.sub(role, text)
+    return _LITERAL.sub(lambda m: next(g for g in m.groups() if g is not None), text)
 
 
 @dataclass(frozen=True)
 class ParameterDoc:
-    """One constructor parameter: name, default, declared type and explanation (empty when undocumented)."""
+    """One constructor parameter: name, default, declared type and explanation (empty when undocumented), plain text."""
 
     name: str
     default: Any
@@ -68,7 +88,7 @@ def describe_method(name: str) -> tuple[str, list[ParameterDoc]]:
     """
     cls = get_method(name)
     sections = _sections(inspect.getdoc(cls) or "")
-    summary = sections[""].split("\n\n")[0].replace("\n", " ")
+    summary = plain_text(sections[""].split("\n\n")[0].replace("\n", " "))
     # A subclass documents its own parameters; those it inherits are documented by its bases.
     entries: dict[str, tuple[str, str]] = {}
     for klass in cls.__mro__:
@@ -76,5 +96,6 @@ def describe_method(name: str) -> tuple[str, list[ParameterDoc]]:
         if doc:
             for k, v in _parameter_entries(_sections(inspect.cleandoc(doc)).get("Parameters", "")).items():
                 entries.setdefault(k, v)
-    params = [ParameterDoc(k, v, *entries.get(k, ("", ""))) for k, v in keyword_defaults(cls).items()]
+    params = [ParameterDoc(k, v, *(plain_text(x) for x in entries.get(k, ("", ""))))
+              for k, v in keyword_defaults(cls).items()]
     return summary, params
