@@ -158,14 +158,15 @@ def methods(
         import shutil
         import textwrap
 
-        from topoloc.methods.describe import describe_method
+        from topoloc.methods.describe import describe_method, plain_text
 
         summary, documented = describe_method(name)
+        summary = plain_text(summary)
         width = max(60, shutil.get_terminal_size().columns - 1)
         typer.echo(f"{name}: {summary}\n\nParameters (evaluate --param KEY=VALUE):")
         for p in documented:
-            typer.echo(f"  {p.name} = {p.default!r}" + (f"  ({p.type})" if p.type else ""))
-            typer.echo(textwrap.fill(p.text or "(not documented)", width=width, initial_indent=" " * 6,
+            typer.echo(f"  {p.name} = {p.default!r}" + (f"  ({plain_text(p.type)})" if p.type else ""))
+            typer.echo(textwrap.fill(plain_text(p.text) or "(not documented)", width=width, initial_indent=" " * 6,
                                      subsequent_indent=" " * 6, break_on_hyphens=False, break_long_words=False))
         return
     for method in available_methods():

@@ -38,8 +38,10 @@ def _params_text(m: dict[str, Any]) -> str:
     """The method with the parameters that differ from its defaults (all of them for an unknown method)."""
     params = {k: v for k, v in m.get("params", {}).items() if k != "sequence"}
     try:
-        defaults = keyword_defaults(get_method(str(m.get("method"))))
-        params = {k: v for k, v in params.items() if k not in defaults or defaults[k] != v}
+        cls = get_method(str(m.get("method")))
+        defaults = keyword_defaults(cls)
+        # Runs of an earlier version under today's names, as saved maps are read (renamed and removed parameters).
+        params = {k: v for k, v in cls.upgrade_params(params).items() if k not in defaults or defaults[k] != v}
     except TopolocError:
         pass
     body = ", ".join(f"{k}={json.dumps(v, default=str)}" for k, v in params.items())

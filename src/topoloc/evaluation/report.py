@@ -8,6 +8,7 @@ that two rows of a table that differ in how they were run never look alike.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ def _method_label(m: dict[str, Any]) -> str:
     try:
         cls = get_method(m["method"])
         defaults = keyword_defaults(cls)
-        tags = [f"{k}={v}" for k, v in params.items() if k in defaults and defaults[k] != v]
+        tags = [f"{k}={v}" for k, v in cls.upgrade_params(params).items() if k in defaults and defaults[k] != v]
     except TopolocError:
         pass  # a method this installation does not know: show the bare name
     # Feature settings say nothing of a method that reads no local features (SeqSLAM, descriptors).
@@ -185,7 +186,9 @@ def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Pat
                                f"{Path(d) / 'metrics.json'}") from None
     md = [f"# {title}\n\n", TABLE_HEADER, *rows]
     md.append("\nHow each run was made (rows are comparable where these agree):\n\n" + markdown_table(metrics))
-    md.append("\nRuns: " + ", ".join(f"`{d}`" for d in run_dirs) + "\n\n![PR curves](pr_curves.png)\n")
+    # Relative to the report, so that a report kept beside its runs (docs/results) names no machine's folders.
+    md.append("\nRuns: " + ", ".join(f"`{os.path.relpath(Path(d).resolve(), out.resolve())}`" for d in run_dirs)
+              + "\n\n![PR curves](pr_curves.png)\n")
     labels = distinct_labels(metrics, [run_title(m) for m in metrics])
     curves = [(f"{i + 1}. {label} (AUC {m['auc']:.2f})", p, r)
               for i, (label, (m, p, r)) in enumerate(zip(labels, runs, strict=True))]

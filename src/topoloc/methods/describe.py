@@ -35,7 +35,10 @@ def plain_text(text: str) -> str:
 
 @dataclass(frozen=True)
 class ParameterDoc:
-    """One constructor parameter: name, default, declared type and explanation (empty when undocumented), plain text."""
+    """One constructor parameter: name, default, declared type and explanation (empty when undocumented).
+
+    The texts are the docstring's (reST); :func:`plain_text` reads them in a terminal.
+    """
 
     name: str
     default: Any
@@ -88,7 +91,7 @@ def describe_method(name: str) -> tuple[str, list[ParameterDoc]]:
     """
     cls = get_method(name)
     sections = _sections(inspect.getdoc(cls) or "")
-    summary = plain_text(sections[""].split("\n\n")[0].replace("\n", " "))
+    summary = sections[""].split("\n\n")[0].replace("\n", " ")
     # A subclass documents its own parameters; those it inherits are documented by its bases.
     entries: dict[str, tuple[str, str]] = {}
     for klass in cls.__mro__:
@@ -96,6 +99,5 @@ def describe_method(name: str) -> tuple[str, list[ParameterDoc]]:
         if doc:
             for k, v in _parameter_entries(_sections(inspect.cleandoc(doc)).get("Parameters", "")).items():
                 entries.setdefault(k, v)
-    params = [ParameterDoc(k, v, *(plain_text(x) for x in entries.get(k, ("", ""))))
-              for k, v in keyword_defaults(cls).items()]
+    params = [ParameterDoc(k, v, *entries.get(k, ("", ""))) for k, v in keyword_defaults(cls).items()]
     return summary, params
