@@ -59,7 +59,7 @@
       if (f > bestF) { bestF = f; best = i; }
     });
     return {thresholds: t, index: best, filter: "all", shown: PAGE, view: "rank",
-            opened: "the best F1 (" + fmt(Math.max(bestF, 0), 3) + "; no calibrated map)"};
+            opened: "the best F1, " + fmt(Math.max(bestF, 0), 3) + " (the run scored no calibrated map)"};
   });
   function thrOf(k) {
     const st = states[k];
@@ -224,7 +224,7 @@
       el("p", {cls: "meta", text: run.n_places + " map places × " + run.n_queries + " queries (" + run.n_pos +
                                   " with a correct place); ground truth: " + run.ground_truth + "; folder " + run.dir}),
       el("div", {cls: "controls"}, [el("label", {text: "acceptance threshold "}), slider, counts,
-        el("span", {cls: "opened", text: "(opened at " + st.opened + ")"})]),
+        el("span", {cls: "opened", text: "opened at " + st.opened})]),
       el("div", {cls: "two"}, [
         el("div", {}, [el("h3", {text: "Similarity matrix"}), views, canvas, scale,
           el("p", {cls: "legend", text: "Rows: map places (top = first); columns: queries (left = first). " +
