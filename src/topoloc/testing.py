@@ -159,6 +159,28 @@ def check_fit(rec: PlaceRecognizer, data: CheckData) -> None:
     assert not new, f"attributes learned by fit must end in '_': {new}"
 
 
+class _NoLocalFeatures:
+    """``data.resources`` for a method that says it reads no local features: reading them fails the check."""
+
+    def __init__(self, inner: Resources) -> None:
+        self._inner = inner
+
+    def __getattr__(self, name: str) -> Any:
+        if name in {"features", "words", "training_words", "vocabulary", "extractor"}:
+            raise AssertionError(f"uses_local_features is False but the method reads resources.{name}")
+        return getattr(self._inner, name)
+
+
+def check_reads_no_local_features(rec: PlaceRecognizer, data: CheckData) -> None:
+    """A method whose ``uses_local_features`` is false fits and scores without reading local features.
+
+    Reports leave out the feature settings of such a method's runs, so the tag must be true.
+    """
+    res: Any = _NoLocalFeatures(data.resources)
+    clone = _clone(rec).fit(list(data.maps), resources=res)
+    clone.score(clone.encode(data.query, resources=res))
+
+
 def check_scores(rec: PlaceRecognizer, data: CheckData) -> np.ndarray:
     """``S`` of shape (n_map_places, n_queries), floating and finite, consistent with ``encode``; returns ``S``.
 
@@ -322,6 +344,8 @@ def recognizer_checks(recognizer: PlaceRecognizer) -> Iterator[RecognizerCheck]:
     yield from (check_params, check_not_fitted, check_fit, check_scores)
     if tags.scores_whole_sequence:
         yield check_whole_sequence
+    if not tags.uses_local_features:
+        yield check_reads_no_local_features
     if "confidence" in recognizer.param_names():
         yield check_confidence
     if tags.saves_state:
@@ -416,7 +440,8 @@ def _through_container(rec: PlaceRecognizer, data: CheckData) -> PlaceRecognizer
 
 __all__ = [
     "CheckData", "RecognizerCheck", "check_add_tour", "check_confidence", "check_fit", "check_not_fitted",
-    "check_params", "check_recognizer", "check_refuses_shards", "check_refuses_tours", "check_scores",
+    "check_params", "check_reads_no_local_features", "check_recognizer", "check_refuses_shards",
+    "check_refuses_tours", "check_scores",
     "check_shards", "check_state_round_trip", "check_top_k", "check_whole_sequence", "features_for_words",
     "parametrize_with_checks", "recognizer_checks", "word_vocabulary",
 ]

@@ -76,8 +76,14 @@ def test_page_is_self_contained_and_complete(runs: tuple[Path, Path, Path]) -> N
     item = r0["items"][0]
     assert item["correct"]["place"] in range(0, 3) and item["rank"] >= 1
     assert item["q"]["file"].endswith(".jpg")
-    for k, _ in [("ground truth", 0), ("vocabulary", 0), ("preprocessing", 0), ("features", 0)]:
-        assert f"<th>{k}</th>" in page
+    assert "<th>ground truth</th>" in page
+    # seqslam-single reads no local features and no vocabulary: the table does not show settings it ignores.
+    for k in ("vocabulary", "preprocessing", "features", "vocabulary s"):
+        assert f"<th>{k}</th>" not in page
+    # The matrix in both colourings, and the colour scale's stops.
+    assert r0["matrix"]["rank"].startswith("data:image/png;base64,") and r0["matrix"]["score"] != r0["matrix"]["rank"]
+    assert r0["matrix"]["lo"] < r0["matrix"]["hi"] and len(data["colours"]) > 5
+    assert r0["calibrated"] is None  # not a saved map's run: the slider opens at the best F1
 
 
 def test_rebuilds_tolerance_ground_truth_of_old_runs(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
@@ -210,8 +216,12 @@ class _Pipe:
         os.close(self.from_r)
 
 
-def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str) -> dict[str, Any]:
-    """Load ``html_path``, move run 0's threshold slider, screenshot; return what was seen."""
+def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str, n_runs: int = 1) -> dict[str, Any]:
+    """Load ``html_path`` at 1,400 px, move run 0's threshold slider, switch its colouring, screenshot.
+
+    Returns what was seen: the counts, the cards, the widths of the page and of
+    the runs' table, where each of the first ``n_runs`` sliders opened.
+    """
     cdp = _Pipe(browser, profile)
     try:
         target = cdp.send("Target.createTarget", {"url": "about:blank"})["targetId"]
@@ -232,6 +242,7 @@ def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str) ->
 
         counts = "document.querySelector('#run0 .counts').textContent"
         seen: dict[str, Any] = {"ready": js("document.body.dataset.ready"), "before": js(counts)}
+        seen["opened_counts"] = [js(f"document.querySelector('#run{k} .counts').textContent") for k in range(n_runs)]
         seen["slider_max"] = js("Number(document.querySelector('#run0 input.thr').max)")
         seen["cards_before"] = js("document.querySelectorAll('#cards0 .card').length")
         seen["images"] = js("Array.from(document.images).filter(i => i.naturalWidth > 0).length")
@@ -245,6 +256,13 @@ def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str) ->
         seen["wrong_cards"] = js("document.querySelectorAll('#cards0 .card.wrong').length")
         seen["other_cards"] = js("document.querySelectorAll('#cards0 .card:not(.wrong)').length")
         seen["errors_box"] = js("document.getElementById('errors').textContent")
+        seen["scroll_width"] = js("document.documentElement.scrollWidth")
+        seen["wrap"] = js("(() => { const w = document.querySelector('.table-wrap');"
+                          " return [w.scrollWidth, w.clientWidth, getComputedStyle(w).overflowX]; })()")
+        seen["opened"] = [js(f"document.querySelector('#run{k} .opened').textContent") for k in range(n_runs)]
+        seen["scale_rank"] = js("document.querySelector('#run0 .scale').textContent")
+        js("document.querySelector('#run0 input[value=score]').click()")
+        seen["scale_score"] = js("document.querySelector('#run0 .scale').textContent")
         js("(() => { const s = document.querySelector('#run0 input.thr'); s.value = Math.floor(s.max / 2);"
            " s.dispatchEvent(new Event('input', {bubbles: true}));"
            " document.querySelector('#filters0 button[data-filter=all]').click(); })()")
@@ -262,14 +280,47 @@ def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str) ->
         cdp.close()
 
 
+def _calibrated_copy(run: Path, to: Path, threshold: float) -> Path:
+    """The run as if it had scored a saved map calibrated at ``threshold`` (what ``evaluate --map-file`` records)."""
+    shutil.copytree(run, to)
+    m = json.loads((to / "metrics.json").read_text())
+    m["run"]["calibration"] = {"threshold": threshold, "precision": 0.99}
+    (to / "metrics.json").write_text(json.dumps(m))
+    return to
+
+
+def _wide_copy(run: Path, to: Path) -> Path:
+    """The run with long names (map folders, a parameter's value without a space): wider than the page."""
+    shutil.copytree(run, to)
+    m = json.loads((to / "metrics.json").read_text())
+    m["run"]["map"] = [f"/data/{'a_long_dataset_folder_name_' * 3}/tour_{i:02d}" for i in range(3)]
+    m["params"]["descriptor_file"] = "descriptors_of_every_image_" * 12 + ".h5"  # in the table and the titles
+    (to / "metrics.json").write_text(json.dumps(m))
+    return to
+
+
 @pytest.mark.skipif(_find_browser() is None, reason="no chromium installed (apt-get install chromium)")
 def test_page_in_headless_chromium(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
     _, a, b = runs
-    page = build_html_report([a, b], tmp_path / "index.html", title="browser test")
+    scores = _payload(render_html([a]))["runs"][0]["score"]
+    mid = sorted(scores)[len(scores) // 2]  # a threshold that accepts about half the queries
+    cal = _calibrated_copy(a, tmp_path / "calibrated", mid)
+    wide = _wide_copy(b, tmp_path / "wide")
+    page = build_html_report([a, cal, wide], tmp_path / "index.html", title="browser test")
     browser = _find_browser()
     assert browser is not None
     shot = tmp_path / "page.png"
-    seen = open_page(page, tmp_path / "profile", shot, browser)
+    seen = open_page(page, tmp_path / "profile", shot, browser, n_runs=3)
+    # The page fits 1,400 px; the three-run table scrolls in its own box.
+    assert seen["scroll_width"] <= 1400, seen["scroll_width"]
+    assert seen["wrap"][2] == "auto" and seen["wrap"][0] > seen["wrap"][1], seen["wrap"]
+    # The calibrated run opens at its threshold: exactly the queries scoring at least it are accepted.
+    accepted = sum(x >= mid for x in scores)
+    assert "calibrated threshold" in seen["opened"][1] and "best F1" in seen["opened"][0], seen["opened"]
+    assert re.search(rf"accepted {accepted} ", seen["opened_counts"][1]), seen["opened_counts"][1]
+    # The colour scale follows the view: ranks, then scores from the 1st to the 99th percentile.
+    assert "worst place" in seen["scale_rank"] and "best place" in seen["scale_rank"]
+    assert "percentile" in seen["scale_score"] and "worst place" not in seen["scale_score"]
     assert seen["console_errors"] == [], seen["console_errors"]
     assert seen["errors_box"] == ""
     assert seen["ready"] == "1"
@@ -341,3 +392,58 @@ def test_infinite_scores_stay_valid_json(runs: tuple[Path, Path, Path], tmp_path
     assert blob is not None and "Infinity" not in blob.group(1) and "NaN" not in blob.group(1)
     r0 = _payload(page)["runs"][0]
     assert r0["score"][0] < min(r0["score"][1:])
+
+
+def test_scores_are_shown_at_the_precision_they_have() -> None:
+    from topoloc.evaluation.html import score_decimals
+
+    assert score_decimals(np.array([456.0, 974.0, -12.0, np.inf])) == 0  # group sizes, votes
+    assert score_decimals(np.array([0.5, 1.25, 3.0], dtype=np.float32)) == 2
+    assert score_decimals(np.array([0.1, 0.2, 0.7], dtype=np.float32)) == 1  # float32's 0.1 is still one decimal
+    # Scores with every digit of a float32: 3 significant digits of their spread.
+    rng = np.random.default_rng(0)
+    assert score_decimals(rng.uniform(0, 0.2, 50).astype(np.float32)) == 3
+    assert score_decimals(rng.uniform(-40, 40, 50).astype(np.float32)) == 1
+    assert score_decimals(np.array([np.nan, -np.inf])) == 0
+
+
+def test_rank_view_shows_each_querys_best_place_brightest() -> None:
+    import base64
+
+    import cv2
+
+    from topoloc.evaluation.html import _matrix_pngs, colour_stops
+
+    rng = np.random.default_rng(1)
+    # Columns on very different scales (as the margin confidence gives): by score, one stripe per query.
+    S = rng.normal(size=(20, 30)) + np.arange(30)[None, :] * 50.0
+    best = S.argmax(axis=0)
+    pngs = _matrix_pngs(S)
+    img = cv2.imdecode(np.frombuffer(base64.b64decode(pngs["rank"].split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape[:2] == S.shape
+    brightest = colour_stops()[-1]
+    rgb = img[best, np.arange(S.shape[1])][:, ::-1]
+    assert all(f"#{r:02x}{g:02x}{b:02x}" == brightest for r, g, b in rgb.tolist())
+    assert pngs["lo"] < pngs["hi"]
+
+
+def test_a_calibrated_maps_run_records_its_threshold(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    root, _, _ = runs
+    route = root / "route"
+    m = tmp_path / "m.tlm"
+    cli = CliRunner()
+    for args in (["map", "build", "--method", "seqslam-single", "--map", str(route / "noon"), "--out", str(m), "-q",
+                  "--cache-dir", str(root / "cache")],
+                 ["map", "calibrate", str(m), "--query", str(route / "dusk"), "--precision", "0.5", "-q",
+                  "--cache-dir", str(root / "cache")],
+                 ["evaluate", "--map-file", str(m), "--query", str(route / "dusk"), "--out", str(tmp_path / "ev"),
+                  "-q", "--cache-dir", str(root / "cache"), "--html", str(tmp_path / "ev" / "index.html")]):
+        res = cli.invoke(app, args)
+        assert res.exit_code == 0, res.output
+    from topoloc.maps import Map
+
+    threshold = Map.load(m).threshold
+    assert threshold is not None
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert metrics["run"]["calibration"]["threshold"] == threshold
+    assert _payload((tmp_path / "ev" / "index.html").read_text())["runs"][0]["calibrated"] == threshold

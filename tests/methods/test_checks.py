@@ -96,12 +96,33 @@ def test_the_checks_follow_the_tags() -> None:
     assert {"check_refuses_tours", "check_refuses_shards", "check_confidence"} <= toy
     assert not toy & {"check_top_k", "check_add_tour", "check_shards", "check_whole_sequence"}
     assert "check_whole_sequence" in {c.__name__ for c in recognizer_checks(get_method("seqslam")())}
+    assert "check_reads_no_local_features" in names and "check_reads_no_local_features" not in toy
+
+
+def test_a_false_uses_local_features_is_caught(check_data: CheckData) -> None:
+    from topoloc.testing import check_reads_no_local_features
+
+    class Honest(Thumbnail):
+        uses_local_features = False
+
+    class Liar(Honest):
+        def _encode(self, query: Traverse, resources: Resources) -> list[Any]:
+            resources.features(query)
+            return super()._encode(query, resources)
+
+    check_reads_no_local_features(Honest(), check_data)  # thumbnails of its own: passes
+    with pytest.raises(AssertionError, match=r"reads resources\.features"):
+        check_reads_no_local_features(Liar(), check_data)
 
 
 def test_tags_come_from_the_hooks_and_claims_without_them_are_refused() -> None:
     assert Thumbnail.tags.saves_state and not Thumbnail.tags.adds_tours and not Thumbnail.tags.builds_shards
     assert get_method("landmarks").tags.adds_tours and not get_method("landmarks").tags.adds_places
     assert get_method("bow").tags.uses_vocabulary and get_method("seqslam").tags.scores_whole_sequence
+    uses = {name for name in available_methods() if get_method(name).tags.uses_local_features}
+    assert uses == set(available_methods()) - {"seqslam", "seqslam-single", "descriptors"}
+    with pytest.raises(TypeError, match="uses_vocabulary needs uses_local_features"):
+        type("Words", (Thumbnail,), {"uses_vocabulary": True, "uses_local_features": False})
     with pytest.raises(TypeError, match="claims 'adds_tours'"):
         type("Claims", (Thumbnail,), {"tag_overrides": {"adds_tours": True}})
     with pytest.raises(TypeError, match="class attribute"):

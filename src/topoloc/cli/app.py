@@ -15,19 +15,29 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 
-from topoloc.cli.progress import console
 from topoloc.errors import ParameterError, TopolocError
 
-app = typer.Typer(
+
+def command_group(**kwargs: Any) -> typer.Typer:
+    """A typer application (the top one or a group of subcommands) with plain help.
+
+    Plain help, not rich's panels: flags show as flags (``-q, --quiet``) rather
+    than with a type (``--quiet -q <bool>``), text such as ``topoloc[ros]`` is
+    printed as written (rich markup would take ``[ros]`` for a style), and the
+    help reads the same in a terminal and a file.
+    """
+    return typer.Typer(rich_markup_mode=None, no_args_is_help=True, **kwargs)
+
+
+app = command_group(
     name="topoloc",
     help="Appearance-based localisation: evaluate place-recognition methods on image traverses.",
-    no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-vocab_app = typer.Typer(help="Visual vocabularies.", no_args_is_help=True)
+vocab_app = command_group(help="Visual vocabularies.")
 app.add_typer(vocab_app, name="vocab")
-bench_app = typer.Typer(help="Speed benchmarks on synthetic data of realistic size.", no_args_is_help=True)
+bench_app = command_group(help="Speed benchmarks on synthetic data of realistic size.")
 app.add_typer(bench_app, name="bench")
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -90,9 +100,7 @@ def _setup(
     version: Annotated[bool, typer.Option(
         "--version", help="Print the version and exit.", callback=_print_version, is_eager=True)] = False,
 ) -> None:
-    from rich.logging import RichHandler
+    from topoloc.cli.progress import LogHandler
 
-    logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
-        handlers=[RichHandler(console=console, show_path=False)],
-    )
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+                        handlers=[LogHandler()])

@@ -116,6 +116,7 @@ def report(
     title: Annotated[str, typer.Option(help="Title of the report.")] = "Results",
     html: Annotated[Path | None, typer.Option(
         help="Also write one self-contained HTML page to browse every query (e.g. OUT/index.html).")] = None,
+    quiet: QuietOption = False,
 ) -> None:
     """Put several evaluate runs side by side: one table and one PNG of PR curves (and an HTML page)."""
     from topoloc.evaluation.report import build_report
@@ -131,7 +132,7 @@ def report(
     if html is not None:
         from topoloc.evaluation.html import build_html_report
 
-        with rich_progress() as progress:
+        with rich_progress(not quiet) as progress:
             page = build_html_report(list(runs), html, title=title, progress=progress)
         typer.echo(f"wrote {page}")
 
@@ -148,18 +149,25 @@ def _earlier_report(folder: Path) -> bool:
 @handle_errors
 def methods(
     name: Annotated[str | None, typer.Argument(help="A method: explain each of its parameters.")] = None,
+    quiet: QuietOption = False,
 ) -> None:
     """List the methods `evaluate` accepts with their parameters; `methods NAME` explains each parameter."""
     from topoloc.methods import available_methods, get_method
 
     if name is not None:
-        from topoloc.methods.describe import describe_method
+        import shutil
+        import textwrap
+
+        from topoloc.methods.describe import describe_method, plain_text
 
         summary, documented = describe_method(name)
+        summary = plain_text(summary)
+        width = max(60, shutil.get_terminal_size().columns - 1)
         typer.echo(f"{name}: {summary}\n\nParameters (evaluate --param KEY=VALUE):")
         for p in documented:
-            typer.echo(f"  {p.name} = {p.default!r}" + (f"  ({p.type})" if p.type else ""))
-            typer.echo(f"      {p.text or '(not documented)'}")
+            typer.echo(f"  {p.name} = {p.default!r}" + (f"  ({plain_text(p.type)})" if p.type else ""))
+            typer.echo(textwrap.fill(plain_text(p.text) or "(not documented)", width=width, initial_indent=" " * 6,
+                                     subsequent_indent=" " * 6, break_on_hyphens=False, break_long_words=False))
         return
     for method in available_methods():
         cls = get_method(method)
@@ -224,6 +232,7 @@ def synth(
     width: Annotated[int, typer.Option(help="Image width.")] = 320,
     height: Annotated[int, typer.Option(help="Image height.")] = 240,
     seed: Annotated[int, typer.Option(help="World seed.")] = 0,
+    quiet: QuietOption = False,
 ) -> None:
     """Generate a synthetic route (tours at several times of day) for tests and demos."""
     from topoloc.io.dirs import Output, check_outputs
@@ -303,6 +312,7 @@ def convert(
         list[str] | None, typer.Option(help="latlon-csv: KEY=NAME for image, lat, lon, time (repeatable).")
     ] = None,
     copy: Annotated[bool, typer.Option("--copy", help="Copy images instead of linking them.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Write a public dataset (VPR-Bench, Pittsburgh/Tokyo .mat, MSLS, KITTI, ...) as traverses."""
     from topoloc.datasets.formats import ConvertOptions
@@ -347,6 +357,7 @@ def show_match_cmd(
     max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "auto",
     cache_dir: CacheDirOption = None,
+    quiet: QuietOption = False,
 ) -> None:
     """Localise one image and draw it beside the map place it matched, labelled, correspondences coloured.
 
@@ -369,7 +380,7 @@ def show_match_cmd(
     feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     maps = [load_traverse(m) for m in map]
     config_ = feature_spec.config()
-    with rich_progress() as progress:
+    with rich_progress(not quiet) as progress:
         resources, _ = make_resources(
             config_, voc_spec, cache_dir=cache_dir,
             needs_vocabulary=f"show-match with {rec.name}" if rec.uses_vocabulary else "", progress=progress,
@@ -446,6 +457,7 @@ def bench_fabmap2_cmd(
     queries: Annotated[int, typer.Option(help="Timed queries.")] = 200,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """FAB-MAP 2.0 (inverted index) ms per query on synthetic Zipf-distributed bag-of-words streams."""
     from topoloc.bench.fabmap_speed import bench_fabmap2
@@ -475,6 +487,7 @@ def bench_coocmap_cmd(
     ] = None,
     compare: Annotated[int, typer.Option(help="With --real: queries also timed with the previous matcher.")] = 20,
     cache_dir: CacheDirOption = None,
+    quiet: QuietOption = False,
 ) -> None:
     """Cooc-Map ms per localisation and map memory at the paper's size: synthetic, or real images with --real DIR..."""
     from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
@@ -488,7 +501,7 @@ def bench_coocmap_cmd(
             raise TopolocError("bench coocmap: give --real and at least one folder of images")
         if not vocab_train:
             raise TopolocError("bench coocmap --real needs --vocab-train DIR (images other than the benchmark's)")
-        with rich_progress(not as_json) as progress:
+        with rich_progress(not (as_json or quiet)) as progress:
             res = bench_coocmap_real(list(dirs), locations=locations, tours=tours, n_queries=queries or 500,
                                      vocab_train=list(vocab_train), n_words=words, compare=compare, seed=seed,
                                      cache_dir=cache_dir, progress=progress)

@@ -13,7 +13,7 @@ from typing import Annotated, Any
 
 import typer
 
-from topoloc.cli.app import app, handle_errors
+from topoloc.cli.app import app, command_group, handle_errors
 from topoloc.cli.options import (
     CacheDirOption,
     ConfigOption,
@@ -44,8 +44,7 @@ from topoloc.errors import TopolocError
 
 log = logging.getLogger(__name__)
 
-map_app = typer.Typer(help="Saved maps: build once from tours, add tours later, inspect, calibrate.",
-                      no_args_is_help=True)
+map_app = command_group(help="Saved maps: build once from tours, add tours later, inspect, calibrate.")
 app.add_typer(map_app, name="map")
 
 @map_app.command("build")
@@ -163,6 +162,7 @@ def map_add(
 def map_info(
     map_file: Annotated[Path, typer.Argument(help="Map file.")],
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Method, parameters, places, tours, vocabulary, feature settings, calibration and size of a map."""
     from topoloc.maps import Map
@@ -336,8 +336,7 @@ class _LineFile:
         os.close(self.fd)
 
 
-cache_app = typer.Typer(help="The feature and vocabulary cache (~/.cache/topoloc or TOPOLOC_CACHE_DIR).",
-                        no_args_is_help=True)
+cache_app = command_group(help="The feature and vocabulary cache (~/.cache/topoloc or TOPOLOC_CACHE_DIR).")
 app.add_typer(cache_app, name="cache")
 
 
@@ -346,6 +345,7 @@ app.add_typer(cache_app, name="cache")
 def cache_info(
     cache_dir: CacheDirOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Files and bytes in each part of the cache, and the feature stores of each feature setting."""
     from topoloc.features.cache import cache_usage, default_cache_dir
@@ -380,6 +380,7 @@ def cache_clean(
     = None,
     older_than: Annotated[float | None, typer.Option(help="Remove entries not used for this many days.")] = None,
     all_: Annotated[bool, typer.Option("--all", help="Remove everything.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Remove cache entries, least recently used first: whole feature stores and files (computed again when needed)."""
     from topoloc.features.cache import clean_cache, parse_size

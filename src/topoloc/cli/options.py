@@ -21,11 +21,12 @@ S = TypeVar("S")
 
 # -- what a run reads -------------------------------------------------------------------------------------
 MapToursOption = Annotated[list[Path] | None, typer.Option(
-    "--map", help="Map traverse (repeatable): a folder, a ROS bag (--topic) or a video.")]
+    "--map", metavar="<path>", help="Map traverse (repeatable): a folder, a ROS bag (--topic) or a video.")]
 QueryOption = Annotated[Path | None, typer.Option(
     help="Query traverse: a folder, a ROS bag (--topic) or a video.")]
 MethodOption = Annotated[str, typer.Option(help="Method name (see `topoloc methods`).")]
-ParamOption = Annotated[list[str] | None, typer.Option(help="Method parameter KEY=VALUE (repeatable).")]
+ParamOption = Annotated[list[str] | None, typer.Option(
+    metavar="<key=value>", help="Method parameter KEY=VALUE (repeatable).")]
 ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="Settings file (TOML, YAML, or a run's metrics.json); flags given here override it.")]
 # -- features and vocabulary ------------------------------------------------------------------------------
@@ -41,7 +42,7 @@ PreprocessOption = Annotated[str, typer.Option(
          "touched), none, clahe, equalize.")]
 VocabOption = Annotated[Path | None, typer.Option(help="Vocabulary file (topoloc vocab train).")]
 VocabTrainOption = Annotated[list[Path] | None, typer.Option(
-    "--vocab-train", help="Folders (searched recursively) to train a vocabulary on (repeatable).")]
+    "--vocab-train", metavar="<path>", help="Folders (searched recursively) to train a vocabulary on (repeatable).")]
 VocabWordsOption = Annotated[int, typer.Option(help="Words when training with --vocab-train.")]
 # -- ground truth and matching ----------------------------------------------------------------------------
 ToleranceOption = Annotated[str, typer.Option(help="Ground-truth tolerance HARD:SOFT in place ids.")]
@@ -60,7 +61,7 @@ QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help="No progress ba
 SchedulerOption = Annotated[str | None, typer.Option(
     "--scheduler", help="Dask scheduler address (tcp://host:8786): feature extraction and quantisation run on its "
                         "workers, which must see the cache folder at the same path; default $TOPOLOC_SCHEDULER, "
-                        "else this machine's threads. Needs pip install 'topoloc\\[distributed]'.")]
+                        "else this machine's threads. Needs pip install 'topoloc[distributed]'.")]
 SchedulerTimeoutOption = Annotated[float | None, typer.Option(
     "--scheduler-timeout", help="Seconds to wait for the scheduler and a worker before a one-line error "
                                 "(default $TOPOLOC_SCHEDULER_TIMEOUT, else 10).")]

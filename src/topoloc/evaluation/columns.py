@@ -38,8 +38,10 @@ def _params_text(m: dict[str, Any]) -> str:
     """The method with the parameters that differ from its defaults (all of them for an unknown method)."""
     params = {k: v for k, v in m.get("params", {}).items() if k != "sequence"}
     try:
-        defaults = keyword_defaults(get_method(str(m.get("method"))))
-        params = {k: v for k, v in params.items() if k not in defaults or defaults[k] != v}
+        cls = get_method(str(m.get("method")))
+        defaults = keyword_defaults(cls)
+        # Runs of an earlier version under today's names, as saved maps are read (renamed and removed parameters).
+        params = {k: v for k, v in cls.upgrade_params(params).items() if k not in defaults or defaults[k] != v}
     except TopolocError:
         pass
     body = ", ".join(f"{k}={json.dumps(v, default=str)}" for k, v in params.items())
@@ -59,6 +61,33 @@ def _vocabulary_text(voc: dict[str, Any]) -> str:
     return f"{size}trained on {where}{n_img}"
 
 
+#: The text of the feature and preprocessing cells of a method that reads no local features (its tags).
+NOT_USED = "-"
+
+
+def uses_local_features(m: dict[str, Any]) -> bool:
+    """Whether the run's method reads local features, so that its feature settings and preprocessing matter.
+
+    From the method's tags (:class:`~topoloc.methods.base.RecognizerTags`); a
+    method this installation does not know is taken to use them (shown rather than hidden).
+    """
+    try:
+        return get_method(str(m.get("method"))).tags.uses_local_features
+    except TopolocError:
+        return True
+
+
+def uses_vocabulary(m: dict[str, Any]) -> bool:
+    """Whether the run used a visual vocabulary (its record, else its method's tags)."""
+    voc = m.get("run", {}).get("vocabulary", {})
+    if isinstance(voc, dict) and "used" in voc:
+        return bool(voc["used"])
+    try:
+        return get_method(str(m.get("method"))).tags.uses_vocabulary
+    except TopolocError:
+        return True
+
+
 def _features_text(f: dict[str, Any]) -> str:
     side = f.get("max_side", 0)
     side_text = f"max side {side}" if side else "full size"
@@ -71,14 +100,15 @@ def run_columns(m: dict[str, Any]) -> dict[str, str]:
     feats = run.get("features", {})
     maps = [_short(str(x)) for x in run.get("map", [])]
     seq = int(m.get("params", {}).get("sequence", 0) or 0)
+    local = uses_local_features(m)
     return {
         "method": _params_text(m),
         "map": " + ".join(maps) if len(maps) <= 3 else f"{len(maps)} traverses {maps[0]} ... {maps[-1]}",
         "query": _short(str(run.get("query", "?"))),
         "ground_truth": str(run.get("ground_truth", "?")),
         "vocabulary": _vocabulary_text(run.get("vocabulary", {})),
-        "preprocess": str(feats.get("preprocess", "none")),
-        "features": _features_text(feats),
+        "preprocess": str(feats.get("preprocess", "none")) if local else NOT_USED,
+        "features": _features_text(feats) if local else NOT_USED,
         "sequence": str(seq) if seq > 1 else "off",
     }
 
@@ -104,10 +134,28 @@ def distinct_labels(runs: list[dict[str, Any]], labels: list[str]) -> list[str]:
     return out
 
 
+def shown_columns(runs: list[dict[str, Any]]) -> list[tuple[str, str]]:
+    """The :data:`COLUMNS` a table of ``runs`` shows: those that say something of at least one run.
+
+    The feature and preprocessing columns are left out when no run's method
+    reads local features (a table of SeqSLAM runs), the vocabulary column when
+    no run used a vocabulary; in a mixed table the rows of the other methods
+    show :data:`NOT_USED` there ("none" for the vocabulary).
+    """
+    hidden: set[str] = set()
+    if not any(uses_local_features(m) for m in runs):
+        hidden |= {"features", "preprocess"}
+    if not any(uses_vocabulary(m) for m in runs):
+        hidden.add("vocabulary")
+    return [(k, h) for k, h in COLUMNS if k not in hidden]
+
+
 def markdown_table(runs: list[dict[str, Any]], names: list[str] | None = None) -> str:
-    """A markdown table: run number (or ``names``) and every column of :data:`COLUMNS`, plus timings."""
-    head = "| run | " + " | ".join(h for _, h in COLUMNS) + " | fit s | vocabulary s |\n"
-    rule = "| --- " * (len(COLUMNS) + 3) + "|\n"
+    """A markdown table: run number (or ``names``) and the :func:`shown_columns`, plus timings."""
+    columns = shown_columns(runs)
+    vocab_s = any(k == "vocabulary" for k, _ in columns)
+    head = "| run | " + " | ".join(h for _, h in columns) + " | fit s |" + (" vocabulary s |" if vocab_s else "") + "\n"
+    rule = "| --- " * (len(columns) + 2 + vocab_s) + "|\n"
     rows = []
     for i, m in enumerate(runs):
         c = run_columns(m)
@@ -115,8 +163,9 @@ def markdown_table(runs: list[dict[str, Any]], names: list[str] | None = None) -
         run = m.get("run", {})
         fit = run.get("fit_seconds")
         voc_s = run.get("vocabulary_seconds")
-        cells = [name, *(c[k].replace("|", "/") for k, _ in COLUMNS),
-                 f"{fit:.2f}" if isinstance(fit, int | float) else "?",
-                 f"{voc_s:.1f}" if isinstance(voc_s, int | float) else "-"]
+        cells = [name, *(c[k].replace("|", "/") for k, _ in columns),
+                 f"{fit:.2f}" if isinstance(fit, int | float) else "?"]
+        if vocab_s:
+            cells.append(f"{voc_s:.1f}" if isinstance(voc_s, int | float) and uses_vocabulary(m) else NOT_USED)
         rows.append("| " + " | ".join(cells) + " |\n")
     return head + rule + "".join(rows)

@@ -36,7 +36,7 @@ import numpy as np
 from topoloc.datasets.groundtruth import GroundTruth, ground_truth_from_places, parse_tolerance
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import TopolocError
-from topoloc.evaluation.columns import COLUMNS, distinct_labels, run_columns
+from topoloc.evaluation.columns import NOT_USED, distinct_labels, run_columns, shown_columns, uses_vocabulary
 from topoloc.evaluation.metrics import best_matches, pr_curve
 from topoloc.evaluation.report import load_run, run_title
 from topoloc.io.container import atomic_write_bytes
@@ -135,28 +135,75 @@ def _place_images(maps: list[Traverse]) -> dict[int, tuple[Path, str]]:
     return out
 
 
-def _matrix_png(S: np.ndarray) -> tuple[str, int, int]:
-    """S as a viridis PNG data URI (block-averaged to at most ``MATRIX_MAX_SIDE``), and its size."""
+def _png_uri(norm: np.ndarray) -> tuple[str, int, int]:
+    """``norm`` (values in [0, 1]) as a viridis PNG data URI, block-averaged to at most ``MATRIX_MAX_SIDE``."""
     import cv2
 
-    A = np.asarray(S, dtype=np.float64)
-    finite = np.isfinite(A)
-    if finite.any():
-        lo, hi = np.percentile(A[finite], [1, 99])
-        A = np.where(finite, A, np.where(A > 0, hi, lo))
-    else:
-        lo, hi = 0.0, 1.0
-        A = np.zeros_like(A)
-    norm = np.clip((A - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
     h, w = norm.shape
     scale = min(1.0, MATRIX_MAX_SIDE / max(h, w, 1))
     if scale < 1.0:
         norm = cv2.resize(norm, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
-    img = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+    img = cv2.applyColorMap((np.clip(norm, 0, 1) * 255).round().astype(np.uint8), cv2.COLORMAP_VIRIDIS)
     ok, buf = cv2.imencode(".png", img)
     if not ok:  # pragma: no cover - encoding a uint8 image does not fail
         raise TopolocError("cannot encode the similarity matrix image")
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode(), img.shape[1], img.shape[0]
+
+
+def colour_stops(n: int = 11) -> list[str]:
+    """``n`` evenly spaced colours of the matrices' colour map (viridis, as OpenCV draws it), dark to bright."""
+    import cv2
+
+    bgr = cv2.applyColorMap(np.linspace(0, 255, n).round().astype(np.uint8)[:, None], cv2.COLORMAP_VIRIDIS)[:, 0]
+    return [f"#{r:02x}{g:02x}{b:02x}" for b, g, r in bgr.tolist()]
+
+
+def _matrix_pngs(S: np.ndarray) -> dict[str, Any]:
+    """The matrix twice, as the page can colour it: by each cell's rank within its query, and by score.
+
+    Scores of different queries are not on one scale (the margin confidence shifts
+    each column), so coloured by score the matrix can show one stripe per query
+    and hide the route; the rank of a place among all places for the same query
+    (1 = best, bright) shows the route whatever the scale.  The score view
+    spans the 1st to 99th percentile of the finite scores, given as ``lo``/``hi``
+    for its colour scale.
+    """
+    from scipy.stats import rankdata
+
+    A = np.asarray(S, dtype=np.float64)
+    finite = np.isfinite(A)
+    if finite.any():
+        lo, hi = (float(x) for x in np.percentile(A[finite], [1, 99]))
+        A = np.where(finite, A, np.where(A > 0, hi, lo))
+    else:
+        lo, hi = 0.0, 1.0
+        A = np.zeros_like(A)
+    score_src, w, h = _png_uri((A - lo) / (hi - lo if hi > lo else 1.0))
+    n = A.shape[0]
+    # 0 for the worst place of a query, 1 for its best (ties share their mean rank).
+    rank = (rankdata(A, axis=0) - 1.0) / max(n - 1, 1) if n else A
+    rank_src, _, _ = _png_uri(rank)
+    return {"score": score_src, "rank": rank_src, "width": w, "height": h, "lo": lo, "hi": hi}
+
+
+def score_decimals(score: np.ndarray) -> int:
+    """Decimals that show ``score`` at the precision it has: 0 for whole numbers (group sizes, votes).
+
+    The fewest decimals (at most 4) that give back every finite score up to
+    float32 rounding (S.npy is float32); scores with more digits than that
+    get 3 significant digits of their spread (their 1st to 99th percentile).
+    """
+    x = np.asarray(score, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return 0
+    tol = 4 * float(np.finfo(np.float32).eps) * np.abs(x) + 1e-12
+    for d in range(5):
+        if np.all(np.abs(x - np.round(x, d)) <= tol):
+            return d
+    lo, hi = np.percentile(x, [1, 99])
+    spread = float(hi - lo) or float(np.abs(x).max()) or 1.0
+    return int(min(6, max(0, 2 - np.floor(np.log10(spread)))))
 
 
 def _subsample(p: np.ndarray, r: np.ndarray) -> list[list[float]]:
@@ -235,7 +282,6 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
     if n_cells > MAX_GT_CELLS:
         keep = np.linspace(0, n_cells - 1, MAX_GT_CELLS).round().astype(int)
         rows, qcols = rows[keep], qcols[keep]
-    matrix, mw, mh = _matrix_png(S)
     return {
         "label": label,
         "title": run_title(m),
@@ -253,9 +299,20 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
         "gt_rows": rows.tolist(),
         "gt_cols": qcols.tolist(),
         "gt_drawn_all": n_cells <= MAX_GT_CELLS,
-        "matrix": {"src": matrix, "width": mw, "height": mh},
+        "matrix": _matrix_pngs(S),
+        "decimals": score_decimals(score),
+        # The threshold the page opens at: the map's calibrated one where the run scored a calibrated map.
+        "calibrated": _calibrated_threshold(m),
         "ground_truth": gt.description or str(run.get("ground_truth", "")),
     }
+
+
+def _calibrated_threshold(m: dict[str, Any]) -> float | None:
+    """The acceptance threshold of the calibrated map the run scored (``evaluate --map-file``), or None."""
+    cal = m.get("run", {}).get("calibration")
+    value = cal.get("threshold") if isinstance(cal, dict) else None
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value) \
+        else None
 
 
 def _fmt(x: Any, spec: str) -> str:
@@ -263,18 +320,22 @@ def _fmt(x: Any, spec: str) -> str:
 
 
 def _table_html(runs: list[dict[str, Any]], labels: list[str]) -> str:
-    heads = ["#", *(h for _, h in COLUMNS), "places × queries", "AUC", "R@100P", "R@1", "R@5", "R@10",
-             "fit s", "vocabulary s", "ms/query"]
+    columns = shown_columns(runs)
+    vocab_s = any(k == "vocabulary" for k, _ in columns)
+    heads = ["#", *(h for _, h in columns), "places × queries", "AUC", "R@100P", "R@1", "R@5", "R@10",
+             "fit s", *(["vocabulary s"] if vocab_s else []), "ms/query"]
     out = ["<table class='runs'><thead><tr>", *(f"<th>{html.escape(h)}</th>" for h in heads), "</tr></thead><tbody>"]
     for i, m in enumerate(runs):
         c = run_columns(m)
         run = m.get("run", {})
         cells = [f"<a href='#run{i}' title='{html.escape(labels[i])}'>{i + 1}</a>",
-                 *(html.escape(c[k]) for k, _ in COLUMNS),
+                 # Paths may break after a slash, never inside a name.
+                 *(html.escape(c[k]).replace("/", "/<wbr>") for k, _ in columns),
                  f"{m.get('n_places', '?')} × {m.get('n_queries', '?')}",
                  *(_fmt(m.get(k), ".3f") for k in ("auc", "recall_at_100_precision", "recall_at_1",
                                                    "recall_at_5", "recall_at_10")),
-                 _fmt(run.get("fit_seconds"), ".2f"), _fmt(run.get("vocabulary_seconds"), ".1f"),
+                 _fmt(run.get("fit_seconds"), ".2f"),
+                 *([_fmt(run.get("vocabulary_seconds"), ".1f") if uses_vocabulary(m) else NOT_USED] if vocab_s else []),
                  _fmt(m.get("ms_per_query"), ".2f")]
         out.append("<tr>" + "".join(f"<td>{x}</td>" for x in cells) + "</tr>")
     out.append("</tbody></table>")
@@ -295,7 +356,7 @@ def render_html(run_dirs: list[Path], title: str = "Results", progress: Progress
         runs.append(_run_data(Path(d), m, thumbs, label))
         advance(1)
     thumbs.encode_all(prog)
-    payload = {"runs": runs, "thumbs": thumbs.data, "thumb_width": thumbs.width}
+    payload = {"runs": runs, "thumbs": thumbs.data, "thumb_width": thumbs.width, "colours": colour_stops()}
     # No "<" at all in the script element: "</script>" would end it early, and "<!--<script>" in a file
     # name would put the parser where the real "</script>" no longer ends it (JSON reads \u003c as "<").
     data = json.dumps(payload, separators=(",", ":")).replace("<", "\\u003c")

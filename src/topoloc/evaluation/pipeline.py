@@ -120,9 +120,10 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     _warn_if_trained_on_query(spec, query_fingerprint, maps)
     map_xy = None
     place_images: list[str] | None = None
+    calibration: dict[str, Any] | None = None
     if spec.map_file is not None:
-        method, resources, vocab_info, map_xy, place_images = _saved_map(spec, progress, executor,
-                                                                         query_fingerprint=query_fingerprint)
+        method, resources, vocab_info, map_xy, place_images, calibration = _saved_map(
+            spec, progress, executor, query_fingerprint=query_fingerprint)
         max_side, fit_s = resources.extractor.config.max_side, 0.0
         map_labels = [str(spec.map_file)]
     else:
@@ -189,6 +190,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
                 "preprocess": resources.extractor.config.preprocess,
             },
             "vocabulary": vocab_info,
+            # The saved map's acceptance threshold, where it has one (the HTML slider opens there).
+            **({"calibration": calibration} if calibration is not None else {}),
             # "local", or the Dask scheduler the features were extracted and quantised on.
             "executor": resources.executor.name if isinstance(resources, CachedResources) else "local",
             "fit_seconds": fit_s,
@@ -255,8 +258,8 @@ def _warn_if_trained_on_query(spec: EvaluateSpec, query_fingerprint: str, maps: 
 def _saved_map(
     spec: EvaluateSpec, progress: ProgressFactory | None, executor: Executor | None = None, *,
     query_fingerprint: str = "",
-) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray, list[str]]:
-    """The recogniser, resources, vocabulary record, place positions and place images of ``spec.map_file``.
+) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray, list[str], dict[str, Any] | None]:
+    """The recogniser, resources, vocabulary record, place positions, place images and calibration of ``spec.map_file``.
 
     A saved map fixes the method, its parameters, the features and the
     vocabulary: options that would change them are refused, not ignored.
@@ -275,7 +278,7 @@ def _saved_map(
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
         voc.update({"file": f"embedded in {spec.map_file}", **saved.vocabulary.provenance_})
-    return rec, res, voc, saved.place_xy, saved.place_image_names()
+    return rec, res, voc, saved.place_xy, saved.place_image_names(), saved.calibration
 
 
 def write_outputs(

@@ -8,6 +8,7 @@ that two rows of a table that differ in how they were run never look alike.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from topoloc._params import keyword_defaults
 from topoloc.errors import TopolocError
+from topoloc.evaluation.columns import uses_local_features
 from topoloc.evaluation.plots import plot_pr_curves
 from topoloc.features import FeatureConfig
 from topoloc.io.container import atomic_write_bytes
@@ -44,14 +46,15 @@ def _method_label(m: dict[str, Any]) -> str:
     try:
         cls = get_method(m["method"])
         defaults = keyword_defaults(cls)
-        tags = [f"{k}={v}" for k, v in params.items() if k in defaults and defaults[k] != v]
+        tags = [f"{k}={v}" for k, v in cls.upgrade_params(params).items() if k in defaults and defaults[k] != v]
     except TopolocError:
         pass  # a method this installation does not know: show the bare name
-    feats = m.get("run", {}).get("features", {})
+    # Feature settings say nothing of a method that reads no local features (SeqSLAM, descriptors).
+    feats = m.get("run", {}).get("features", {}) if uses_local_features(m) else {}
     if feats.get("method", "sift") != "sift":
         tags.append(feats["method"])
     # Runs written before preprocessing existed had none.
-    if feats.get("preprocess", "none") != DEFAULT_PREPROCESS:
+    if feats and feats.get("preprocess", "none") != DEFAULT_PREPROCESS:
         tags.append(f"preprocess={feats['preprocess']}")
     mode = params.pop("sequence_mode", "constant")
     if seq:
@@ -107,7 +110,8 @@ def render_run_report(m: dict[str, Any]) -> str:
         f"- map: {', '.join(f'`{x}`' for x in run['map'])}\n",
         f"- query: `{run['query']}` ({m['n_queries']} queries, {m['n_places']} map places)\n",
         f"- ground truth: {run['ground_truth']}\n",
-        f"- local features: {_features_line(run['features'])}\n",
+        f"- local features: {_features_line(run['features'])}\n" if uses_local_features(m)
+        else "- local features: none (this method does not use them; no feature settings or preprocessing apply)\n",
     ]
     if voc.get("used"):
         prov = {k: v for k, v in voc.items() if k not in {"used"}}
@@ -182,7 +186,9 @@ def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Pat
                                f"{Path(d) / 'metrics.json'}") from None
     md = [f"# {title}\n\n", TABLE_HEADER, *rows]
     md.append("\nHow each run was made (rows are comparable where these agree):\n\n" + markdown_table(metrics))
-    md.append("\nRuns: " + ", ".join(f"`{d}`" for d in run_dirs) + "\n\n![PR curves](pr_curves.png)\n")
+    # Relative to the report, so that a report kept beside its runs (docs/results) names no machine's folders.
+    md.append("\nRuns: " + ", ".join(f"`{os.path.relpath(Path(d).resolve(), out.resolve())}`" for d in run_dirs)
+              + "\n\n![PR curves](pr_curves.png)\n")
     labels = distinct_labels(metrics, [run_title(m) for m in metrics])
     curves = [(f"{i + 1}. {label} (AUC {m['auc']:.2f})", p, r)
               for i, (label, (m, p, r)) in enumerate(zip(labels, runs, strict=True))]

@@ -73,6 +73,13 @@ class RecognizerTags:
     uses_vocabulary : bool
         ``fit`` needs resources with a visual vocabulary (class attribute
         ``uses_vocabulary``).
+    uses_local_features : bool
+        The method reads the local features of the run's feature settings
+        (``resources.features``/``words``), so those settings and the
+        photometric preprocessing decide its scores (class attribute
+        ``uses_local_features``, true unless a method says otherwise; a method
+        with a vocabulary uses local features).  Reports show the feature
+        settings only for methods that use them.
     scores_whole_sequence : bool
         A column of ``S`` depends on the queries before it, so ``score`` is
         given the whole query sequence (class attribute ``scores_whole_sequence``).
@@ -97,6 +104,7 @@ class RecognizerTags:
     """
 
     uses_vocabulary: bool = False
+    uses_local_features: bool = True
     scores_whole_sequence: bool = False
     saves_state: bool = True
     adds_tours: bool = False
@@ -107,7 +115,7 @@ class RecognizerTags:
 
 
 # Tags that only a class attribute declares, so that there is one way to say each.
-_ATTRIBUTE_TAGS = ("uses_vocabulary", "scores_whole_sequence")
+_ATTRIBUTE_TAGS = ("uses_vocabulary", "uses_local_features", "scores_whole_sequence")
 
 
 class PlaceRecognizer(Configurable, ABC):
@@ -116,6 +124,8 @@ class PlaceRecognizer(Configurable, ABC):
     #: The registry name (``get_method(name)``, ``--method``); a class without one is not registered.
     name: ClassVar[str] = ""
     uses_vocabulary: ClassVar[bool] = False
+    #: False for a method that never reads local features (its own per-image work, or descriptors from elsewhere).
+    uses_local_features: ClassVar[bool] = True
     scores_whole_sequence: ClassVar[bool] = False
     #: The class's abilities, derived when it is defined (see :class:`RecognizerTags`).
     tags: ClassVar[RecognizerTags] = RecognizerTags()
@@ -397,7 +407,11 @@ def _derive_tags(cls: type[PlaceRecognizer]) -> RecognizerTags:
     adds = _overrides(cls, "_add_tour")
     shards = _overrides(cls, "_fit_shard") and _overrides(cls, "_merge_shards")
     top_k = callable(getattr(cls, "top_k", None))
-    derived = {"uses_vocabulary": bool(cls.uses_vocabulary), "scores_whole_sequence": bool(cls.scores_whole_sequence),
+    if cls.uses_vocabulary and not cls.uses_local_features:
+        raise TypeError(f"{cls.__name__}: a method with a vocabulary quantises local features "
+                        "(uses_vocabulary needs uses_local_features)")
+    derived = {"uses_vocabulary": bool(cls.uses_vocabulary), "uses_local_features": bool(cls.uses_local_features),
+               "scores_whole_sequence": bool(cls.scores_whole_sequence),
                "saves_state": True, "adds_tours": adds, "adds_places": adds, "adds_tours_exactly": adds,
                "builds_shards": shards, "scores_top_k": top_k}
     names = {f.name for f in fields(RecognizerTags)}

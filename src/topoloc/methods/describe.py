@@ -11,11 +11,34 @@ from topoloc._params import keyword_defaults
 from topoloc.methods import get_method
 
 _HEADING = re.compile(r"^(\w[\w ]*)\n-{3,}$", re.M)
+# Sphinx roles: :func:`~a.b.name` -> name, :class:`text <target>` -> text, :mod:`a.b` -> a.b.
+_ROLE = re.compile(r":[\w:]+:`(~?)([^`<]*?)\s*(?:<[^`>]*>)?`")
+# reST inline literals, emphasis and default roles: ``x`` / *x* / `x` -> x.
+_LITERAL = re.compile(r"``(.+?)``|(?<![\w*])\*(\S(?:.*?\S)?)\*(?![\w*])|`([^`]+)`")
+
+
+def plain_text(text: str) -> str:
+    """A docstring fragment as plain text for a terminal: Sphinx roles and reST markup reduced to their words.
+
+    ``:func:`~topoloc.a.b``` becomes ``b`` (the ``~`` form shows the last name,
+    as Sphinx does), ``:class:`Name <target>``` its text, and double back-quoted
+    literals and ``*emphasis*`` their content.
+    """
+
+    def role(m: re.Match[str]) -> str:
+        target = m.group(2)
+        return target.rsplit(".", 1)[-1] if m.group(1) else target
+
+    text = _ROLE.sub(role, text)
+    return _LITERAL.sub(lambda m: next(g for g in m.groups() if g is not None), text)
 
 
 @dataclass(frozen=True)
 class ParameterDoc:
-    """One constructor parameter: name, default, declared type and explanation (empty when undocumented)."""
+    """One constructor parameter: name, default, declared type and explanation (empty when undocumented).
+
+    The texts are the docstring's (reST); :func:`plain_text` reads them in a terminal.
+    """
 
     name: str
     default: Any

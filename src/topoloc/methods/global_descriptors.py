@@ -171,6 +171,8 @@ class GlobalDescriptors(PlaceRecognizer):
     """
 
     name: ClassVar[str] = "descriptors"
+    # The descriptors are computed elsewhere: the run's feature settings play no part.
+    uses_local_features: ClassVar[bool] = False
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "map": OfType(str), "query": OfType(str), "metric": Options(("cosine", "l2")), "dataset": OfType(str),
         "confidence": Options(CONFIDENCE_MODES),

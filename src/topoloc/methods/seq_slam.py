@@ -201,6 +201,8 @@ class SeqSLAM(PlaceRecognizer):
 
     name: ClassVar[str] = "seqslam"
     scores_whole_sequence: ClassVar[bool] = True
+    # Its own downsampled, patch-normalised images: no keypoints, no feature settings, no preprocessing.
+    uses_local_features: ClassVar[bool] = False
     # Maps saved before ``enhance_floor`` existed used the release's spread.
     legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "enhance_floor": False}
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {

@@ -23,6 +23,8 @@
     return e;
   }
   function fmt(x, d) { return (x === null || x === undefined || !isFinite(x)) ? String(x) : Number(x).toFixed(d); }
+  // Scores at the precision they have (whole numbers without decimals: run.decimals from the page's data).
+  function score(run, x) { return fmt(x, run.decimals); }
 
   // ---- per-run statistics at a threshold (the metrics of docs/protocol.md) ----
   function stats(run, thr) {
@@ -41,15 +43,23 @@
   // ---- PR curves of every run, with each run's current operating point ----
   const pr = document.getElementById("pr");
   const legend = document.getElementById("pr-legend");
+  // The slider opens at the calibrated threshold of the map the run scored, else at the best F1.
   const states = D.runs.map(function (run) {
     const t = Array.from(new Set(run.score)).sort(function (a, b) { return a - b; });
+    if (run.calibrated !== null && run.calibrated !== undefined) {
+      let i = 0;
+      while (i < t.length && t[i] < run.calibrated) i++;
+      return {thresholds: t, index: i, filter: "all", shown: PAGE, view: "rank",
+              opened: "the map's calibrated threshold " + fmt(run.calibrated, run.decimals)};
+    }
     let best = 0, bestF = -1;
     t.forEach(function (thr, i) {
       const s = stats(run, thr);
       const f = s.precision + s.recall > 0 ? 2 * s.precision * s.recall / (s.precision + s.recall) : 0;
       if (f > bestF) { bestF = f; best = i; }
     });
-    return {thresholds: t, index: best, filter: "all", shown: PAGE};
+    return {thresholds: t, index: best, filter: "all", shown: PAGE, view: "rank",
+            opened: "the best F1, " + fmt(Math.max(bestF, 0), 3) + " (the run scored no calibrated map)"};
   });
   function thrOf(k) {
     const st = states[k];
@@ -91,7 +101,7 @@
 
   // ---- similarity matrix with ground truth and the accepted best matches ----
   function drawMatrix(k) {
-    const run = D.runs[k], c = document.getElementById("matrix" + k), img = c._img;
+    const run = D.runs[k], c = document.getElementById("matrix" + k), img = c._imgs[states[k].view];
     if (!img || !img.complete) return;
     const ctx = c.getContext("2d"), W = c.width, H = c.height;
     const cw = W / run.n_queries, ch = H / run.n_places;
@@ -124,11 +134,11 @@
     const head = el("div", {}, [
       el("span", {cls: "badge " + st, text: st}),
       el("span", {text: "  query " + j + (q.file ? " · " + q.file : "") + (q.time ? " · " + q.time : "") +
-                        " · score " + fmt(run.score[j], 4) +
+                        " · score " + score(run, run.score[j]) +
                         (run.has_pos[j] ? " · correct place at rank " + it.rank : " · no correct place")})]);
     const figs = [figure(q.img, ["query", (q.file || "#" + j), "place " + q.place])];
     if (b) figs.push(figure(b.img, ["best: place " + b.place, (b.tour ? b.tour + "/" : "") + (b.file || ""),
-                                    "score " + fmt(run.score[j], 4)]));
+                                    "score " + score(run, run.score[j])]));
     if (c) figs.push(figure(c.img, ["correct: place " + c.place, (c.tour ? c.tour + "/" : "") + (c.file || ""),
                                     "rank " + it.rank]));
     return el("div", {cls: "card " + st, "data-query": String(j)}, [head, el("div", {cls: "imgs"}, figs)]);
@@ -152,10 +162,16 @@
       btn.className = btn.dataset.filter === st.filter ? "on" : "";
     });
   }
+  function showScale(k) {
+    const run = D.runs[k], box = document.querySelector("#run" + k + " .scale"), rank = states[k].view === "rank";
+    box.querySelector(".scale-lo").textContent = rank ? "worst place" : score(run, run.matrix.lo);
+    box.querySelector(".scale-hi").textContent = rank ? "best place of the query" : score(run, run.matrix.hi) +
+      " (1st-99th percentile)";
+  }
   function update(k) {
     const run = D.runs[k], thr = thrOf(k), s = stats(run, thr);
     const set = function (name, v) { document.querySelector("#run" + k + " ." + name).textContent = v; };
-    set("v-thr", thr === Infinity ? "above every score" : fmt(thr, 4));
+    set("v-thr", thr === Infinity ? "above every score" : score(run, thr));
     set("v-acc", s.accepted); set("v-tp", s.tp); set("v-fp", s.fp); set("v-rej", s.rejected);
     set("v-p", fmt(s.precision, 3)); set("v-r", fmt(s.recall, 3));
     drawMatrix(k); renderCards(k); drawPR();
@@ -175,10 +191,25 @@
     const dispW = Math.min(720, Math.max(320, run.n_queries * 4));
     const dispH = Math.round(Math.min(720, Math.max(200, dispW * run.n_places / Math.max(run.n_queries, 1))));
     const canvas = el("canvas", {id: "matrix" + k, cls: "matrix", width: String(dispW), height: String(dispH)});
-    const img = new Image();
-    img.onload = function () { drawMatrix(k); };
-    img.src = run.matrix.src;
-    canvas._img = img;
+    canvas._imgs = {};
+    ["rank", "score"].forEach(function (view) {
+      const img = new Image();
+      img.onload = function () { if (states[k].view === view) drawMatrix(k); };
+      img.src = run.matrix[view];
+      canvas._imgs[view] = img;
+    });
+    // The colour scale of the view shown: rank within the query (worst .. best) or score (1st .. 99th percentile).
+    const scale = el("div", {cls: "scale"}, [
+      el("span", {cls: "scale-lo"}),
+      el("span", {cls: "scale-bar", style: "background: linear-gradient(to right, " + D.colours.join(", ") + ")"}),
+      el("span", {cls: "scale-hi"})]);
+    const views = el("div", {cls: "views"}, [["rank", "rank within each query"], ["score", "score"]].map(function (v) {
+      const id = "view" + k + v[0];
+      const input = el("input", {type: "radio", name: "view" + k, id: id, value: v[0]});
+      input.checked = v[0] === st.view;
+      input.addEventListener("change", function () { st.view = v[0]; showScale(k); drawMatrix(k); });
+      return el("label", {"for": id}, [input, el("span", {text: " " + v[1] + " "})]);
+    }));
     const filters = el("div", {cls: "filters", id: "filters" + k}, [
       ["all", "all"], ["correct", "correct"], ["wrong", "wrong"], ["rejected", "rejected"], ["nopos", "no correct place"]
     ].map(function (f) {
@@ -192,15 +223,19 @@
       el("h2", {text: (k + 1) + ". " + run.label}),
       el("p", {cls: "meta", text: run.n_places + " map places × " + run.n_queries + " queries (" + run.n_pos +
                                   " with a correct place); ground truth: " + run.ground_truth + "; folder " + run.dir}),
-      el("div", {cls: "controls"}, [el("label", {text: "acceptance threshold "}), slider, counts]),
+      el("div", {cls: "controls"}, [el("label", {text: "acceptance threshold "}), slider, counts,
+        el("span", {cls: "opened", text: "opened at " + st.opened})]),
       el("div", {cls: "two"}, [
-        el("div", {}, [el("h3", {text: "Similarity matrix"}), canvas,
-          el("p", {cls: "legend", text: "Rows: map places (top = first); columns: queries (left = first); " +
-            "colour: similarity (viridis, bright = similar). White cells: ground truth (correct places" +
+        el("div", {}, [el("h3", {text: "Similarity matrix"}), views, canvas, scale,
+          el("p", {cls: "legend", text: "Rows: map places (top = first); columns: queries (left = first). " +
+            "Colour: each place's rank among all places for the same query (bright = best; scores of different " +
+            "queries are not on one scale, so this view shows the route), or the score itself (scale above). " +
+            "White cells: ground truth (correct places" +
             (run.gt_drawn_all ? "" : ", a sample") + "). Dots: the best match of each query accepted at the " +
             "threshold, green when correct, red when wrong."})])]),
       el("h3", {text: "Queries"}), filters, el("div", {cls: "cards", id: "cards" + k}), more]);
     container.appendChild(section);
+    showScale(k);
     update(k);
   });
   drawPR();
