@@ -301,21 +301,30 @@ class InvertedIndex:
         self._bits = bits
 
     # -- scoring --------------------------------------------------------------------
-    def _increments(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
-        """Words off their default state and their log-likelihood-ratio increments."""
+    def increments(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+        """Words off their default state and their log-likelihood-ratio increments.
+
+        They depend on the observation model only, so indexes over the same model
+        (the map's and the sampled training places') can share them.
+        """
         codes = obs.codes
         nd = np.flatnonzero(codes != self.default_code)
         w = self.D[codes[nd], nd] - self.D_default[nd]
         return nd, w
 
-    def relative_log_likelihood(self, obs: Observation) -> np.ndarray:
-        """``log p(Z | L_i) - log p(Z | L_lo)`` for every place, shape (n_places,)."""
+    def relative_log_likelihood(self, obs: Observation,
+                                increments: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """``log p(Z | L_i) - log p(Z | L_lo)`` for every place, shape (n_places,).
+
+        ``increments``: :meth:`increments` of ``obs``, when already computed for an
+        index over the same observation model.
+        """
         p = self.n_places
         ns = self._n_static
         score = np.empty(p)
         s = score[:ns]
         s[:] = self._defaults[:ns]
-        nd, w = self._increments(obs)
+        nd, w = self.increments(obs) if increments is None else increments
         if ns and nd.size:
             slot = self._slot[nd]
             in_lut = slot >= 0
@@ -325,11 +334,12 @@ class InvertedIndex:
                 wl = np.zeros(g * 8)
                 wl[slot[in_lut]] = w[in_lut]
                 groups = np.unique(slot[in_lut] // 8)
-                tables = wl.reshape(g, 8) @ _BITS.T  # (g, 256)
-                tmp = np.empty(ns)
-                for gi in groups:
-                    np.take(tables[gi], self._bits[gi], out=tmp)
-                    s += tmp
+                # one gather for all touched byte columns instead of a Python loop per column;
+                # the rows are then added in column order, as the loop did
+                tables = wl.reshape(g, 8)[groups] @ _BITS.T  # (touched, 256)
+                picked = np.take_along_axis(tables, self._bits[groups], axis=1)
+                for row in picked:
+                    s += row
             # postings words (complement-stored ones: add to all, subtract from the complement)
             pw = nd[~in_lut]
             ww = w[~in_lut]

@@ -89,6 +89,9 @@ class ObservationModel:
         Tree parents (identity for naive Bayes).
     p_e : ndarray of float64, shape (V,)
         Prior ``p(e_q = 1)`` of new places.
+    mean_field_terms : ndarray of float64, shape (4, V)
+        ``log p(z_q | z_{p_q}, L_avg)`` per observation state for the mean-field
+        place (beliefs ``p_e``); ``mean_field_base`` is the sum of its state-0 row.
     e_hi, e_lo : ndarray of float64, shape (V,)
         Detector-only single-observation beliefs ``p(e_q = 1 | z_q = 1)`` and
         ``p(e_q = 1 | z_q = 0)`` (FAB-MAP 2.0 levels, bail-out variance model).
@@ -147,6 +150,10 @@ class ObservationModel:
         mix_lo = table[0] * (1.0 - self.e_lo) + table[1] * self.e_lo
         self.d_hilo = np.log(mix_hi) - np.log(mix_lo)  # (4, V)
         self.var_weight = 2.0 * model.p_z * (1.0 - model.p_z)
+        # mean-field new place (p(e_q) = prior): log p(z_q | z_p, L_avg) per state, and the
+        # all-state-0 sum, so a query visits only its active words
+        self.mean_field_terms = np.log(table[0] * (1.0 - self.p_e) + table[1] * self.p_e)  # (4, V)
+        self.mean_field_base = float(self.mean_field_terms[0].sum())
         self.state0_order = np.argsort(self.neg_info[0], kind="stable")
 
     # -- observations --------------------------------------------------------------

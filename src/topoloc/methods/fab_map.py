@@ -278,11 +278,10 @@ class FabMap(PlaceRecognizer):
         S = np.empty((len(self.place_ids_) if self.output == "logodds" else n_models, len(items)), dtype=np.float32)
         for j, words in enumerate(items):
             obs = self.obs_model_.observe(words)
-            ll = self.map_.log_likelihood(obs)
             if self.output == "loglik":
-                S[:, j] = ll
+                S[:, j] = self.map_.log_likelihood(obs)
                 continue
-            new_ll = self.map_.new_place_log_likelihood(obs)
+            ll, new_ll = self.map_.log_likelihood_and_new(obs)
             if self.output == "posterior":
                 S[:, j] = location_posterior(ll, None, new_ll, p_new=self.p_new,
                                              smoothing=self.smoothing)[:n_models]
