@@ -103,8 +103,8 @@ def log_mean_exp(x: np.ndarray) -> float:
     """``log mean exp(x)``, the sampled normaliser of Eq. 10 in log space.
 
     Shifted by the maximum as ``scipy.special.logsumexp`` is (equal to it to
-    rounding), without its per-call overhead, which was a fifth of a FAB-MAP 2.0
-    posterior query (``benchmarks/bench_fabmap_openfabmap.py`` measures the query).
+    rounding), without its per-call overhead, which is paid on every FAB-MAP
+    posterior query (``benchmarks/bench_fabmap_openfabmap.py`` times the query).
     """
     x = np.asarray(x, dtype=np.float64)
     if x.size == 0:
