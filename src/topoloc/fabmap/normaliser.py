@@ -36,9 +36,7 @@ def mean_field_log_likelihood(obs_model: ObservationModel, obs: Observation) -> 
     sparse: the all-absent sum is precomputed and only the words not in state 0
     are visited (:attr:`ObservationModel.mean_field_terms`).
     """
-    terms = obs_model.mean_field_terms
-    act = obs.active
-    return float(obs_model.mean_field_base + (terms[obs.codes[act], act] - terms[0, act]).sum())
+    return obs_model.log_likelihood_sparse(obs_model.mean_field_terms, obs_model.mean_field_base, obs)
 
 
 def sample_training_rows(model: FabMapModel, n_samples: int, *, seed: int = 0) -> np.ndarray:
