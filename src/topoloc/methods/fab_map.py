@@ -125,6 +125,8 @@ class FabMap(PlaceRecognizer):
         "bailout": OfType(bool), "p_bailout": Interval(float, 0.0, 1.0, closed="neither"), "seed": Interval(int),
         "tours": Options(("merge", "separate")), "confidence": Options(CONFIDENCE_MODES),
     }
+    #: A map saved before ``tours`` existed merged every tour into one model per place.
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "tours": "merge"}
     # A fitted method has one way to be kept: its map file.
     removed_params: ClassVar[Mapping[str, str]] = {"model_path": (
         "a fitted FAB-MAP, model included, is kept in a map file: `topoloc map build --method fabmap ... "
