@@ -101,7 +101,8 @@ def _write_images(f: object, images: Sequence[np.ndarray]) -> None:
 
 
 def run_openfabmap(model: FabMapModel, training: Sequence[np.ndarray], map_images: Sequence[np.ndarray],
-                   queries: Sequence[np.ndarray], *, reps: int = 3) -> dict[str, np.ndarray]:
+                   queries: Sequence[np.ndarray], *, reps: int = 3,
+                   likelihoods: bool = False) -> dict[str, np.ndarray]:
     """openFABMAP 2.0 (sampled new-place term, Chow-Liu) on these words.
 
     The detector model is topoloc's: ``PzGe = 1 - p_fn``, ``PzGNe = p_fp``.
@@ -110,18 +111,23 @@ def run_openfabmap(model: FabMapModel, training: Sequence[np.ndarray], map_image
     -------
     dict
         ``ms`` (per query, the fastest of ``reps`` calls), ``best`` (map image of highest
-        likelihood), ``log_lik_best`` (relative to the empty place), ``p_new`` and ``p_best``.
+        likelihood), ``log_lik_best`` (relative to the empty place), ``p_new`` and ``p_best``;
+        with ``likelihoods``, also ``log_lik`` of every map image, shape (n_map, n_queries).
     """
     exe = build_openfabmap()
     with tempfile.TemporaryDirectory() as tmp:
-        inp, out = Path(tmp) / "in.txt", Path(tmp) / "out.txt"
+        inp, out, lik = Path(tmp) / "in.txt", Path(tmp) / "out.txt", Path(tmp) / "lik.txt"
         with inp.open("w") as f:
             f.write(f"{model.n_words} {1.0 - model.p_fn!r} {model.p_fp!r} {reps}\n")
             for row in tree_rows(model):
                 f.write(" ".join(repr(float(x)) for x in row) + "\n")
             for images in (training, map_images, queries):
                 _write_images(f, images)
-        subprocess.run([str(exe), str(inp), str(out)], check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        cmd = [str(exe), str(inp), str(out), *([str(lik)] if likelihoods else [])]
+        subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
         a = np.loadtxt(out, ndmin=2)
-    return {"ms": a[:, 0], "best": a[:, 1].astype(np.int64), "log_lik_best": a[:, 2], "p_new": a[:, 3],
-            "p_best": a[:, 4]}
+        res = {"ms": a[:, 0], "best": a[:, 1].astype(np.int64), "log_lik_best": a[:, 2], "p_new": a[:, 3],
+               "p_best": a[:, 4]}
+        if likelihoods:
+            res["log_lik"] = np.loadtxt(lik, ndmin=2).T
+    return res

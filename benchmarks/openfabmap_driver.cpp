@@ -9,7 +9,8 @@
 //   n_train, then per image: k and its k word ids      (sampled places of the new-place term)
 //   n_map, then per image as above                     (the map: one location per image)
 //   n_query, then per image as above
-// Output (text, one line per query): ms best_image log_likelihood_best p_new p_best
+// Output (text, one line per query): ms best_image log_likelihood_best p_new p_best; with a third
+// argument, also every map image's log-likelihood (relative to the empty place), one line per query
 //   ms: the fastest of `reps` timed FabMap2::localize calls on that query (new-place term, every
 //   map location's likelihood, normalisation and smoothing); the query's dense descriptor, the
 //   input format openFABMAP takes, is built before the clock starts.
@@ -41,8 +42,8 @@ static std::vector<cv::Mat> read_images(std::istream& in, int v) {
 }
 
 int main(int argc, char** argv) {
-    if (argc != 3) {
-        std::cerr << "usage: openfabmap_driver INPUT OUTPUT\n";
+    if (argc != 3 && argc != 4) {
+        std::cerr << "usage: openfabmap_driver INPUT OUTPUT [LIKELIHOODS]\n";
         return 2;
     }
     std::ifstream in(argv[1]);
@@ -71,6 +72,11 @@ int main(int argc, char** argv) {
     }
     std::ofstream out(argv[2]);
     out.precision(17);
+    std::ofstream lik;
+    if (argc == 4) {
+        lik.open(argv[3]);
+        lik.precision(17);
+    }
     for (size_t i = 0; i < queries.size(); i++) {
         double best_ms = std::numeric_limits<double>::infinity();
         std::vector<of2::IMatch> matches;
@@ -81,6 +87,13 @@ int main(int argc, char** argv) {
             auto t1 = std::chrono::steady_clock::now();
             double ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
             if (ms < best_ms) best_ms = ms;
+        }
+        if (argc == 4) {
+            std::vector<double> row(map.size(), 0.0);
+            for (const of2::IMatch& m : matches)
+                if (m.imgIdx >= 0) row[m.imgIdx] = m.likelihood;
+            for (size_t j = 0; j < row.size(); j++) lik << (j ? " " : "") << row[j];
+            lik << "\n";
         }
         int best = -1;
         double best_ll = -std::numeric_limits<double>::infinity(), p_new = 0.0, p_best = 0.0;

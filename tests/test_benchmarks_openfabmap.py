@@ -46,7 +46,7 @@ def test_openfabmap_scores_equal_topoloc_fabmap2(ofm: ModuleType) -> None:
     queries, truth = revisit_queries(places, 10, words_per_image=30, permutation_seed=0, seed=3)
     words = [places.indices[places.indptr[i]:places.indptr[i + 1]].astype(np.int64) for i in range(20)]
     training = model.training_words()
-    out = ofm.run_openfabmap(model, training, words, queries, reps=1)
+    out = ofm.run_openfabmap(model, training, words, queries, reps=1, likelihoods=True)
     om = ObservationModel(model)
     index, samples = InvertedIndex(om, words), InvertedIndex(om, training)
     for k, q in enumerate(queries):
@@ -54,6 +54,7 @@ def test_openfabmap_scores_equal_topoloc_fabmap2(ofm: ModuleType) -> None:
         rel = index.relative_log_likelihood(obs)
         assert out["best"][k] == int(np.argmax(rel))
         assert out["log_lik_best"][k] == pytest.approx(rel.max(), rel=1e-9, abs=1e-9)
+        np.testing.assert_allclose(out["log_lik"][:, k], rel, rtol=1e-9, atol=1e-9)
         # openFABMAP's p(new place) without a motion model: the likelihoods normalised over the map
         # images and the sampled new place (no location prior), then its smoothing 0.99
         joint = np.append(rel, log_mean_exp(samples.relative_log_likelihood(obs)))

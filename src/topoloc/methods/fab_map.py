@@ -98,7 +98,11 @@ class FabMap(PlaceRecognizer):
         tours, R@1 0.519 merged, 0.807 separate; gardens_point day_left +
         night_right -> day_right R@1 0.50 merged, 0.45 separate, but R@100P
         0.00 merged, 0.18 separate; day_left + day_right -> night_right R@1
-        0.15 merged, 0.16 separate.
+        0.15 merged, 0.16 separate.  ``"separate"`` is openFABMAP's setting:
+        on the same words openFABMAP 2.0 ranks the same map image first on
+        every webcam query (docs/results/fabmap_openfabmap.md,
+        ``benchmarks/bench_fabmap_openfabmap.py``).  Maps saved before this
+        parameter existed load with ``"merge"`` (``legacy_defaults``).
     confidence : {"margin", "raw"}
         ``"margin"`` (default): each query's column is shifted so that its
         best score is its margin over the best place outside the best
