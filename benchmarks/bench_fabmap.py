@@ -89,8 +89,21 @@ def tours_choice(runs: Path) -> str:
             f"with one merged model per place (`tours=merge`); the default is `tours={default}`, {verdict}. "
             f"openFABMAP 2.0 on the same images reaches AUC {auc:.2f} / R@1 {r1:.2f} (its own vocabulary and "
             f"features; quoted from ../shared/scorecard): `tours=separate` is "
-            f"{'at or above' if sep['recall_at_1'] >= r1 else 'below'} its R@1. On the same words as ours see "
-            f"`fabmap_openfabmap.md`. ")
+            f"{'at or above' if sep['recall_at_1'] >= r1 else 'below'} its R@1. " + _same_words(runs.parent))
+
+
+def _same_words(results: Path) -> str:
+    """What ``fabmap_openfabmap.json`` (benchmarks.bench_fabmap_openfabmap) found on the webcam words."""
+    f = results / "fabmap_openfabmap.json"
+    if not f.is_file():
+        return "Run `benchmarks.bench_fabmap_openfabmap` for openFABMAP 2.0 on the same words."
+    wc = next(r for r in json.loads(f.read_text())["results"] if r["workload"] == "webcam")
+    return (f"On the same words (`fabmap_openfabmap.md`) openFABMAP 2.0 with each image its own location ranks the "
+            f"same map image first on {100 * wc['same_best_image']:.1f}% of the webcam queries: R@1 "
+            f"{wc['recall_at_1_ties_as_chance_openfabmap']:.3f} (openFABMAP) and "
+            f"{wc['recall_at_1_ties_as_chance_fabmap2']:.3f} (fabmap2) counted as `evaluate` does, ties as chance; "
+            f"{wc['recall_at_1_openfabmap']:.3f} and {wc['recall_at_1_fabmap2']:.3f} when a tie goes to the first "
+            "image. ")
 
 
 def speed() -> dict[str, object]:
