@@ -87,8 +87,8 @@ def side_by_side(name: str, model: FabMapModel, training: Sequence[np.ndarray], 
         of = run_openfabmap(model, training, words, items, reps=1, likelihoods=r == 0)
         of_lik = of["log_lik"] if r == 0 else of_lik
         times["openfabmap"].append(of["ms"])
-        for out, m in ours.items():
-            times[out].append(_time_ours(m, items))
+        for output, m in ours.items():
+            times[output].append(_time_ours(m, items))
     load_after = _load()
     best = {k: np.min(np.stack(v), axis=0) for k, v in times.items()}
     # which map image each side ranks first (ours per image: the method's models are grouped by place)
