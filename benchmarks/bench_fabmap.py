@@ -31,6 +31,7 @@ from benchmarks.common import (
     run,
 )
 from topoloc.bench.fabmap_speed import bench_bailout, bench_chowliu, bench_fabmap2
+from topoloc.methods.fab_map import FabMap2
 
 #: Run-name suffix and ``--param`` of each score: the log-likelihood (default) and FAB-MAP's own confidence,
 #: the posterior of Eq. 3, as a probability and as log-odds; every other setting, preprocessing included,
@@ -69,6 +70,42 @@ def accuracy() -> tuple[list[Path], list[Path]]:
     return gp, wc
 
 
+#: openFABMAP 2.0 on the development webcams with all 12 map tours (AUC, R@1), quoted from the
+#: project's scorecard script (../shared/scorecard, row webcam_fabmap2); not measured here.
+OPENFABMAP_WEBCAM = (0.80, 0.82)
+
+
+def tours_choice(runs: Path) -> str:
+    """The sentence that states the multi-tour default, written from the two webcam runs' metrics.json."""
+    sep, mer = (json.loads((runs / f"fabmap2_webcam_all_tours{t}" / "metrics.json").read_text())
+                for t in ("", "_merge"))
+    better = "separate" if sep["recall_at_1"] >= mer["recall_at_1"] else "merge"
+    default = FabMap2().tours
+    verdict = "the better of the two there" if default == better else f"although `tours={better}` scores higher there"
+    auc, r1 = OPENFABMAP_WEBCAM
+    return (f"**Several map tours**: on webcam_daynight with all 12 tours `fabmap2` reaches R@1 "
+            f"{sep['recall_at_1']:.3f} (AUC {sep['auc']:.3f}) with one model per image, a place scored by its best "
+            f"image (`tours=separate`, openFABMAP's setting), against {mer['recall_at_1']:.3f} (AUC {mer['auc']:.3f}) "
+            f"with one merged model per place (`tours=merge`); the default is `tours={default}`, {verdict}. "
+            f"openFABMAP 2.0 on the same images reaches AUC {auc:.2f} / R@1 {r1:.2f} (its own vocabulary and "
+            f"features; quoted from ../shared/scorecard): `tours=separate` is "
+            f"{'at or above' if sep['recall_at_1'] >= r1 else 'below'} its R@1. " + _same_words(runs.parent))
+
+
+def _same_words(results: Path) -> str:
+    """What ``fabmap_openfabmap.json`` (benchmarks.bench_fabmap_openfabmap) found on the webcam words."""
+    f = results / "fabmap_openfabmap.json"
+    if not f.is_file():
+        return "Run `benchmarks.bench_fabmap_openfabmap` for openFABMAP 2.0 on the same words."
+    wc = next(r for r in json.loads(f.read_text())["results"] if r["workload"] == "webcam")
+    return (f"On the same words (`fabmap_openfabmap.md`) openFABMAP 2.0 with each image its own location ranks the "
+            f"same map image first on {100 * wc['same_best_image']:.1f}% of the webcam queries: R@1 "
+            f"{wc['recall_at_1_ties_as_chance_openfabmap']:.3f} (openFABMAP) and "
+            f"{wc['recall_at_1_ties_as_chance_fabmap2']:.3f} (fabmap2) counted as `evaluate` does, ties as chance; "
+            f"{wc['recall_at_1_openfabmap']:.3f} and {wc['recall_at_1_fabmap2']:.3f} when a tie goes to the first "
+            "image. ")
+
+
 def speed() -> dict[str, object]:
     out: dict[str, object] = {}
     for n in (10_000, 100_000):
@@ -99,7 +136,9 @@ def main() -> None:
         "row uses `evaluate`'s default preprocessing. With several map tours each map image ",
         "keeps its own model and a place scores its best image (`tours=separate`, the default; `tours=merge` ",
         "merges a place's images by Eq. 11, as the paper does: rows below). Raw speed numbers: ",
-        "`fabmap_speed.json`.\n\n",
+        "`fabmap_speed.json`; per query beside openFABMAP 2.0 on the same words: `fabmap_openfabmap.md` ",
+        "(`benchmarks.bench_fabmap_openfabmap`).\n\n",
+        tours_choice(RESULTS / "runs"), "\n\n",
         "## gardens_point (tolerance 0:8)\n\n",
         gardens_section(gp, "fabmap_gardens_point", "FAB-MAP on gardens_point (vocabulary: webcam_daynight/map)"),
         "\n## webcam_daynight (48 places, 976 queries, tolerance 0:0)\n\n",

@@ -94,3 +94,19 @@ def test_a_seqslam_map_saved_before_the_spread_floor_keeps_the_release_enhanceme
     assert back.recognizer.get_params()["enhance_floor"] is False
     np.testing.assert_allclose(back.similarity(tiny_route["query"]), release, rtol=1e-6)
     assert not np.allclose(m.similarity(tiny_route["query"]), release)  # the floor does change the scores
+
+
+def test_a_fabmap_map_saved_before_tours_keeps_one_merged_model_per_place(
+        tiny_route: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def build(**params: Any) -> Map:
+        return Map.build(method="fabmap2", tours=[tiny_route["map"], tiny_route["query"]], params=params,
+                         vocab_train=[tiny_route["training"].root], vocab_words=300,
+                         cache_dir=tiny_route["map"].root.parent / "cache")
+
+    merged = build(tours="merge").similarity(tiny_route["training"])
+    m = build()
+    assert m.recognizer.get_params()["tours"] == "separate"
+    back = Map.load(_save_as_older(m, "tours", tmp_path / "old.tlm", monkeypatch))
+    assert back.recognizer.get_params()["tours"] == "merge"
+    np.testing.assert_allclose(back.similarity(tiny_route["training"]), merged, rtol=1e-6)
+    assert not np.allclose(m.similarity(tiny_route["training"]), merged)  # the default does change the scores

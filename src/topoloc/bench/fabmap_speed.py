@@ -108,8 +108,11 @@ def bench_fabmap2(
     for k, words in enumerate(queries):
         t = time.perf_counter()
         obs = om.observe(words)
-        ll = index.log_likelihood(obs)
-        new_ll = log_mean_exp(samples.log_likelihood(obs))
+        # as IndexMap.log_likelihood_and_new: increments and the empty place shared by both indexes
+        inc = index.increments(obs)
+        lo = index.log_likelihood_lo(obs)
+        ll = index.relative_log_likelihood(obs, inc) + lo
+        new_ll = log_mean_exp(samples.relative_log_likelihood(obs, inc) + lo)
         post = location_posterior(ll, None, new_ll, p_new=p_new)
         ms[k] = 1e3 * (time.perf_counter() - t)
         hits += int(np.argmax(post[:-1]) == truth[k])

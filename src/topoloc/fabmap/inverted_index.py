@@ -40,7 +40,6 @@ import scipy.sparse as sp
 
 from topoloc.fabmap.chowliu import as_occurrence, occurrence_matrix
 from topoloc.fabmap.observation import Observation, ObservationModel
-from topoloc.fabmap.places import PlaceModels
 
 
 def merge_threshold(p_fp: float, p_fn: float) -> float:
@@ -181,8 +180,9 @@ class InvertedIndex:
         self.default_code = np.argmax(obs_model.state_p, axis=0).astype(np.int8)
         self.D_default = self.D[self.default_code, q]
         self.p_nondefault = 1.0 - obs_model.state_p[self.default_code, q]
-        self._lo = PlaceModels(obs_model, dtype=np.float64)  # the all-"absent" place L_lo
-        self._lo.add(obs_model.e_lo)
+        # the all-"absent" place L_lo, evaluated over the query's active words only
+        self._lo_terms = obs_model.state_terms(obs_model.e_lo)
+        self._lo_base = float(self._lo_terms[0].sum())
         self._csr = sp.csr_matrix((0, v), dtype=np.uint8)  # word sets of the indexed places
         self._extra: list[np.ndarray] = []  # places added since the last build
         self._override: dict[int, np.ndarray] = {}  # indexed places changed since
@@ -301,21 +301,30 @@ class InvertedIndex:
         self._bits = bits
 
     # -- scoring --------------------------------------------------------------------
-    def _increments(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
-        """Words off their default state and their log-likelihood-ratio increments."""
+    def increments(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+        """Words off their default state and their log-likelihood-ratio increments.
+
+        They depend on the observation model only, so indexes over the same model
+        (the map's and the sampled training places') can share them.
+        """
         codes = obs.codes
         nd = np.flatnonzero(codes != self.default_code)
         w = self.D[codes[nd], nd] - self.D_default[nd]
         return nd, w
 
-    def relative_log_likelihood(self, obs: Observation) -> np.ndarray:
-        """``log p(Z | L_i) - log p(Z | L_lo)`` for every place, shape (n_places,)."""
+    def relative_log_likelihood(self, obs: Observation,
+                                increments: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """``log p(Z | L_i) - log p(Z | L_lo)`` for every place, shape (n_places,).
+
+        ``increments``: :meth:`increments` of ``obs``, when already computed for an
+        index over the same observation model.
+        """
         p = self.n_places
         ns = self._n_static
         score = np.empty(p)
         s = score[:ns]
         s[:] = self._defaults[:ns]
-        nd, w = self._increments(obs)
+        nd, w = self.increments(obs) if increments is None else increments
         if ns and nd.size:
             slot = self._slot[nd]
             in_lut = slot >= 0
@@ -325,11 +334,11 @@ class InvertedIndex:
                 wl = np.zeros(g * 8)
                 wl[slot[in_lut]] = w[in_lut]
                 groups = np.unique(slot[in_lut] // 8)
-                tables = wl.reshape(g, 8) @ _BITS.T  # (g, 256)
-                tmp = np.empty(ns)
-                for gi in groups:
-                    np.take(tables[gi], self._bits[gi], out=tmp)
-                    s += tmp
+                # one gather from the flattened tables for all touched byte columns, instead of a
+                # Python loop of one lookup per column
+                tables = wl.reshape(g, 8)[groups] @ _BITS.T  # (touched, 256)
+                flat = self._bits[groups] + (256 * np.arange(groups.size))[:, None]
+                s += np.take(tables.ravel(), flat).sum(axis=0)
             # postings words (complement-stored ones: add to all, subtract from the complement)
             pw = nd[~in_lut]
             ww = w[~in_lut]
@@ -355,7 +364,7 @@ class InvertedIndex:
 
     def log_likelihood_lo(self, obs: Observation) -> float:
         """``log p(Z | L_lo)``: the place that holds none of the words (Eq. 4-5)."""
-        return float(self._lo.log_likelihood(obs)[0])
+        return self.obs_model.log_likelihood_sparse(self._lo_terms, self._lo_base, obs)
 
     def log_likelihood(self, obs: Observation) -> np.ndarray:
         """``log p(Z | L_i)`` under the FAB-MAP 2.0 two-level place models, shape (n_places,)."""

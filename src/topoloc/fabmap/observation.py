@@ -89,6 +89,9 @@ class ObservationModel:
         Tree parents (identity for naive Bayes).
     p_e : ndarray of float64, shape (V,)
         Prior ``p(e_q = 1)`` of new places.
+    mean_field_terms : ndarray of float64, shape (4, V)
+        ``log p(z_q | z_{p_q}, L_avg)`` per observation state for the mean-field
+        place (beliefs ``p_e``); ``mean_field_base`` is the sum of its state-0 row.
     e_hi, e_lo : ndarray of float64, shape (V,)
         Detector-only single-observation beliefs ``p(e_q = 1 | z_q = 1)`` and
         ``p(e_q = 1 | z_q = 0)`` (FAB-MAP 2.0 levels, bail-out variance model).
@@ -147,6 +150,9 @@ class ObservationModel:
         mix_lo = table[0] * (1.0 - self.e_lo) + table[1] * self.e_lo
         self.d_hilo = np.log(mix_hi) - np.log(mix_lo)  # (4, V)
         self.var_weight = 2.0 * model.p_z * (1.0 - model.p_z)
+        # mean-field new place (p(e_q) = prior): its terms per state, so a query visits only its active words
+        self.mean_field_terms = self.state_terms(self.p_e)
+        self.mean_field_base = float(self.mean_field_terms[0].sum())
         self.state0_order = np.argsort(self.neg_info[0], kind="stable")
 
     # -- observations --------------------------------------------------------------
@@ -196,6 +202,24 @@ class ObservationModel:
     def new_place(self, obs: Observation) -> np.ndarray:
         """Belief of a new place initialised from the prior and updated with ``obs`` (Eq. 11)."""
         return self.update(self.p_e, obs)
+
+    def state_terms(self, e: np.ndarray) -> np.ndarray:
+        """``log p(z_q | z_{p_q}, L)`` of one place with beliefs ``e`` (V,) for each state, shape (4, V).
+
+        With them a place's likelihood is the sum of the state-0 row plus, over the
+        query's active words only, the change from state 0 (:meth:`log_likelihood_sparse`).
+        """
+        e = np.asarray(e, dtype=np.float64)
+        return np.asarray(np.log(self.table[0] * (1.0 - e) + self.table[1] * e))
+
+    @staticmethod
+    def log_likelihood_sparse(terms: np.ndarray, base: float, obs: Observation) -> float:
+        """``log p(Z | L)`` from :meth:`state_terms` and the sum of their state-0 row, visiting active words only.
+
+        Equal to :meth:`log_likelihood_single` to rounding.
+        """
+        act = obs.active
+        return float(base + (terms[obs.codes[act], act] - terms[0, act]).sum())
 
     def log_likelihood_single(self, e: np.ndarray, obs: Observation) -> float:
         """``log p(Z | L)`` of one place with beliefs ``e`` (V,), all words (Eq. 4-5)."""

@@ -116,6 +116,10 @@ class DenseMap:
         assert self._sampled is not None
         return self._sampled.log_likelihood(obs)
 
+    def log_likelihood_and_new(self, obs: Observation) -> tuple[np.ndarray, float]:
+        """:meth:`log_likelihood` and :meth:`new_place_log_likelihood` of one observation."""
+        return self.log_likelihood(obs), self.new_place_log_likelihood(obs)
+
 
 class IndexMap:
     """FAB-MAP 2.0 map: two-level place models scored through an inverted index.
@@ -188,6 +192,24 @@ class IndexMap:
         self.prepare_normaliser()
         assert self._samples is not None
         return log_mean_exp(self._samples.log_likelihood(obs))
+
+    def log_likelihood_and_new(self, obs: Observation) -> tuple[np.ndarray, float]:
+        """:meth:`log_likelihood` and :meth:`new_place_log_likelihood` of one observation, sharing work.
+
+        The map's index and the sampled places' index are over the same
+        observation model, so the words off their default state, their
+        increments and ``log p(Z | L_lo)`` are computed once for both (the
+        posterior of Eq. 3 needs both terms for every query); the numbers are
+        those of the two separate calls.
+        """
+        if self.normaliser == "mean_field":
+            return self.log_likelihood(obs), mean_field_log_likelihood(self.obs_model, obs)
+        self.prepare_normaliser()
+        assert self._samples is not None
+        inc = self.index.increments(obs)
+        lo = self.index.log_likelihood_lo(obs)
+        ll = self.index.relative_log_likelihood(obs, inc) + lo
+        return ll, log_mean_exp(self._samples.relative_log_likelihood(obs, inc) + lo)
 
 
 def make_map(

@@ -276,8 +276,7 @@ class FabMapSlam:
         else:
             prior = motion_prior(self._belief, self._edge_array(), p_stay=self.p_stay,
                                  p_uniform=self.p_uniform)
-            ll = self.map.log_likelihood(obs)
-            new_ll = self.map.new_place_log_likelihood(obs)
+            ll, new_ll = self.map.log_likelihood_and_new(obs)
             post = location_posterior(ll, prior, new_ll, p_new=self.p_new,
                                       smoothing=self.smoothing)
         best = int(np.argmax(post[:n])) if n else -1

@@ -98,7 +98,11 @@ class FabMap(PlaceRecognizer):
         tours, R@1 0.519 merged, 0.807 separate; gardens_point day_left +
         night_right -> day_right R@1 0.50 merged, 0.45 separate, but R@100P
         0.00 merged, 0.18 separate; day_left + day_right -> night_right R@1
-        0.15 merged, 0.16 separate.
+        0.15 merged, 0.16 separate.  ``"separate"`` is openFABMAP's setting:
+        on the same words openFABMAP 2.0 ranks the same map image first on
+        every webcam query (docs/results/fabmap_openfabmap.md,
+        ``benchmarks/bench_fabmap_openfabmap.py``).  Maps saved before this
+        parameter existed load with ``"merge"`` (``legacy_defaults``).
     confidence : {"margin", "raw"}
         ``"margin"`` (default): each query's column is shifted so that its
         best score is its margin over the best place outside the best
@@ -125,6 +129,8 @@ class FabMap(PlaceRecognizer):
         "bailout": OfType(bool), "p_bailout": Interval(float, 0.0, 1.0, closed="neither"), "seed": Interval(int),
         "tours": Options(("merge", "separate")), "confidence": Options(CONFIDENCE_MODES),
     }
+    #: A map saved before ``tours`` existed merged every tour into one model per place.
+    legacy_defaults: ClassVar[Mapping[str, Any]] = {**PlaceRecognizer.legacy_defaults, "tours": "merge"}
     # A fitted method has one way to be kept: its map file.
     removed_params: ClassVar[Mapping[str, str]] = {"model_path": (
         "a fitted FAB-MAP, model included, is kept in a map file: `topoloc map build --method fabmap ... "
@@ -278,11 +284,10 @@ class FabMap(PlaceRecognizer):
         S = np.empty((len(self.place_ids_) if self.output == "logodds" else n_models, len(items)), dtype=np.float32)
         for j, words in enumerate(items):
             obs = self.obs_model_.observe(words)
-            ll = self.map_.log_likelihood(obs)
             if self.output == "loglik":
-                S[:, j] = ll
+                S[:, j] = self.map_.log_likelihood(obs)
                 continue
-            new_ll = self.map_.new_place_log_likelihood(obs)
+            ll, new_ll = self.map_.log_likelihood_and_new(obs)
             if self.output == "posterior":
                 S[:, j] = location_posterior(ll, None, new_ll, p_new=self.p_new,
                                              smoothing=self.smoothing)[:n_models]
