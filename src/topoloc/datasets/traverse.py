@@ -76,6 +76,10 @@ class Traverse:
         For the in-memory kinds ``images`` holds names only (``<name>/k``).
     frames : tuple, length n, or None
         The in-memory content of each image (None for ``"files"``).
+    source : dict or None
+        Where in-memory frames were read from, when that was a recording: ``{"file": path,
+        "topic", "pose_topic", "every_s", "every_m"}`` (the frame selection; unset ones left out),
+        so that a map can name the tour (:func:`topoloc.datasets.sources.stream_traverse`).
     """
 
     root: Path
@@ -86,6 +90,7 @@ class Traverse:
     name: str = field(default="")
     kind: str = "files"
     frames: tuple[Any, ...] | None = None
+    source: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if len(self.images) != len(self.places):
@@ -175,7 +180,7 @@ class Traverse:
     def take(self, index: Sequence[int] | np.ndarray) -> Traverse:
         """The images at ``index``, in that order, with their places, times, positions and frames.
 
-        The root, name and kind are kept (saved models name tours by them), so
+        The root, name, kind and source are kept (saved models name tours by them), so
         only the images differ.
 
         Parameters
@@ -187,7 +192,8 @@ class Traverse:
         return Traverse(root=self.root, images=tuple(self.images[i] for i in idx), places=self.places[idx],
                         times=None if self.times is None else self.times[idx],
                         xy=None if self.xy is None else self.xy[idx], name=self.name, kind=self.kind,
-                        frames=None if self.frames is None else tuple(self.frames[i] for i in idx))
+                        frames=None if self.frames is None else tuple(self.frames[i] for i in idx),
+                        source=self.source)
 
     def fingerprint(self) -> str:
         """SHA-1 of what the traverse holds: image names, places, times and each file's size (or the frames).
