@@ -13,9 +13,9 @@ same pixels, bit for bit, from every source:
 
 Decoding a JPEG straight to grey (``cv2.IMREAD_GRAYSCALE``) is *not* that path: libjpeg then
 takes the luma channel as stored and skips the colour conversion, which differs from
-``BGR2GRAY`` of the decoded colour in 0.5% of the pixels of gardens_point ``day_left``, by up to
-11 grey levels (measured with ``python -m benchmarks.bench_decode``), so a folder of JPEGs and
-a raw ``bgr8`` bag of the same frames gave different features.  Anything that changes the pixels
+``BGR2GRAY`` of the decoded colour in 0.7% of the pixels of every gardens_point day image, by up
+to 16 grey levels (``python -m benchmarks.bench_decode``, ``docs/results/decode.md``), so a folder
+of JPEGs and a raw ``bgr8`` bag of the same frames gave different features.  Anything that changes the pixels
 this module gives must raise :data:`DECODE_VERSION`, which is part of every feature cache key.
 """
 
