@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import GP, RESULTS, TOPOLOC, VOCAB_FOR_GP, require_data
+from benchmarks.common import GP, RESULTS, TOPOLOC, VOCAB_FOR_GP, marked_sections, require_data
 from topoloc.bench.map_load import bench_map_load
 
 METHODS = ["bow", "coocmap", "fabmap", "fabmap2", "landmarks", "voting", "seqslam"]
@@ -116,7 +116,9 @@ def main() -> None:
     text.append(
         "\nTimings were taken on a shared 2-core machine; read them as orders of magnitude and compare "
         "rows of one run, not runs of different days.\n")
-    (RESULTS / "maps.md").write_text("".join(text))
+    # Sections other benchmarks write into this page (bench_map_order) are kept.
+    kept = marked_sections(RESULTS / "maps.md")
+    (RESULTS / "maps.md").write_text("".join(text) + ("\n" + kept if kept else ""))
     print(f"wrote {RESULTS / 'maps.md'}")
 
 

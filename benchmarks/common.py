@@ -42,6 +42,44 @@ PAIRS: dict[str, tuple[list[Path], Path, list[Path], str]] = {
 }
 
 
+def _markers(name: str) -> tuple[str, str]:
+    return f"<!-- begin {name}: generated -->\n", f"<!-- end {name} -->\n"
+
+
+def write_section(path: Path, name: str, body: str) -> None:
+    """Write ``body`` as the section ``name`` of the results page ``path``, between its markers.
+
+    The section replaces the one of that name, or is appended; the rest of the page is kept, so that
+    several benchmarks write one page (each regenerating its own part).
+    """
+    begin, end = _markers(name)
+    text = path.read_text() if path.is_file() else ""
+    block = begin + body.rstrip("\n") + "\n" + end
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        text = head + block + rest.split(end, 1)[1]
+    else:
+        text = text.rstrip("\n") + ("\n\n" if text else "") + block
+    path.write_text(text)
+
+
+def marked_sections(path: Path) -> str:
+    """Every marked section of ``path`` (:func:`write_section`), for a benchmark that rewrites the rest."""
+    if not path.is_file():
+        return ""
+    text, out = path.read_text(), []
+    while "<!-- begin " in text:
+        start = text.index("<!-- begin ")
+        name = text[start + len("<!-- begin "):].split(":", 1)[0]
+        end = _markers(name)[1]
+        if end not in text[start:]:
+            break
+        stop = text.index(end, start) + len(end)
+        out.append(text[start:stop])
+        text = text[stop:]
+    return "".join(out)
+
+
 def require_data() -> None:
     if not GP.is_dir() or not WEBCAM.is_dir():
         raise SystemExit(f"shared data not found under {DATA} (set TOPOLOC_DATA)")

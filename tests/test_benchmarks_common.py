@@ -93,3 +93,21 @@ def test_the_anchors_file_gives_the_scorecard_anchor_of_the_day_pair(common: Mod
     assert common.best_anchor(anchors, k) == ((0.31, 0.13, 0.41), "OpenSeqSLAM")
     table = common.anchors_table(anchors)
     assert "| 0.31 / 0.13 / 0.41 |" in table and "../shared/scorecard" in table
+
+
+def test_sections_of_a_page_are_replaced_in_place_and_kept_by_a_rewrite(common: ModuleType, tmp_path: Path) -> None:
+    # Two benchmarks write one page (bench_maps the page, bench_map_order its own section).
+    page = tmp_path / "maps.md"
+    page.write_text("# Maps\n\nbody of bench_maps\n")
+    common.write_section(page, "map-order", "## Order\n\nrun 1\n")
+    common.write_section(page, "other", "## Other\n")
+    common.write_section(page, "map-order", "## Order\n\nrun 2\n")
+    text = page.read_text()
+    assert text.startswith("# Maps\n\nbody of bench_maps\n")
+    assert "run 2" in text and "run 1" not in text and text.count("## Order") == 1
+    assert text.index("## Order") < text.index("## Other")  # replaced where it was
+    kept = common.marked_sections(page)
+    assert kept.startswith("<!-- begin map-order") and "run 2" in kept and "## Other" in kept
+    assert "body of bench_maps" not in kept
+    page.write_text("# Maps\n\nnew body\n\n" + kept)  # what bench_maps writes
+    assert common.marked_sections(page) == kept

@@ -67,17 +67,23 @@ def test_config_key_is_stable_and_depends_on_every_field() -> None:
     assert base.key().startswith("sift-")
 
 
-def test_key_without_preprocessing_is_the_key_from_before_it_existed() -> None:
-    # Cache entries written before ``preprocess`` was added stay valid: its default
-    # is left out of the hashed payload.
+def test_key_without_preprocessing_leaves_preprocess_out_and_carries_the_decode_version(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # ``preprocess="none"`` is left out of the hashed payload (as before it existed); the version of
+    # the decode path is in it, so that features of pixels decoded another way are never reused.
     import hashlib
     import json
+
+    from topoloc.datasets.decode import DECODE_VERSION
 
     cfg = FeatureConfig(method="rootsift", max_side=640, preprocess="none")
     old_fields = {"method": "rootsift", "max_features": 1000, "max_side": 640, "contrast_threshold": 0.04,
                   "fast_threshold": 20, "akaze_threshold": 0.001}
-    payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, **old_fields}, sort_keys=True)
+    payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, "decode": DECODE_VERSION,
+                          **old_fields}, sort_keys=True)
     assert cfg.key() == "rootsift-" + hashlib.sha1(payload.encode()).hexdigest()[:12]
+    monkeypatch.setattr(local, "DECODE_VERSION", DECODE_VERSION + 1)
+    assert cfg.key() != "rootsift-" + hashlib.sha1(payload.encode()).hexdigest()[:12]
 
 
 @pytest.mark.parametrize(
@@ -209,13 +215,16 @@ def test_auto_key_carries_the_version_of_its_rule(monkeypatch: pytest.MonkeyPatc
     before = FeatureConfig(preprocess="auto").key()
     monkeypatch.setattr(local, "AUTO_PREPROCESS_VERSION", local.AUTO_PREPROCESS_VERSION + 1)
     assert FeatureConfig(preprocess="auto").key() != before
-    # ... while the values that existed before "auto" keep the key they always had.
+    # ... while the values that existed before "auto" keep the key they always had (with the decode version).
     import hashlib
     import json
 
+    from topoloc.datasets.decode import DECODE_VERSION
+
     fields = {"method": "sift", "max_features": 1000, "max_side": 0, "contrast_threshold": 0.04,
               "fast_threshold": 20, "akaze_threshold": 0.001, "preprocess": "clahe"}
-    payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, **fields}, sort_keys=True)
+    payload = json.dumps({"schema": local.FEATURES_SCHEMA, "opencv": cv2.__version__, "decode": DECODE_VERSION,
+                          **fields}, sort_keys=True)
     assert FeatureConfig(preprocess="clahe").key() == "sift-" + hashlib.sha1(payload.encode()).hexdigest()[:12]
 
 

@@ -395,7 +395,8 @@ def show_match_cmd(
 @app.command()
 @handle_errors
 def slam(
-    traverse: Annotated[Path, typer.Argument(help="Traverse folder, processed in order.")],
+    traverse: Annotated[Path, typer.Argument(
+        help="Traverse folder, ROS bag (.bag, rosbag2 folder; --topic) or video, processed in order.")],
     out: Annotated[Path, typer.Option(help="Output folder.")],
     vocab: VocabOption = None,
     vocab_train: VocabTrainOption = None,
@@ -407,18 +408,24 @@ def slam(
     min_gap: Annotated[int, typer.Option(help="Images between a place's last visit and a loop closure.")] = 10,
     features: FeaturesOption = "sift",
     max_features: MaxFeaturesOption = 1000,
-    max_side: MaxSideOption = 0,
+    max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "auto",
     cache_dir: CacheDirOption = None,
     quiet: QuietOption = False,
+    topic: TopicOption = None,
+    every_s: EverySOption = None,
+    every_m: EveryMOption = None,
+    pose_topic: PoseTopicOption = None,
     html: Annotated[Path | None, typer.Option(
         help="Also write a self-contained HTML page: closures along the route, posterior, image pairs.")] = None,
 ) -> None:
-    """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv)."""
-    from topoloc.datasets.traverse import load_traverse
+    """Online FAB-MAP over one traverse: new places and loop closures (posterior.npy, loop_closures.csv).
+
+    A ROS bag or a video is read as `localize` reads it (--topic, --every-s, --every-m, --pose-topic).
+    """
     from topoloc.evaluation.slam import SLAM_FILES, run_slam
     from topoloc.io.dirs import Output, check_outputs, json_marker
-    from topoloc.spec import FeatureSpec, VocabularySpec
+    from topoloc.spec import FeatureSpec, InputSpec, VocabularySpec
     from topoloc.spec.setup import make_resources
 
     if min_gap < 0:
@@ -434,7 +441,7 @@ def slam(
     if html is not None:
         outputs.append(Output(html, what="HTML page"))
     check_outputs(outputs, [traverse, vocab, *(vocab_train or ()), model, cache_dir])
-    trav = load_traverse(traverse)
+    trav = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic).load([traverse])[0]
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(feature_spec.config(), voc_spec, cache_dir=cache_dir,
                                       needs_vocabulary="slam", progress=progress)

@@ -165,6 +165,7 @@ def map_info(
     quiet: QuietOption = False,
 ) -> None:
     """Method, parameters, places, tours, vocabulary, feature settings, calibration and size of a map."""
+    from topoloc.datasets.sources import describe_source
     from topoloc.maps import Map
 
     info = Map.load(map_file).info()
@@ -176,7 +177,8 @@ def map_info(
             typer.echo(f"tours: {len(value)}")
             for t in value:
                 when = f", {t['start']} .. {t['end']}" if t.get("start") else ""
-                typer.echo(f"  - {t['name']}: {t['n_images']} images, {t['n_places']} places{when} ({t['root']})")
+                where = describe_source(t["source"]) if t.get("source") else t["root"]
+                typer.echo(f"  - {t['name']}: {t['n_images']} images, {t['n_places']} places{when} ({where})")
         else:
             typer.echo(f"{key}: {json.dumps(value, default=str) if isinstance(value, dict | list) else value}")
         if key == "calibration" and isinstance(value, dict) and value.get("stale"):

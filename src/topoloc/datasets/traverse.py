@@ -15,32 +15,33 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import io
 import logging
 import math
 import re
 import uuid
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
+# Decoding lives in one module that every source shares; these names are re-exported for their callers.
+from topoloc.datasets.decode import (  # noqa: F401
+    MAX_IMAGE_PIXELS,
+    check_image_size,
+    image_header_size,
+    read_image,
+    to_bgr,
+    to_gray,
+)
 from topoloc.errors import TopolocError, input_error
 
 IMAGE_SUFFIXES = frozenset(
     {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 )
 SIDECAR = "places.csv"
-#: Most pixels (width x height) an image may have.  The size is read from the file's header and a
-#: larger image is refused before it is decoded: a few megabytes of PNG can announce 32000 x 32000
-#: pixels, 1 GB grey and 3 GB BGR once decoded.  2**28 (268 million) is above the largest camera
-#: sensors (200 megapixels, 805 MB BGR at most).
-MAX_IMAGE_PIXELS = 1 << 28
 log = logging.getLogger(__name__)
 TRAVERSE_KINDS = ("files", "images", "features", "words")
 
@@ -75,6 +76,10 @@ class Traverse:
         For the in-memory kinds ``images`` holds names only (``<name>/k``).
     frames : tuple, length n, or None
         The in-memory content of each image (None for ``"files"``).
+    source : dict or None
+        Where in-memory frames were read from, when that was a recording: ``{"file": path,
+        "topic", "pose_topic", "every_s", "every_m"}`` (the frame selection; unset ones left out),
+        so that a map can name the tour (:func:`topoloc.datasets.sources.stream_traverse`).
     """
 
     root: Path
@@ -85,6 +90,7 @@ class Traverse:
     name: str = field(default="")
     kind: str = "files"
     frames: tuple[Any, ...] | None = None
+    source: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if len(self.images) != len(self.places):
@@ -174,7 +180,7 @@ class Traverse:
     def take(self, index: Sequence[int] | np.ndarray) -> Traverse:
         """The images at ``index``, in that order, with their places, times, positions and frames.
 
-        The root, name and kind are kept (saved models name tours by them), so
+        The root, name, kind and source are kept (saved models name tours by them), so
         only the images differ.
 
         Parameters
@@ -186,7 +192,8 @@ class Traverse:
         return Traverse(root=self.root, images=tuple(self.images[i] for i in idx), places=self.places[idx],
                         times=None if self.times is None else self.times[idx],
                         xy=None if self.xy is None else self.xy[idx], name=self.name, kind=self.kind,
-                        frames=None if self.frames is None else tuple(self.frames[i] for i in idx))
+                        frames=None if self.frames is None else tuple(self.frames[i] for i in idx),
+                        source=self.source)
 
     def fingerprint(self) -> str:
         """SHA-1 of what the traverse holds: image names, places, times and each file's size (or the frames).
@@ -225,11 +232,7 @@ class Traverse:
         if self.kind != "images" or self.frames is None:
             raise TopolocError(f"traverse {self.name!r} holds {self.kind}, not images")
         img = self.frames[index]
-        if gray and img.ndim == 3:
-            return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        if not gray and img.ndim == 2:
-            return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-        return img
+        return to_gray(img) if gray else to_bgr(img)
 
     def __len__(self) -> int:
         return len(self.images)
@@ -400,93 +403,3 @@ def find_images(folders: list[Path] | list[str]) -> list[Path]:
             raise input_error("no images found under folder", f)
         out.extend(found)
     return out
-
-
-def image_header_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
-    """Width and height an encoded image announces in its header, without decoding it.
-
-    Parameters
-    ----------
-    data : bytes or ndarray of uint8
-        The encoded file (PNG, JPEG, TIFF, WebP, BMP, PPM/PGM...).
-
-    Returns
-    -------
-    (width, height) or None
-        None when Pillow does not know the format (OpenCV then decides).
-    """
-    from PIL import Image
-
-    buf = data if isinstance(data, bytes) else np.ascontiguousarray(data).data
-    try:
-        with warnings.catch_warnings():
-            # Pillow warns of (and past twice its own limit, refuses) large images: the size is what we need.
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(io.BytesIO(buf)) as im:
-                width, height = im.size
-    except Image.DecompressionBombError as exc:
-        # Pillow refuses to report sizes past twice its own limit, which is above ours.
-        match = re.search(r"\((\d+) pixels\)", str(exc))
-        pixels = int(match.group(1)) if match else MAX_IMAGE_PIXELS + 1
-        return pixels, 1
-    except Exception:  # any format Pillow cannot parse is left to OpenCV
-        return None
-    return int(width), int(height)
-
-
-def check_image_size(data: bytes | np.ndarray, where: str | Path, *, context: str = "") -> None:
-    """Refuse an encoded image whose header announces more than :data:`MAX_IMAGE_PIXELS` pixels.
-
-    Parameters
-    ----------
-    data : bytes or ndarray of uint8
-        The encoded image.
-    where : str or Path
-        The file the message names.
-    context : str
-        Said before the problem (``"topic /cam, message 3: "``).
-
-    Raises
-    ------
-    TopolocError
-        One line naming ``where`` (the file, or the message of a recording).
-    """
-    size = image_header_size(data)
-    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
-        shown = f"{size[0]}x{size[1]} pixels" if size[1] > 1 else f"{size[0]} pixels"
-        raise input_error(f"{context}image is too large to decode ({shown}, more than {MAX_IMAGE_PIXELS} pixels)",
-                          where)
-
-
-def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
-    """Read an image with OpenCV.
-
-    The size announced in the file's header is checked first, so an image of
-    more than :data:`MAX_IMAGE_PIXELS` pixels is refused before any memory is
-    spent decoding it.
-
-    Returns
-    -------
-    ndarray of uint8, shape (H, W) if ``gray`` else (H, W, 3) BGR
-
-    Raises
-    ------
-    TopolocError
-        If the file is missing, empty, too large or cannot be decoded.
-    """
-    path = Path(path)
-    try:
-        buf = np.fromfile(path, dtype=np.uint8)
-    except OSError:
-        raise input_error("cannot open image", path) from None
-    if buf.size == 0:
-        raise input_error("image file is empty", path)
-    check_image_size(buf, path)
-    try:
-        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    except cv2.error:
-        # OpenCV refuses some headers itself (a size past its own limit) with an exception.
-        img = None
-    if img is None or img.size == 0:
-        raise input_error("image is corrupt or not a supported format", path)
-    return img

@@ -184,7 +184,8 @@ def run_slam(
                          f"{step.probability:.6f}\n")
                 fh.flush()
     result = slam.result
-    result.params["traverse"] = str(tr.root)
+    # A recording is named by its file (an in-memory traverse's root is a placeholder).
+    result.params["traverse"] = str(tr.source["file"]) if tr.source and "file" in tr.source else str(tr.root)
     result.params["images"] = [p.name for p in tr.images]
     write_slam_outputs(result, out, plot=plot)
     progress_csv.unlink(missing_ok=True)

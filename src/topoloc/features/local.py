@@ -40,7 +40,7 @@ import numpy as np
 
 from topoloc._parallel import n_workers
 from topoloc._params import Configurable, Constraint, Interval, Options
-from topoloc.datasets.traverse import read_image
+from topoloc.datasets.decode import DECODE_VERSION, read_image, to_gray
 from topoloc.errors import TopolocError, input_error
 from topoloc.features.cache import default_cache_dir, file_sha1
 from topoloc.io import read_container, write_container
@@ -140,8 +140,10 @@ class FeatureConfig(Configurable):
     def key(self) -> str:
         """Stable short identifier of these settings, e.g. ``"sift-3f2a9c0d1b7e"``.
 
-        A hash of every field, :data:`FEATURES_SCHEMA` and the OpenCV version
-        (whose detectors may change between releases), used as cache key.
+        A hash of every field, :data:`FEATURES_SCHEMA`, the OpenCV version
+        (whose detectors may change between releases) and the version of the
+        decode path (:data:`topoloc.datasets.decode.DECODE_VERSION`, which sets the
+        pixels features are extracted from), used as cache key.
         """
         fields = asdict(self)
         if fields["preprocess"] == "none":
@@ -150,7 +152,9 @@ class FeatureConfig(Configurable):
         elif fields["preprocess"] == "auto":
             # The per-image rule may be refined; its version keeps old entries from being reused.
             fields["auto_version"] = AUTO_PREPROCESS_VERSION
-        payload = json.dumps({"schema": FEATURES_SCHEMA, "opencv": cv2.__version__, **fields}, sort_keys=True)
+        # The decode version: features of the same file differ when its pixels are decoded differently.
+        payload = json.dumps({"schema": FEATURES_SCHEMA, "opencv": cv2.__version__, "decode": DECODE_VERSION,
+                              **fields}, sort_keys=True)
         return f"{self.method}-{hashlib.sha1(payload.encode()).hexdigest()[:12]}"
 
     @property
@@ -280,20 +284,6 @@ def _detector(config: FeatureConfig) -> Any:
     return det
 
 
-def _to_gray(image: np.ndarray) -> np.ndarray:
-    if image.dtype != np.uint8:
-        raise ValueError(f"expected a uint8 image, got dtype {image.dtype}")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.ndim == 2:
-        return np.ascontiguousarray(image)
-    if image.ndim == 3 and image.shape[2] == 3:
-        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
-    raise ValueError(f"expected a gray (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
-
-
 #: Longest image side features are extracted at, whatever ``max_side`` says: a 48-megapixel photo
 #: described at full size made SIFT's scale space take about 11 GB; at this cap it stays below 1 GB.
 #: Larger images are downscaled (keypoints are still reported in original pixels).
@@ -420,7 +410,7 @@ def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
         If the method is not available in this OpenCV build.
     """
     t0 = time.perf_counter()
-    gray = _to_gray(image)
+    gray = to_gray(image)
     h, w = gray.shape
     work, sx, sy = _downscale(gray, config.max_side)
     work = _normalise(work, config.preprocess)

@@ -150,7 +150,7 @@ class BlockResult:
 
 def _extract_one(path: str, config: FeatureConfig) -> FeatureSet:
     """Decode one image file and extract its features; ``extract_ms`` includes decoding (as the cache does)."""
-    from topoloc.datasets.traverse import read_image
+    from topoloc.datasets.decode import read_image
 
     t0 = time.perf_counter()
     fs = extract_features(read_image(path), config)

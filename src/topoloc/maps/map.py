@@ -55,14 +55,25 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
     from topoloc.evaluation.pairs import first_images
 
     rec: dict[str, Any] = {
-        "name": tour.name, "root": str(tour.root) if tour.kind == "files" else f"<{tour.kind} in memory>",
+        "name": tour.name, "root": _tour_root(tour),
         "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": tour.fingerprint(),
         "median_hour": tour.median_time_of_day(), "start": None, "end": None,
         "place_images": [[p, name] for p, name in sorted(first_images(tour).items())],
     }
     if tour.times is not None and len(tour.times):
         rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
+    if tour.source is not None:
+        rec["source"] = dict(tour.source)  # a recording: its file and frame selection
     return rec
+
+
+def _tour_root(tour: Traverse) -> str:
+    """A tour's folder, the recording it was read from, or ``<images in memory>``."""
+    if tour.kind == "files":
+        return str(tour.root)
+    if tour.source is not None and "file" in tour.source:
+        return str(tour.source["file"])
+    return f"<{tour.kind} in memory>"
 
 
 def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
@@ -219,7 +230,8 @@ class Map:
         m = cls.from_fitted(rec, maps, features=config, vocabulary=voc)
         m.spec = spec_to_dict(MapBuildSpec(
             method=method, params=rec.get_params(), shards=shards,
-            maps=tuple(Path(t.root) if t.kind == "files" else Path(f"<{t.name} in memory>") for t in maps),
+            maps=tuple(Path(t.root) if t.kind == "files" else Path(_tour_root(t)) if t.source is not None
+                       else Path(f"<{t.name} in memory>") for t in maps),
             features=spec or FeatureSpec(method=config.method, max_features=config.max_features,
                                          max_side=config.max_side, preprocess=config.preprocess),
             vocabulary=voc_source if isinstance(voc_source, VocabularySpec) else VocabularySpec()))

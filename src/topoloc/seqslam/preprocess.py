@@ -28,6 +28,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from topoloc.datasets.decode import to_gray
+
 
 @lru_cache(maxsize=16)
 def _patch_labels(height: int, width: int, patch_size: int) -> tuple[np.ndarray, int]:
@@ -107,10 +109,10 @@ def preprocess_image(
     -------
     ndarray of uint8, shape (height * width,)
     """
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:
         img = np.clip(img, 0, 255).astype(np.uint8)
+    if img.ndim == 3:
+        img = to_gray(img)  # the conversion every source's frames get
     if img.shape != (height, width):
         shrink = img.shape[0] >= height and img.shape[1] >= width
         img = cv2.resize(

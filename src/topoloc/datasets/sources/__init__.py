@@ -11,8 +11,10 @@ from topoloc.datasets.sources.base import (
     Frame,
     FrameSource,
     Keyframes,
+    describe_source,
     is_bag,
     is_stream_input,
+    recording_source,
     stream_traverse,
 )
 from topoloc.datasets.sources.recording import load_input, open_source
@@ -22,9 +24,11 @@ __all__ = [
     "Frame",
     "FrameSource",
     "Keyframes",
+    "describe_source",
     "is_bag",
     "is_stream_input",
     "load_input",
     "open_source",
+    "recording_source",
     "stream_traverse",
 ]

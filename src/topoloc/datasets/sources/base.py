@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple, Protocol
 
@@ -164,5 +164,32 @@ def stream_traverse(source: FrameSource, *, name: str | None = None) -> Traverse
     if source.absolute_time:
         stamps = np.asarray([round(t * 1e3) for t in times], dtype=np.int64).astype("datetime64[ms]")
     label = name or source.path.name
-    return Traverse.from_images(images, name=label, times=stamps,
+    trav = Traverse.from_images(images, name=label, times=stamps,
                                 xy=np.asarray(xy, dtype=np.float64) if have_xy else None)
+    return replace(trav, source=recording_source(source))
+
+
+def recording_source(source: FrameSource) -> dict[str, Any]:
+    """The file and frame selection of a recording: what a map records to name a tour read from it.
+
+    ``{"file": absolute path, "topic", "pose_topic", "every_s", "every_m"}``, leaving out those that are
+    unset (a video has no topic).
+    """
+    keyframes = getattr(source, "keyframes", None)
+    found = {"file": str(Path(source.path).resolve()), "topic": getattr(source, "topic", None),
+             "pose_topic": getattr(source, "pose_topic", None),
+             "every_s": getattr(keyframes, "every_s", None), "every_m": getattr(keyframes, "every_m", None)}
+    return {k: v for k, v in found.items() if v is not None}
+
+
+def describe_source(source: Mapping[str, Any]) -> str:
+    """``"rec.bag, topic /cam, every 2 m"``: a recording's file and frame selection in words."""
+    parts = [str(source.get("file", "?"))]
+    if source.get("topic"):
+        parts.append(f"topic {source['topic']}")
+    if source.get("every_s") is not None:
+        parts.append(f"every {source['every_s']:g} s")
+    if source.get("every_m") is not None:
+        parts.append(f"every {source['every_m']:g} m" + (f" of {source['pose_topic']}" if source.get("pose_topic")
+                                                          else ""))
+    return ", ".join(parts)

@@ -22,33 +22,28 @@ from typing import Any
 import cv2
 import numpy as np
 
+from topoloc.datasets.decode import decode_bytes, to_bgr, to_gray
 from topoloc.datasets.projection import UTMProjection
 from topoloc.datasets.sources.base import Frame, Keyframes
-from topoloc.datasets.traverse import check_image_size
 from topoloc.errors import TopolocError, input_error
 
 IMAGE_TYPES = ("sensor_msgs/Image", "sensor_msgs/CompressedImage")
 POSE_TYPES = ("nav_msgs/Odometry", "geometry_msgs/PoseStamped", "geometry_msgs/PoseWithCovarianceStamped",
               "sensor_msgs/NavSatFix")
 
-# encoding -> (bytes per channel, channels, cv2 code to grey, cv2 code to BGR); None = already that.
-_G, _B = cv2.COLOR_BGR2GRAY, None
-ENCODINGS: dict[str, tuple[int, int, int | None, int | None]] = {
-    "mono8": (1, 1, None, cv2.COLOR_GRAY2BGR), "8uc1": (1, 1, None, cv2.COLOR_GRAY2BGR),
-    "mono16": (2, 1, None, cv2.COLOR_GRAY2BGR), "16uc1": (2, 1, None, cv2.COLOR_GRAY2BGR),
-    "bgr8": (1, 3, _G, _B), "8uc3": (1, 3, _G, _B), "bgr16": (2, 3, _G, _B), "16uc3": (2, 3, _G, _B),
-    "rgb8": (1, 3, cv2.COLOR_RGB2GRAY, cv2.COLOR_RGB2BGR), "rgb16": (2, 3, cv2.COLOR_RGB2GRAY, cv2.COLOR_RGB2BGR),
-    "bgra8": (1, 4, cv2.COLOR_BGRA2GRAY, cv2.COLOR_BGRA2BGR), "8uc4": (1, 4, cv2.COLOR_BGRA2GRAY, cv2.COLOR_BGRA2BGR),
-    "rgba8": (1, 4, cv2.COLOR_RGBA2GRAY, cv2.COLOR_RGBA2BGR),
+# encoding -> (bytes per channel, channels, cv2 code to BGR); None = already BGR, BGRA or grey.  Every
+# frame is brought to BGR (or kept grey) as stored and then converted to grey by the one
+# ``datasets.decode.to_gray``, as image files are, so the same frame gives the same pixels from either.
+ENCODINGS: dict[str, tuple[int, int, int | None]] = {
+    "mono8": (1, 1, None), "8uc1": (1, 1, None), "mono16": (2, 1, None), "16uc1": (2, 1, None),
+    "bgr8": (1, 3, None), "8uc3": (1, 3, None), "bgr16": (2, 3, None), "16uc3": (2, 3, None),
+    "rgb8": (1, 3, cv2.COLOR_RGB2BGR), "rgb16": (2, 3, cv2.COLOR_RGB2BGR),
+    "bgra8": (1, 4, None), "8uc4": (1, 4, None), "rgba8": (1, 4, cv2.COLOR_RGBA2BGR),
     # ROS names the Bayer pattern from the top-left pixel, OpenCV from the second row (as cv_bridge maps them).
-    "bayer_rggb8": (1, 1, cv2.COLOR_BayerBG2GRAY, cv2.COLOR_BayerBG2BGR),
-    "bayer_bggr8": (1, 1, cv2.COLOR_BayerRG2GRAY, cv2.COLOR_BayerRG2BGR),
-    "bayer_gbrg8": (1, 1, cv2.COLOR_BayerGR2GRAY, cv2.COLOR_BayerGR2BGR),
-    "bayer_grbg8": (1, 1, cv2.COLOR_BayerGB2GRAY, cv2.COLOR_BayerGB2BGR),
-    "uyvy": (1, 2, cv2.COLOR_YUV2GRAY_UYVY, cv2.COLOR_YUV2BGR_UYVY),
-    "yuv422": (1, 2, cv2.COLOR_YUV2GRAY_UYVY, cv2.COLOR_YUV2BGR_UYVY),
-    "yuyv": (1, 2, cv2.COLOR_YUV2GRAY_YUYV, cv2.COLOR_YUV2BGR_YUYV),
-    "yuv422_yuy2": (1, 2, cv2.COLOR_YUV2GRAY_YUYV, cv2.COLOR_YUV2BGR_YUYV),
+    "bayer_rggb8": (1, 1, cv2.COLOR_BayerBG2BGR), "bayer_bggr8": (1, 1, cv2.COLOR_BayerRG2BGR),
+    "bayer_gbrg8": (1, 1, cv2.COLOR_BayerGR2BGR), "bayer_grbg8": (1, 1, cv2.COLOR_BayerGB2BGR),
+    "uyvy": (1, 2, cv2.COLOR_YUV2BGR_UYVY), "yuv422": (1, 2, cv2.COLOR_YUV2BGR_UYVY),
+    "yuyv": (1, 2, cv2.COLOR_YUV2BGR_YUYV), "yuv422_yuy2": (1, 2, cv2.COLOR_YUV2BGR_YUYV),
 }
 MISSING_EXTRA = "reading ROS bags needs the rosbags package: pip install 'topoloc[ros]'"
 
@@ -80,22 +75,14 @@ def decode_image(msg: Any, msgtype: str, *, gray: bool, where: str, path: Path) 
         fmt = str(getattr(msg, "format", ""))
         if "compresseddepth" in fmt.lower().replace(" ", ""):
             raise input_error(f"{where}: compressedDepth images are not supported (format {fmt!r})", path)
-        if data.size:
-            check_image_size(data, path, context=f"{where}: ")
-        try:
-            img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) if data.size else None
-        except cv2.error:  # OpenCV refuses some headers itself (a size past its own limit)
-            img = None
-        if img is None or img.size == 0:
-            raise input_error(f"{where}: compressed image (format {fmt!r}) is corrupt or not a format OpenCV "
-                              "can decode", path)
-        return img
+        # The same decoding as an image file's, so a frame gives the same pixels from a folder or a bag.
+        return decode_bytes(data, path, gray=gray, context=f"{where} (format {fmt!r}): compressed ")
     encoding = str(msg.encoding)
     spec = ENCODINGS.get(encoding.strip().lower())
     if spec is None:
         raise input_error(f"{where}: image encoding {encoding!r} is not supported (supported: "
                           f"{', '.join(sorted(ENCODINGS))})", path)
-    size, channels, to_gray, to_bgr = spec
+    size, channels, code = spec
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     row = w * channels * size
     if h <= 0 or w <= 0 or step < row or data.size < step * (h - 1) + row:
@@ -109,9 +96,10 @@ def decode_image(msg: Any, msgtype: str, *, gray: bool, where: str, path: Path) 
     else:
         pixels = np.ascontiguousarray(rows)
     pixels = pixels.reshape(h, w, channels) if channels > 1 else pixels.reshape(h, w)
-    code = to_gray if gray else to_bgr
-    out = pixels if code is None else cv2.cvtColor(pixels, code)
-    return np.ascontiguousarray(out)
+    if code is None:
+        return to_gray(pixels) if gray else to_bgr(pixels)
+    bgr = to_bgr(pixels, code)
+    return to_gray(bgr) if gray else bgr
 
 
 def _stamp(msg: Any) -> float | None:

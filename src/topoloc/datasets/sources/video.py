@@ -18,8 +18,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import cv2
-import numpy as np
 
+from topoloc.datasets.decode import to_bgr, to_gray
 from topoloc.datasets.sources.base import Frame, Keyframes
 from topoloc.errors import input_error
 
@@ -78,9 +78,9 @@ class VideoSource:
                     ok, img = cap.retrieve()
                     if not ok or img is None or img.size == 0:
                         raise input_error(f"frame {k} of the video cannot be decoded", self.path)
-                    if self.gray and img.ndim == 3:
-                        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-                    yield Frame(t, np.ascontiguousarray(img), f"{name}#{k}", None)
+                    # OpenCV gives video frames as BGR; the conversion is the one image files get.
+                    img = to_gray(img) if self.gray else to_bgr(img)
+                    yield Frame(t, img, f"{name}#{k}", None)
                 k += 1
             if k < self._count and self.path.suffix.lower() in COUNTED_SUFFIXES:
                 raise input_error(f"frame {k} of the video cannot be read (damaged, or the file ends early: "
