@@ -26,11 +26,12 @@ from topoloc.spec.parts import AUTO_MAX_SIDE
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20},
                                    "coocmap": {"top_k": 3}}
 # ``descriptors`` reads global descriptors computed elsewhere (descriptors.npy), never the images, so
-# image sizes cannot change it; ``landmarks`` adds a tour at the existing nodes by design (a tour given at
-# build time makes nodes of its own with tours="separate"), so it is tested with tours="first", where
-# adding equals building.
+# image sizes cannot change it.  ``landmarks`` is tested in both tour modes: with tours="first" a
+# later tour is learned online as fitting learns it; with the default "separate" a map refits on its
+# earlier tours and the new one (``add_tour_refits``).
 METHODS = [n for n in available_methods() if get_method(n).tags.adds_tours and n != "descriptors"]
-PARAMS = {**FAST, "landmarks": {"tours": "first"}}
+CASES = [pytest.param(n, FAST.get(n, {}), id=n) for n in METHODS] + [
+    pytest.param("landmarks", {"tours": "first"}, id="landmarks-first")]
 
 
 def _resize_tour(src: Path, dst: Path, size: tuple[int, int]) -> Path:
@@ -60,13 +61,14 @@ def tours(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 
 @pytest.mark.parametrize("size", ["above", "below"])
-@pytest.mark.parametrize("method", METHODS)
-def test_build_of_both_tours_equals_build_then_add(tours: dict[str, Any], method: str, size: str) -> None:
+@pytest.mark.parametrize(("method", "params"), CASES)
+def test_build_of_both_tours_equals_build_then_add(tours: dict[str, Any], method: str, params: dict[str, Any],
+                                                   size: str) -> None:
     a, b, c, cache = tours["A"], tours["B"][size], tours["C"], tours["cache"]
     if not get_method(method).tags.adds_places:
         b = b.take(np.flatnonzero(np.isin(b.places, a.places)))  # it learns at A's places only
     # max_side="auto", the default; fewer features than the default only to keep the test short.
-    common: dict[str, Any] = {"method": method, "params": PARAMS.get(method, {}),
+    common: dict[str, Any] = {"method": method, "params": params,
                               "features": FeatureSpec(max_features=300), "cache_dir": cache}
     if get_method(method).uses_vocabulary:
         common.update(vocab_train=[tours["train"]], vocab_words=200)
@@ -79,3 +81,26 @@ def test_build_of_both_tours_equals_build_then_add(tours: dict[str, Any], method
     assert same >= 0.99, f"{method}: same best place for {same:.0%} of the frames"
     if get_method(method).tags.adds_tours_exactly or method == "landmarks":
         np.testing.assert_allclose(S_added, S_both, rtol=1e-9, atol=1e-9, err_msg=method)
+
+
+def test_a_map_that_refits_to_add_needs_its_earlier_tours_unchanged(tours: dict[str, Any],
+                                                                    tmp_path: Path) -> None:
+    import shutil
+
+    from topoloc.errors import TopolocError
+
+    a = tmp_path / "a"
+    shutil.copytree(tours["A"].root, a)
+    b = tours["B"]["above"]
+    b = b.take(np.flatnonzero(np.isin(b.places, tours["A"].places)))
+    common: dict[str, Any] = {"method": "landmarks", "features": FeatureSpec(max_features=300),
+                              "cache_dir": tours["cache"]}
+    m = Map.build(tours=[a], **common)
+    assert m.recognizer.add_tour_refits
+    victim = sorted(a.glob("*.jpg"))[0]
+    victim.write_bytes(sorted(b.root.glob("*.jpg"))[0].read_bytes())  # other pixels, same name
+    with pytest.raises(TopolocError, match="has changed since the map was built"):
+        m.add_tour(b, cache_dir=tours["cache"])
+    shutil.rmtree(a)
+    with pytest.raises(TopolocError, match="its folder is gone"):
+        m.add_tour(b, cache_dir=tours["cache"])

@@ -67,6 +67,36 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
     return rec
 
 
+def reload_tour(rec: dict[str, Any]) -> Traverse:
+    """The tour a map's tour record names, read again from its folder or recording.
+
+    Raises
+    ------
+    TopolocError
+        One line naming the tour: it was held in memory, is gone, or its images or
+        places differ from those the map was built from (another fingerprint).
+    """
+    root = str(rec.get("root", ""))
+    if root.startswith("<"):
+        raise TopolocError(f"tour {rec.get('name')!r} of the map was built from images in memory, which cannot "
+                           "be read again to add a tour: build the map from all tours")
+    src = rec.get("source") or {}
+    if src:
+        from topoloc.datasets.sources import load_input
+
+        t = load_input(Path(src["file"]), topic=src.get("topic"), every_s=src.get("every_s"),
+                       every_m=src.get("every_m"), pose_topic=src.get("pose_topic"))
+    else:
+        if not Path(root).is_dir():
+            raise input_error(f"tour {rec.get('name')!r} of the map is needed again to add a tour, but its "
+                              "folder is gone", root)
+        t = load_traverse(root)
+    if t.fingerprint() != rec["fingerprint"]:
+        raise input_error(f"tour {rec.get('name')!r} has changed since the map was built (other images or "
+                          "places): build the map again", root)
+    return t
+
+
 def _tour_root(tour: Traverse) -> str:
     """A tour's folder, the recording it was read from, or ``<images in memory>``."""
     if tour.kind == "files":
@@ -258,12 +288,20 @@ class Map:
         if any(old["fingerprint"] == rec["fingerprint"] for old in self.tours):
             raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
                               self.path or t.root)
-        old_ids = self.place_ids
-        self.recognizer.add_tour(t, resources=self.resources(cache_dir=cache_dir, progress=progress,
-                                                             executor=executor))
-        sums = _xy_sums([t], self.place_ids)
-        sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
-        self.xy_sums = sums
+        res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
+        if self.recognizer.add_tour_refits:
+            # Adding online would describe the map otherwise than building it from all tours:
+            # refit on the earlier tours (read again, checked unchanged) and this one.
+            tours = [reload_tour(old) for old in self.tours] + [t]
+            rec_ = build_method(self.recognizer.name, self.recognizer.get_params())
+            self.recognizer = rec_.fit(tours, resources=res)
+            self.xy_sums = _xy_sums(tours, self.place_ids)
+        else:
+            old_ids = self.place_ids
+            self.recognizer.add_tour(t, resources=res)
+            sums = _xy_sums([t], self.place_ids)
+            sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
+            self.xy_sums = sums
         self.tours.append(rec)
         self._mark_stale(rec["name"])
         return self

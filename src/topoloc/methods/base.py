@@ -228,6 +228,17 @@ class PlaceRecognizer(Configurable, ABC):
         return self.score(self.encode(query, resources=resources))
 
     # -- saved maps and later tours ------------------------------------------------------------
+    @property
+    def add_tour_refits(self) -> bool:
+        """Whether :meth:`add_tour` on these parameters scores otherwise than fitting on all tours.
+
+        A map (:meth:`topoloc.Map.add_tour`) then refits the method on its
+        earlier tours and the new one, so that the map is the same however its
+        tours came in (issue 27).  By default: when the method cannot add
+        tours exactly (``tags.adds_tours_exactly``) but can add them.
+        """
+        return self.tags.adds_tours and not self.tags.adds_tours_exactly
+
     def add_tour(self, tour: Traverse, *, resources: Resources | None = None) -> Self:
         """Add a further tour to the fitted map without revisiting the earlier images.
 

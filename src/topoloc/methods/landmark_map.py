@@ -194,6 +194,13 @@ class LandmarkMap(PlaceRecognizer):
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         self._build(maps, resources, None)
 
+    @property
+    def add_tour_refits(self) -> bool:
+        """With ``tours="first"`` a later tour is learned online exactly as fitting learns it;
+        with ``"separate"`` fitting makes its images nodes and the model (image area, background
+        sample) is learned from every node tour, which adding online cannot reproduce."""
+        return self.tours == "separate"
+
     def _node_tours(self, maps: list[Traverse]) -> list[Traverse]:
         """The traverses whose images are nodes: the first, or all with ``tours="separate"``."""
         return list(maps) if self.tours == "separate" else list(maps[:1])
