@@ -661,7 +661,10 @@ class Localizer:
     With ``sequence = N > 0`` each frame is matched together with the ``N``
     frames before it (causal: frame ``i`` uses only frames ``<= i``), by the
     same search as ``evaluate --sequence`` on the last ``N + 1`` score
-    columns, so its result equals the batch result for that frame.  Methods
+    columns, so its result equals the batch result for that frame; its
+    ``score`` is then the sequence confidence (the best path's margin over
+    the best path elsewhere on the route, :mod:`topoloc.sequence.confidence`),
+    which :meth:`Map.calibrate_on` with the same ``sequence`` calibrates.  Methods
     that score whole sequences (SeqSLAM) keep their own last ``ds + 1`` frames.
     """
 
