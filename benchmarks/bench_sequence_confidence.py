@@ -45,8 +45,8 @@ from topoloc.sequence.confidence import stretch_reference
 
 LENGTH = 10
 STRETCH = sequence_stretch(LENGTH)
-DEFAULT_ROWS = ("gp_night_2tours", "gp_night", "nordland")
-DEFAULT_METHODS = ("coocmap", "bow", "fabmap2", "seqslam-single")
+DEFAULT_ROWS = ("gp_night_2tours", "gp_night", "gp_night_left", "nordland")
+DEFAULT_METHODS = ("coocmap", "bow", "fabmap", "fabmap2", "landmarks", "voting", "seqslam-single")
 MODES = ("constant", "acceleration")
 DEFAULT = "stretch + peak"
 
