@@ -105,8 +105,9 @@ def render(results: dict[str, dict[str, dict[str, dict[str, float]]]]) -> str:
         "The `default` column is the method's default `confidence`. `descriptors` is not in the table: the "
         "development data hold no descriptors computed elsewhere (its margin is the same function, tested in "
         "`tests/methods/test_confidence_param.py`). With `--sequence N` the search normalises each column by "
-        "its mean and spread, so it gives the same result from either `S`; its output (the negated sequence "
-        "cost) is not shifted again.\n\n",
+        "its mean and spread, so it gives the same result from either `S`; its output gets a confidence of its "
+        "own, the best path's margin over the best path outside its stretch of the route "
+        "([sequence_confidence.md](sequence_confidence.md)).\n\n",
     ]
     for row, methods in results.items():
         lines += [f"## {row}: {ROWS[row][4]}\n\n"]

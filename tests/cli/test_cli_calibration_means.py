@@ -94,3 +94,27 @@ def test_map_add_marks_the_calibration_stale_until_calibrated_again(cli: Cli, rf
     caplog.clear()
     cli.ok(["localize", str(tlm), str(rf["query"]), "--out", str(out), "--quiet"])
     assert not any("predates" in r.getMessage() for r in caplog.records)
+
+
+def test_calibration_records_the_sequence_matching_that_localize_then_applies(
+        cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    tlm = _build(cli, rf, tmp_path / "route.tlm")
+    base = ["map", "calibrate", str(tlm), "--query", str(rf["query"]), "--tolerance", "1", "--precision", "0.5",
+            "--cache-dir", str(rf["cache"]), "--quiet"]
+
+    def scores(*extra: str) -> list[float]:
+        out = tmp_path / "lines.jsonl"
+        cli.ok(["localize", str(tlm), str(rf["query"]), "--out", str(out), "--quiet", *extra])
+        return [json.loads(x)["score"] for x in out.read_text().splitlines()]
+
+    single = scores()  # not calibrated: single images, as before
+    assert json.loads(cli.ok(base))["sequence"] == {"length": 10, "mode": "constant"}  # the stream default
+    assert scores() == scores("--sequence", "10") != single
+    caplog.clear()
+    assert scores("--sequence", "0") == single
+    assert "calibrated on sequences of 11 frames (constant), not on single images" in caplog.text
+    assert json.loads(cli.ok([*base, "--sequence", "0"]))["sequence"] == {"length": 0, "mode": "constant"}
+    assert scores() == single
+    assert json.loads(cli.ok([*base, "--sequence", "3", "--sequence-mode", "acceleration"]))["sequence"] == {
+        "length": 3, "mode": "acceleration"}
+    assert scores() == scores("--sequence", "3", "--sequence-mode", "acceleration")

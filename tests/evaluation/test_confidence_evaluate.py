@@ -50,6 +50,16 @@ def test_sequence_matching_gives_the_same_result_from_either(route: Path, tmp_pa
     _, S = _evaluate(route, tmp_path / "margin", "--sequence", "3")
     np.testing.assert_allclose(S, S_raw, rtol=1e-4, atol=1e-4)
 
+    # Both modes carry the sequence confidence: the best path's margin over the best path outside its stretch.
+    from topoloc.sequence import sequence_similarity, stretch_margin
+
+    _, S_single = _evaluate(route, tmp_path / "single", "--param", "confidence=raw")
+    for mode in ("constant", "acceleration"):
+        _, S_seq = _evaluate(route, tmp_path / mode, "--sequence", "3", "--sequence-mode", mode)
+        raw = sequence_similarity(S_single, ds=3, mode=mode, confidence="raw")  # type: ignore[arg-type]
+        np.testing.assert_allclose(S_seq, stretch_margin(raw, stretch=3), rtol=1e-4, atol=1e-4)
+        assert (S_seq.max(axis=0) >= 0).all()
+
 
 def test_a_bad_confidence_stops_before_any_image_is_read(route: Path, tmp_path: Path) -> None:
     r = runner.invoke(app, ["evaluate", "--method", "bow", "--map", str(route / "route" / "tour_1000"),

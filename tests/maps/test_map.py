@@ -76,6 +76,23 @@ def test_online_sequence_matching_equals_the_batch(tiny_route: dict[str, Any], t
         np.testing.assert_allclose([r["score"] for r in online], batch.max(axis=0), rtol=1e-5, atol=1e-6)
 
 
+def test_stream_lines_carry_the_sequence_confidence(tiny_route: dict[str, Any]) -> None:
+    from topoloc.sequence import sequence_similarity, stretch_margin
+
+    m = _build(tiny_route, "bow")
+    S = m.similarity(tiny_route["query"])
+    frames = [(f"f{i}", None, f) for i, f in enumerate(tiny_route["query_frames"])]
+    for mode in ("constant", "acceleration"):
+        lines = list(m.localizer(top_k=3, sequence=3, sequence_mode=mode).stream(frames))
+        raw = sequence_similarity(S, ds=3, mode=mode, confidence="raw")  # type: ignore[arg-type]
+        # The score of each line is its best path's margin over the best path outside its stretch
+        # (3 frames at up to 1.2 places a frame), not the raw path score.
+        np.testing.assert_allclose([r["score"] for r in lines], stretch_margin(raw, stretch=3).max(axis=0),
+                                   rtol=1e-5, atol=1e-6)
+        assert all(r["score"] >= 0 for r in lines)
+        assert not np.allclose([r["score"] for r in lines], raw.max(axis=0))
+
+
 def test_memory_does_not_grow_with_frames(tiny_route: dict[str, Any]) -> None:
     m = _build(tiny_route, "coocmap")
     loc = m.localizer(sequence=2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -16,10 +17,12 @@ import typer
 from topoloc.cli.app import app, command_group, handle_errors
 from topoloc.cli.options import (
     CacheDirOption,
+    CalibrateSequenceOption,
     ConfigOption,
     EveryMOption,
     EverySOption,
     FeaturesOption,
+    LocalizeSequenceOption,
     MapToursOption,
     MaxFeaturesOption,
     MaxSideAutoOption,
@@ -32,15 +35,16 @@ from topoloc.cli.options import (
     SchedulerOption,
     SchedulerTimeoutOption,
     SequenceModeOption,
-    SequenceOption,
     TopicOption,
     VocabOption,
     VocabTrainOption,
     VocabWordsOption,
+    at_least,
     spec_from_cli,
 )
 from topoloc.cli.progress import rich_progress
 from topoloc.errors import TopolocError
+from topoloc.spec.parts import STREAM_SEQUENCE_LENGTH, STREAM_SEQUENCE_MODE
 
 log = logging.getLogger(__name__)
 
@@ -205,6 +209,8 @@ def map_calibrate(
     every_s: EverySOption = None,
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
+    sequence: CalibrateSequenceOption = STREAM_SEQUENCE_LENGTH,
+    sequence_mode: SequenceModeOption = STREAM_SEQUENCE_MODE,
 ) -> None:
     """Choose the score threshold that reaches --precision on a labelled tour and store it in the map.
 
@@ -214,9 +220,10 @@ def map_calibrate(
     from topoloc.io.dirs import Output, check_outputs
     from topoloc.maps import Map
     from topoloc.maps.map import check_precision
-    from topoloc.spec import GroundTruthSpec, InputSpec
+    from topoloc.spec import GroundTruthSpec, InputSpec, SequenceSpec
 
     check_precision(precision)
+    seq = SequenceSpec(length=at_least("--sequence", sequence, 0), mode=sequence_mode)
     gt = GroundTruthSpec.for_calibration(tolerance, tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     with Map.update(map_file) as m:  # no tour another writer adds meanwhile is lost
@@ -224,7 +231,7 @@ def map_calibrate(
         q = inputs.load([query])[0]
         with rich_progress(not quiet) as progress:
             cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
-                                 progress=progress)
+                                 progress=progress, sequence=seq)
     typer.echo(json.dumps(cal))
 
 
@@ -238,7 +245,7 @@ def localize(
     out: Annotated[Path | None, typer.Option(help="JSON lines file, one line per frame, written as it goes.")] = None,
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
     pairs_out: PairsOutOption = None,
-    sequence: SequenceOption = None,
+    sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     quiet: QuietOption = False,
     topic: TopicOption = None,
@@ -259,9 +266,15 @@ def localize(
     from topoloc.spec import LocalizeSpec
 
     values["images"] = values.pop("inputs")
+    single = values["sequence"] == 0  # --sequence 0: single images, whatever the map was calibrated with
+    if single:
+        values["sequence"] = None
     spec = spec_from_cli(LocalizeSpec, ctx, values, config=config)
-    assert spec.map_file is not None and spec.out is not None
+    assert spec.map_file is not None
     m = Map.load(spec.map_file)
+    if not single and not spec.sequence.length:  # not given: match as the threshold was calibrated
+        spec = dataclasses.replace(spec, sequence=m.calibrated_sequence)
+    assert spec.out is not None
     names: deque[str] = deque()  # the pairs name of each frame read and not yet written (lines keep its order)
     total, frames = spec.inputs.frames(spec.images, on_frame=names.append if spec.pairs_out else None)
     # The map file is memory-mapped while the lines are written: truncating it would kill the run.
@@ -277,6 +290,11 @@ def localize(
         log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
                     "`topoloc map calibrate %s --query FOLDER` again", spec.map_file,
                     ", ".join(m.calibration.get("tours_added_since", [])), spec.map_file)
+    if m.threshold is not None and spec.sequence != m.calibrated_sequence:
+        cal = m.calibrated_sequence
+        log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
+                    "hold; run `topoloc map calibrate` with the same --sequence", spec.map_file,
+                    _sequence_words(cal.length, cal.mode), _sequence_words(spec.sequence.length, spec.sequence.mode))
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode)
     # Written line by line: a run that is stopped keeps every frame done so far.
     with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
@@ -295,6 +313,10 @@ def localize(
         write_pairs(spec.pairs_out, pairs)
     typer.echo(json.dumps({"out": str(spec.out), **({"pairs": str(spec.pairs_out)} if spec.pairs_out else {}),
                            **loc.summary()}))
+
+
+def _sequence_words(length: int, mode: str) -> str:
+    return f"sequences of {length + 1} frames ({mode})" if length else "single images"
 
 
 class _LineFile:

@@ -50,6 +50,13 @@ ToleranceMOption = Annotated[str | None, typer.Option(
     "--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")]
 SequenceOption = Annotated[int | None, typer.Option(
     help="Sequence matching over each query and the N >= 1 before it (off when not given).")]
+LocalizeSequenceOption = Annotated[int | None, typer.Option(
+    "--sequence", help="Sequence matching over each frame and the N before it; 0 = single images. Default: what "
+                       "`map calibrate` calibrated the map's threshold with (single images for a map not calibrated "
+                       "or calibrated before sequence calibration; docs/protocol.md).")]
+CalibrateSequenceOption = Annotated[int, typer.Option(
+    "--sequence", help="Calibrate the confidence of sequence matching over each frame and the N before it, as "
+                       "`localize` then matches by default; 0 = single images (docs/protocol.md).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
 PairsOutOption = Annotated[Path | None, typer.Option(

@@ -511,9 +511,27 @@ class Map:
         q = query if isinstance(query, Traverse) else load_traverse(query)
         return self.recognizer.similarity(q, resources=resources or self.resources(cache_dir=cache_dir))
 
-    def localizer(self, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant") -> Localizer:
-        """An online localiser: feed it frames one at a time (:meth:`Localizer.step`)."""
-        return Localizer(self, top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
+    @property
+    def calibrated_sequence(self) -> SequenceSpec:
+        """The sequence matching the threshold was calibrated with (single images: length 0).
+
+        Calibrations made before sequence matching was recorded (and an
+        uncalibrated map) give single images, so such maps score as before.
+        """
+        seq = (self.calibration or {}).get("sequence") or {}
+        return SequenceSpec(length=int(seq.get("length", 0)), mode=str(seq.get("mode", "constant")))
+
+    def localizer(self, *, top_k: int = 5, sequence: int | None = None,
+                  sequence_mode: str | None = None) -> Localizer:
+        """An online localiser: feed it frames one at a time (:meth:`Localizer.step`).
+
+        ``sequence`` / ``sequence_mode`` None: those of :attr:`calibrated_sequence`,
+        whose scores the stored threshold applies to.
+        """
+        cal = self.calibrated_sequence
+        return Localizer(self, top_k=top_k, sequence=cal.length if sequence is None else sequence,
+                         sequence_mode=(cal.mode if sequence is None else "constant")
+                         if sequence_mode is None else sequence_mode)
 
     def localize(self, image: np.ndarray, *, top_k: int = 5) -> dict[str, Any]:
         """The place one camera frame shows.
@@ -530,17 +548,21 @@ class Map:
             (``[[place, score], ...]``, best first) and ``x``, ``y`` when the
             map has positions.
         """
-        return self.localizer(top_k=top_k).step(image)
+        return self.localizer(top_k=top_k, sequence=0).step(image)
 
-    def localize_many(self, images: Iterable[np.ndarray], *, top_k: int = 5, sequence: int = 0,
-                      sequence_mode: str = "constant") -> list[dict[str, Any]]:
-        """:meth:`localize` over a sequence of frames; ``sequence > 0`` matches the last frames online."""
+    def localize_many(self, images: Iterable[np.ndarray], *, top_k: int = 5, sequence: int | None = None,
+                      sequence_mode: str | None = None) -> list[dict[str, Any]]:
+        """:meth:`localize` over a sequence of frames; ``sequence > 0`` matches the last frames online.
+
+        ``sequence`` None: the map's :attr:`calibrated_sequence` (single images when not calibrated).
+        """
         loc = self.localizer(top_k=top_k, sequence=sequence, sequence_mode=sequence_mode)
         return [loc.step(img) for img in images]
 
     # -- confidence -------------------------------------------------------------------------
     def calibrate(self, S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
-                  query: str = "", ground_truth: str = "", tolerance: str = "") -> dict[str, Any]:
+                  query: str = "", ground_truth: str = "", tolerance: str = "",
+                  sequence: SequenceSpec | None = None) -> dict[str, Any]:
         """Choose the acceptance threshold from a labelled tour's scores and store it in the map.
 
         Each query's best place (the raw argmax of its column, as :meth:`localize`
@@ -568,6 +590,10 @@ class Map:
             In (0, 1].
         tolerance : str
             What counts as right, in words (``"within 8 places"``); default: ``gt``'s description.
+        sequence : SequenceSpec, optional
+            The sequence matching ``S`` went through (default: none, single
+            images); recorded, so that :meth:`localizer` matches the same way
+            and the threshold applies to the scores it compares.
 
         Returns
         -------
@@ -605,6 +631,7 @@ class Map:
             "query": query, "ground_truth": ground_truth or gt.description,
             "tolerance": tolerance or gt.description, "n_queries": int(S.shape[1]),
             "n_with_right_place": n_pos,
+            "sequence": {"length": (sequence or SequenceSpec()).length, "mode": (sequence or SequenceSpec()).mode},
             "recall_of": "queries with a right place in the map (n_with_right_place)",
             "date": datetime.now(UTC).isoformat(timespec="seconds"),
         }
@@ -612,7 +639,8 @@ class Map:
 
     def calibrate_on(self, tour: Traverse | str | Path, *, ground_truth: GroundTruthSpec | None = None,
                      precision: float = 0.99, label: str = "", cache_dir: str | Path | None = None,
-                     progress: ProgressFactory | None = None, executor: Executor | None = None) -> dict[str, Any]:
+                     progress: ProgressFactory | None = None, executor: Executor | None = None,
+                     sequence: SequenceSpec | None = None) -> dict[str, Any]:
         """Score a labelled tour against the map and :meth:`calibrate` on it.
 
         Parameters
@@ -627,6 +655,9 @@ class Map:
             In (0, 1].
         label : str
             How the calibration names the tour (default: its folder or name).
+        sequence : SequenceSpec, optional
+            Match the tour's frames in sequences (in its order), as
+            :meth:`localizer` will; default none (single images).
 
         Raises
         ------
@@ -650,7 +681,12 @@ class Map:
                               q.root)
         S = self.recognizer.similarity(q, resources=self.resources(cache_dir=cache_dir, progress=progress,
                                                                    executor=executor))
-        return self.calibrate(S, gt, precision=precision, tolerance=spec.words(),
+        if sequence is not None and sequence.length:
+            from topoloc.sequence import sequence_similarity
+
+            sequence.check_memory(S.shape[0])
+            S = sequence_similarity(S, ds=sequence.length, mode=sequence.mode)  # type: ignore[arg-type]
+        return self.calibrate(S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
                               query=label or (str(q.root) if q.kind == "files" else q.name))
 
     def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:
@@ -675,7 +711,10 @@ class Localizer:
     With ``sequence = N > 0`` each frame is matched together with the ``N``
     frames before it (causal: frame ``i`` uses only frames ``<= i``), by the
     same search as ``evaluate --sequence`` on the last ``N + 1`` score
-    columns, so its result equals the batch result for that frame.  Methods
+    columns, so its result equals the batch result for that frame; its
+    ``score`` is then the sequence confidence (the best path's margin over
+    the best path elsewhere on the route, :mod:`topoloc.sequence.confidence`),
+    which :meth:`Map.calibrate_on` with the same ``sequence`` calibrates.  Methods
     that score whole sequences (SeqSLAM) keep their own last ``ds + 1`` frames.
     """
 

@@ -7,6 +7,7 @@ traverse, costs as mean differences, similarities as negated costs).
 
 from __future__ import annotations
 
+from topoloc.sequence.confidence import SEQUENCE_CONFIDENCES, sequence_stretch, stretch_margin
 from topoloc.sequence.search import (
     SEQUENCE_MEMORY_BUDGET,
     acceleration_search,
@@ -21,6 +22,7 @@ from topoloc.sequence.search import (
 )
 
 __all__ = [
+    "SEQUENCE_CONFIDENCES",
     "SEQUENCE_MEMORY_BUDGET",
     "acceleration_search",
     "constant_velocity_search",
@@ -28,7 +30,9 @@ __all__ = [
     "search_memory_bytes",
     "sequence_search",
     "sequence_similarity",
+    "sequence_stretch",
     "similarity_to_difference",
+    "stretch_margin",
     "uniqueness_margin",
     "velocity_offsets",
 ]

@@ -106,6 +106,12 @@ import cv2
 import numpy as np
 
 from topoloc._parallel import n_workers
+from topoloc.sequence.confidence import (
+    SEQUENCE_CONFIDENCES,
+    SequenceConfidence,
+    sequence_stretch,
+    stretch_margin,
+)
 
 Mode = Literal["constant", "acceleration"]
 Normalize = Literal["zscore", "rank", "none"]
@@ -891,6 +897,7 @@ def sequence_similarity(
     step_penalty: float = 0.0,
     chunk_queries: int = DEFAULT_CHUNK_QUERIES,
     n_jobs: int = -1,
+    confidence: SequenceConfidence = "margin",
 ) -> np.ndarray:
     """Sequence-matched similarity for any method's ``S`` (``evaluate --sequence``).
 
@@ -899,8 +906,11 @@ def sequence_similarity(
     (:func:`contrast_enhance`, SeqSLAM's step, off by default because other
     methods' scores are not raw image differences), then searched with the
     constant-velocity trajectories of SeqSLAM or the forward-only paths of
-    Cooc-Map II-F.  The result is ``-cost``: higher = better, the negated mean
-    normalised difference along the best trajectory ending at each place.
+    Cooc-Map II-F.  The result is ``-cost`` (higher = better, the negated mean
+    normalised difference along the best trajectory ending at each place),
+    shifted per query by the best path outside the best path's stretch
+    (``confidence="margin"``, :mod:`topoloc.sequence.confidence`) so that the
+    best scores of different queries threshold on one scale.
 
     Parameters
     ----------
@@ -924,11 +934,18 @@ def sequence_similarity(
         Of the acceleration search.
     chunk_queries, n_jobs : int
         Tiling and threads, as in the searches.
+    confidence : {"margin", "raw"}
+        ``"margin"`` (default): each column minus its best value more than
+        :func:`~topoloc.sequence.confidence.sequence_stretch` places from its
+        best place (the best score is the margin, the order of the column is
+        kept); ``"raw"``: the negated cost.
 
     Returns
     -------
     ndarray of float32, shape (n_db, n_q)
     """
+    if confidence not in SEQUENCE_CONFIDENCES:
+        raise ValueError(f"confidence must be one of {', '.join(SEQUENCE_CONFIDENCES)}, got {confidence!r}")
     D = similarity_to_difference(S, normalize=normalize)
     if enhance_window:
         D = contrast_enhance(
@@ -939,7 +956,12 @@ def sequence_similarity(
         step_penalty=step_penalty, chunk_queries=chunk_queries, n_jobs=n_jobs,
     )
     np.negative(cost, out=cost)
-    return cost
+    if confidence == "raw":
+        return cost
+    stretch = sequence_stretch(ds, v_max)
+    if mode == "acceleration":  # a path advances at most max_skip + 1 places a frame
+        stretch = min(stretch, ds * (int(max_skip) + 1))
+    return stretch_margin(cost, stretch=stretch)
 
 
 def sequence_search(
