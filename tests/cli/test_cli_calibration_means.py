@@ -118,3 +118,33 @@ def test_calibration_records_the_sequence_matching_that_localize_then_applies(
     assert json.loads(cli.ok([*base, "--sequence", "3", "--sequence-mode", "acceleration"]))["sequence"] == {
         "length": 3, "mode": "acceleration"}
     assert scores() == scores("--sequence", "3", "--sequence-mode", "acceleration")
+
+
+def test_calibration_on_a_tour_that_does_not_travel_the_route_calibrates_single_images(
+        cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    import shutil
+
+    # The same frames as a stationary camera at several times would give them: each place
+    # several frames in a row, then the next (places.csv numbers them so).
+    q = tmp_path / "stationary"
+    shutil.copytree(rf["query"], q, ignore=shutil.ignore_patterns("places.csv"))
+    images = sorted(p.name for p in q.iterdir() if p.suffix == ".jpg")
+    (q / "places.csv").write_text("image,place\n" + "".join(f"{n},{i // 4}\n" for i, n in enumerate(images)))
+    tlm = _build(cli, rf, tmp_path / "route.tlm")
+    out = cli.ok(["map", "calibrate", str(tlm), "--query", str(q), "--tolerance", "1", "--precision", "0.5",
+                  "--cache-dir", str(rf["cache"]), "--quiet"])
+    assert json.loads(out)["sequence"] == {"length": 0, "mode": "constant"}
+
+
+def test_travels_the_route() -> None:
+    import numpy as np
+
+    from topoloc.spec.parts import STREAM_SEQUENCE_LENGTH, stream_sequence_for, travels_the_route
+
+    assert travels_the_route(np.arange(50)) and travels_the_route(np.arange(0, 100, 2))
+    assert not travels_the_route(np.repeat(np.arange(10), 20))  # a stationary camera, place by place
+    assert not travels_the_route(np.arange(50)[::-1])  # backwards along the map's order
+    assert not travels_the_route(np.random.default_rng(0).permutation(200))  # unrelated places
+    assert not travels_the_route(np.array([3]))
+    assert stream_sequence_for(np.arange(30)).length == STREAM_SEQUENCE_LENGTH
+    assert stream_sequence_for(np.zeros(30, int)).length == 0

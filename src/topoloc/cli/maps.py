@@ -44,7 +44,7 @@ from topoloc.cli.options import (
 )
 from topoloc.cli.progress import rich_progress
 from topoloc.errors import TopolocError
-from topoloc.spec.parts import STREAM_SEQUENCE_LENGTH, STREAM_SEQUENCE_MODE
+from topoloc.spec.parts import STREAM_SEQUENCE_MODE, stream_sequence_for
 
 log = logging.getLogger(__name__)
 
@@ -209,7 +209,7 @@ def map_calibrate(
     every_s: EverySOption = None,
     every_m: EveryMOption = None,
     pose_topic: PoseTopicOption = None,
-    sequence: CalibrateSequenceOption = STREAM_SEQUENCE_LENGTH,
+    sequence: CalibrateSequenceOption = None,
     sequence_mode: SequenceModeOption = STREAM_SEQUENCE_MODE,
 ) -> None:
     """Choose the score threshold that reaches --precision on a labelled tour and store it in the map.
@@ -223,12 +223,16 @@ def map_calibrate(
     from topoloc.spec import GroundTruthSpec, InputSpec, SequenceSpec
 
     check_precision(precision)
-    seq = SequenceSpec(length=at_least("--sequence", sequence, 0), mode=sequence_mode)
+    seq = None if sequence is None else SequenceSpec(length=at_least("--sequence", sequence, 0), mode=sequence_mode)
     gt = GroundTruthSpec.for_calibration(tolerance, tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     with Map.update(map_file) as m:  # no tour another writer adds meanwhile is lost
         check_outputs([Output(map_file, what="map file")], [query, cache_dir])
         q = inputs.load([query])[0]
+        if seq is None:  # not told: sequences where the tour travels the route, as a stream would
+            seq = stream_sequence_for(q.places)
+            if sequence_mode != STREAM_SEQUENCE_MODE and seq.length:
+                seq = SequenceSpec(length=seq.length, mode=sequence_mode)
         with rich_progress(not quiet) as progress:
             cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
                                  progress=progress, sequence=seq)

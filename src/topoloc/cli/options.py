@@ -54,9 +54,10 @@ LocalizeSequenceOption = Annotated[int | None, typer.Option(
     "--sequence", help="Sequence matching over each frame and the N before it; 0 = single images. Default: what "
                        "`map calibrate` calibrated the map's threshold with (single images for a map not calibrated "
                        "or calibrated before sequence calibration; docs/protocol.md).")]
-CalibrateSequenceOption = Annotated[int, typer.Option(
+CalibrateSequenceOption = Annotated[int | None, typer.Option(
     "--sequence", help="Calibrate the confidence of sequence matching over each frame and the N before it, as "
-                       "`localize` then matches by default; 0 = single images (docs/protocol.md).")]
+                       "`localize` then matches by default; 0 = single images. Default: 10 where the tour "
+                       "moves along the route (half its steps advance 1-3 places), else 0 (docs/protocol.md).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
 PairsOutOption = Annotated[Path | None, typer.Option(

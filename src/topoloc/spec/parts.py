@@ -349,6 +349,34 @@ STREAM_SEQUENCE_LENGTH = 10
 STREAM_SEQUENCE_MODE = "constant"
 
 
+def travels_the_route(places: np.ndarray) -> bool:
+    """Whether a labelled tour moves along its places, frame after frame, as sequence matching assumes.
+
+    True when at least half of the steps between consecutive frames advance by 1 to 3 place ids:
+    a route driven or walked at the map's pace (gardens_point and nordland advance by one place per
+    frame).  A stationary camera filmed at several times (the webcam queries: 96% of steps stay at
+    one place) or frames of unrelated places are not a sequence.
+
+    Parameters
+    ----------
+    places : ndarray of int, shape (n_frames,)
+        The tour's place id of every frame, in frame order.
+    """
+    import numpy as np
+
+    steps = np.diff(np.asarray(places, np.int64))
+    return bool(steps.size) and float(np.mean((steps >= 1) & (steps <= 3))) >= 0.5
+
+
+def stream_sequence_for(places: np.ndarray) -> SequenceSpec:
+    """The sequence matching ``map calibrate`` calibrates on a tour when not told: the stream default
+    (:data:`STREAM_SEQUENCE_LENGTH`, :data:`STREAM_SEQUENCE_MODE`) on a tour that travels the route
+    (:func:`travels_the_route`), single images otherwise."""
+    if travels_the_route(places):
+        return SequenceSpec(length=STREAM_SEQUENCE_LENGTH, mode=STREAM_SEQUENCE_MODE)
+    return SequenceSpec()
+
+
 @dataclass(frozen=True)
 class SequenceSpec:
     """Sequence matching: each query with the ``length`` before it (0 = single images).
@@ -455,6 +483,6 @@ PARTS: dict[str, type] = {
 
 
 __all__ = [
-    "AUTO_MAX_SIDE", "PARTS", "SEQUENCE_MODES", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec", "SequenceSpec",
+    "AUTO_MAX_SIDE", "PARTS", "SEQUENCE_MODES", "stream_sequence_for", "travels_the_route", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec", "SequenceSpec",
     "VocabularySpec", "parse_max_side", "parse_recall_at",
 ]
