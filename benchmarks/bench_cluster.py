@@ -270,8 +270,16 @@ def write_pages(data: dict[str, Any], out: Path) -> None:
                  "The client holds the vocabulary's bounded sample, the merged map (its size grows with the "
                  "route, as the file does) and one wave of block results (word ids and keypoint positions, "
                  "never descriptors: `tests/maps/test_cluster_client_memory.py`); a worker holds one block of "
-                 "images or one shard. ms per query are measured in one process on one thread from the map "
+                 "images or one shard. `vocab train`'s client peak grows with the route until its descriptor "
+                 "sample reaches the cap (`Vocabulary.max_descriptors`, 500,000 by default: 244 MiB of float32 "
+                 "SIFT descriptors, k-means working on that), then stays. ms per query are measured in one "
+                 "process on one thread from the map "
                  "file (after one warm-up query), matching excluding feature extraction.\n")
+    gen = runs[-1]["generation_s"] * TARGET_PLACES / runs[-1]["places"]
+    one = sum(e["hours"] for e in ext if e["machines"] == 1)
+    lines.append(f"\n**The {TARGET_PLACES:,}-place run on this machine**, estimated from the rates of the "
+                 f"{runs[-1]['places']:,}-place route: {gen / 3600:.1f} h to render the route, then {one:.1f} h "
+                 "for the four commands ([extrapolation](../cluster_scaling.md)); `--places 100000` runs it.\n")
     (out / "cluster.md").write_text("".join(lines))
 
     last = runs[-1]
