@@ -1,26 +1,29 @@
-"""Regenerate docs/results/cluster.md (+ .json): the whole pipeline on a local Dask cluster, 1 and 2 workers.
+"""Regenerate docs/results/cluster.md (+ .json) and docs/cluster_scaling.md: the CLI on a local Dask cluster.
 
-    .venv/bin/python -m benchmarks.bench_cluster [--places 20000] [--workers 1 2] [--work DIR]
+    .venv/bin/python -m benchmarks.bench_cluster --places 2000 8000 [--work DIR] [--words 2000] [--max-features 300]
+    .venv/bin/python -m benchmarks.bench_cluster --places 100000     # the 1,000 km run (hours on 2 cores)
 
-A synthetic route of ``--places`` places (:mod:`topoloc.bench.cluster_scale`:
-independent synthetic streets end to end, 160 x 120 images, a query tour for one
-segment in 20) is rendered once on a 2-worker cluster.  Then, for each worker
-count, a fresh ``distributed.LocalCluster`` (worker processes of one thread) runs
-every stage of building and using a Cooc-Map map, each timed on its own, with a
-fresh cache so that nothing is reused across worker counts:
+For each route length of ``--places`` a synthetic route (:mod:`topoloc.bench.cluster_scale`:
+independent synthetic streets end to end, 160 x 120 images; a map tour over every place, a
+tour to add over one segment in ``--add-every``, a query tour over one segment in 20) is
+rendered once and kept.  Then a fresh ``distributed.LocalCluster`` of 2 worker processes
+(one thread each) and a fresh cache run the command line itself, each command a process
+of its own started through :mod:`benchmarks.peak_run` (which records its peak memory):
 
-1. features: SIFT of every map and query image into the chunked feature store;
-2. vocabulary: the descriptor sample drawn by the workers, k-means here;
-3. quantisation of the map images;
-4. map building: partial models of ``4 x workers`` shards built by the workers, merged here;
-5. localisation: the query frames described and scored by the workers
-   (``topoloc localize --scheduler``'s path), lines in order.
+1. ``topoloc vocab train MAP`` (features of every map image into the feature store, the
+   sample drawn by the workers, k-means on the client);
+2. ``topoloc map build --method coocmap --map MAP --shards S`` (the workers read the store,
+   quantise and build one partial model per shard; the client merges them);
+3. ``topoloc map add`` of the added tour;
+4. ``topoloc localize`` of the query tour (frames described and scored by the workers).
 
-Reported per stage: wall seconds, items per second, the peak resident memory
-of the workers and of this process, and the bytes on disk; then
-``docs/cluster_scaling.md`` extrapolates from these measured rates to a
-100,000-place route on N workers.  The machine has 2 cores: with 2 workers
-the client's own work (k-means, merging, writing lines) competes with them.
+Reported per command: wall seconds, images per second, the client's peak resident memory
+(the command's own VmHWM) and the workers' (VmHWM, reset through ``/proc/self/clear_refs``
+before each command), and the cache on disk; then the map file's size, the time to open it
+in a fresh process, and ms per query localised on one thread of this machine from that
+file.  The client's peak at each route length is compared: it must not grow with the route.
+``docs/cluster_scaling.md`` extrapolates the measured rates of the longest route to 100,000
+places on N machines.
 """
 
 from __future__ import annotations
@@ -29,262 +32,286 @@ import argparse
 import json
 import os
 import platform
-import resource
 import shutil
+import statistics
+import subprocess
+import sys
 import time
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from benchmarks.common import RESULTS
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ("features", "vocabulary", "quantisation", "map building", "localisation")
-
-
-def _rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+WORKERS = 2
+TARGET_PLACES = 100_000  # FAB-MAP 2.0's 1,000 km route
 
 
 def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.exists() else 0
 
 
-def run_pipeline(route: Any, workers: int, work: Path, *, n_words: int, max_features: int) -> dict[str, Any]:
-    """Every stage on a fresh local cluster of ``workers`` processes; timings, memory and disk per stage."""
-    import distributed
-
-    from topoloc.cluster import DaskExecutor, connect
-    from topoloc.datasets.traverse import load_traverse
-    from topoloc.features import FeatureConfig, FeatureExtractor
-    from topoloc.maps.batch import localize_on
-    from topoloc.maps.map import Map
-    from topoloc.methods.cooc_map import CoocMap
-    from topoloc.methods.shards import build_from_shards
-    from topoloc.resources import CachedResources
-    from topoloc.vocabulary.vocab import cached_vocabulary
-
-    cache = work / f"cache_w{workers}"
-    shutil.rmtree(cache, ignore_errors=True)
-    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       dashboard_address=None, host="127.0.0.1", silence_logs=40)
-    rows: list[dict[str, Any]] = []
+def _reset_peak() -> None:
+    """Reset this process's VmHWM to its current RSS (Linux ``clear_refs`` 5)."""
     try:
-        ex = connect(cluster.scheduler_address, timeout_s=60)
-        assert isinstance(ex, DaskExecutor)  # an address always gives the Dask executor
-        client = ex.client
-
-        def worker_peak_mb() -> float:
-            peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
-            return float(max(peaks.values()))
-
-        def stage(name: str, items: int, fn: Any) -> Any:
-            t0 = time.perf_counter()
-            out = fn()
-            wall = time.perf_counter() - t0
-            rows.append({"stage": name, "workers": workers, "items": items, "seconds": wall,
-                         "items_per_s": items / wall if wall > 0 else float("inf"),
-                         "worker_peak_mb": worker_peak_mb(), "client_peak_mb": _rss_mb(),
-                         "disk_bytes": _du(cache)})
-            return out
-
-        config = FeatureConfig(max_features=max_features)
-        extractor = FeatureExtractor(config, cache_dir=cache)
-        map_t = load_traverse(route.map_dir)
-        query_t = load_traverse(route.query_dir)
-        res0 = CachedResources(extractor=extractor, executor=ex)
-        feats = stage("features", len(map_t) + len(query_t),
-                      lambda: (res0.features(map_t), res0.features(query_t)))
-        n_feat = float(np.median([len(f) for f in feats[0]]))
-        voc, _ = stage("vocabulary", len(map_t), lambda: cached_vocabulary(
-            [route.map_dir], extractor=extractor, n_words=n_words, cache_dir=cache, executor=ex))
-        res = CachedResources(extractor=extractor, vocabulary=voc, executor=ex)
-        stage("quantisation", len(map_t), lambda: res.words(map_t))
-        rec = stage("map building", len(map_t), lambda: build_from_shards(
-            CoocMap, [map_t], resources=res, n_shards=4 * workers, executor=ex))
-        m = Map.from_fitted(rec, [map_t], features=config, vocabulary=voc)
-        map_file = work / f"route_w{workers}.tlm"
-        m.save(map_file)
-        loc = Map.load(map_file).localizer(top_k=1)
-        frames = ((p.name, None, query_t.read(k, gray=False)) for k, p in enumerate(query_t.images))
-        lines = stage("localisation", len(query_t), lambda: [line for line, _ in localize_on(ex, loc, frames)])
-        right = float(np.mean([abs(int(line["place"]) - int(p)) <= 1
-                               for line, p in zip(lines, query_t.places, strict=True)]))
-        ex.close()
-    finally:
-        cluster.close()
-    return {"workers": workers, "stages": rows, "map_bytes": map_file.stat().st_size,
-            "store_bytes": _du(cache / "features"), "n_features_median": n_feat,
-            "query_right_within_1": right, "n_places": route.n_places}
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
 
 
-def extrapolate(measured: list[dict[str, Any]], *, places: int = 100_000, workers: tuple[int, ...] = (1, 8, 32, 128)
-                ) -> list[dict[str, Any]]:
-    """Hours per stage for ``places`` map images on N workers, from the 1-worker rates of ``measured``.
+def _peak() -> float:
+    from benchmarks.peak_run import vm_hwm_mib
 
-    Worker-side work scales as N at the 1-worker rate times the stage's
-    measured 2-worker efficiency (speed-up from 1 to 2 workers, divided by 2,
-    at most 1), applied once for every N >= 2: a linear model, pessimistic
-    where the 2-worker run shared the 2 cores with the client.
-    """
-    one = {r["stage"]: r for r in next(m for m in measured if m["workers"] == 1)["stages"]}
-    two_m = next((m for m in measured if m["workers"] == 2), None)
-    two = {r["stage"]: r for r in two_m["stages"]} if two_m else {}
-    n_meas = next(m for m in measured if m["workers"] == 1)["n_places"]
-    out = []
-    for stage, r in one.items():
-        eff = min(1.0, (two[stage]["items_per_s"] / (2 * r["items_per_s"]))) if stage in two else 1.0
-        items = r["items"] * places / n_meas
-        for n in workers:
-            speed = r["items_per_s"] * n * (eff if n > 1 else 1.0)
-            out.append({"stage": stage, "workers": n, "hours": items / speed / 3600.0, "efficiency_at_2": eff})
-    return out
+    return vm_hwm_mib() or float("nan")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--places", type=int, default=20_000)
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--work", type=Path, default=ROOT / "build" / "cluster_route")
-    ap.add_argument("--words", type=int, default=2000)
-    ap.add_argument("--max-features", type=int, default=300)
-    ap.add_argument("--out", type=Path, default=RESULTS)
-    ap.add_argument("--generate-only", action="store_true", help="render the route and stop")
-    ap.add_argument("--page-only", action="store_true", help="rewrite the pages from cluster.json, measure nothing")
-    args = ap.parse_args()
-    if args.page_only:
-        data = json.loads((args.out / "cluster.json").read_text())
-        ext = extrapolate(data["measured"])
-        data["extrapolated"] = ext
-        (args.out / "cluster.json").write_text(json.dumps(data, indent=2, default=float) + "\n")
-        write_pages(data["meta"], data["measured"], ext, args.out, recheck=data.get("localisation_recheck"))
-        return
-
+def _render(places: int, work: Path, add_every: int) -> Any:
     import distributed
 
     from topoloc.bench.cluster_scale import generate_scale_route
     from topoloc.cluster import connect
 
-    args.work.mkdir(parents=True, exist_ok=True)
-    # The route is rendered once per size and kept (segments resume); its rendering time is recorded with it.
-    route_dir = args.work / f"route_{args.places}"
+    route_dir = work / f"route_{places}"
     gen_file = route_dir / "generation.json"
     t0 = time.perf_counter()
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+    with distributed.LocalCluster(n_workers=WORKERS, threads_per_worker=1, processes=True, dashboard_address=None,
                                   host="127.0.0.1", silence_logs=40) as cluster, \
             connect(cluster.scheduler_address, timeout_s=60) as ex:
-        route = generate_scale_route(route_dir, n_places=args.places, executor=ex)
+        route = generate_scale_route(route_dir, n_places=places, executor=ex, add_every=add_every)
     if not gen_file.is_file():
         gen_file.write_text(json.dumps({"seconds": time.perf_counter() - t0, "load": os.getloadavg()[0]}))
-    gen_s = float(json.loads(gen_file.read_text())["seconds"])
-    if args.generate_only:
-        print(f"route of {args.places} places in {route_dir} ({gen_s:.0f} s to render)")
+    return route, float(json.loads(gen_file.read_text())["seconds"])
+
+
+OPEN_AND_QUERY = """
+import json, statistics, sys, time
+from topoloc.datasets.traverse import load_traverse
+t0 = time.perf_counter()
+from topoloc.maps.map import Map
+m = Map.load(sys.argv[1])
+open_s = time.perf_counter() - t0
+q = load_traverse(sys.argv[2])
+n = min(int(sys.argv[3]), len(q))
+loc = m.localizer(top_k=1)
+frames = [q.read(k, gray=False) for k in range(n)]
+loc.step(frames[0])  # warm-up: compiles the matcher, builds the indexes
+loc.ms_features.clear(); loc.ms_matching.clear()
+for f in frames:
+    loc.step(f)
+print(json.dumps({"open_s": open_s, "queries": n, "ms_features_median": statistics.median(loc.ms_features),
+                  "ms_matching_median": statistics.median(loc.ms_matching),
+                  "ms_matching_p95": sorted(loc.ms_matching)[int(0.95 * (n - 1))]}))
+"""
+
+
+def run_route(route: Any, work: Path, *, words: int, max_features: int, shards: int, queries: int
+              ) -> dict[str, Any]:
+    """The four commands on a fresh 2-worker cluster and cache; timings, peaks and sizes."""
+    import distributed
+
+    out = work / f"run_{route.n_places}"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    cache = out / "cache"
+    tlm, voc = out / "route.tlm", out / "vocab.tlv"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "src"),
+                                                          os.environ.get("PYTHONPATH", "")])}
+    rows: list[dict[str, Any]] = []
+    with distributed.LocalCluster(n_workers=WORKERS, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  host="127.0.0.1", silence_logs=40) as cluster, \
+            distributed.Client(cluster.scheduler_address, set_as_default=False) as client:
+        sched = ["--scheduler", cluster.scheduler_address, "--scheduler-timeout", "120", "-q"]
+        cached = [*sched, "--cache-dir", str(cache)]
+        feats = ["--max-features", str(max_features)]
+        commands = [
+            ("vocab train", route.n_map_images,
+             ["vocab", "train", str(route.map_dir), "--words", str(words), *feats, "--max-side", "640",
+              "--out", str(voc), *cached]),
+            ("map build", route.n_map_images,
+             ["map", "build", "--method", "coocmap", "--map", str(route.map_dir), "--vocab", str(voc), *feats,
+              "--shards", str(shards), "--out", str(tlm), *cached]),
+            ("map add", route.n_add_images, ["map", "add", str(tlm), str(route.add_dir), *cached]),
+            ("localize", route.n_query_images,
+             ["localize", str(tlm), str(route.query_dir), "--top-k", "1", "--out", str(out / "lines.jsonl"), *sched]),
+        ]
+        for name, items, args in commands:
+            client.run(_reset_peak)
+            peak_file = out / f"peak_{name.replace(' ', '_')}.json"
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "benchmarks.peak_run", str(peak_file), "--", *args],
+                           check=True, env=env, cwd=ROOT)
+            wall = time.perf_counter() - t0
+            rows.append({"stage": name, "items": items, "seconds": wall, "items_per_s": items / wall,
+                         "client_peak_mib": json.loads(peak_file.read_text())["peak_mib"],
+                         "worker_peak_mib": max(client.run(_peak).values()), "disk_bytes": _du(cache),
+                         "load": os.getloadavg()[0]})
+            print(json.dumps(rows[-1]), flush=True)
+    probe = subprocess.run([sys.executable, "-c", OPEN_AND_QUERY, str(tlm), str(route.query_dir), str(queries)],
+                           check=True, env=env, cwd=ROOT, capture_output=True, text=True)
+    local = json.loads(probe.stdout.strip().splitlines()[-1])
+    truth = _places(route.query_dir)
+    lines = [json.loads(x) for x in (out / "lines.jsonl").read_text().splitlines() if x.strip()]
+    right = statistics.mean(abs(int(x["place"]) - truth[x["image"]]) <= 1 for x in lines)
+    store = cache / "features"
+    n_images = route.n_map_images + route.n_add_images + route.n_query_images
+    return {"places": route.n_places, "map_images": route.n_map_images, "add_images": route.n_add_images,
+            "query_images": route.n_query_images, "shards": shards, "stages": rows,
+            "map_bytes": tlm.stat().st_size, "store_bytes": _du(store), "cache_bytes": _du(cache),
+            "per_image_cache_files": sum(1 for _ in store.rglob("*.tlf")),
+            "store_bytes_per_image": _du(store) / max(1, route.n_map_images + route.n_add_images),
+            "images_described": n_images, "local": local, "query_right_within_1": right}
+
+
+def _places(folder: Path) -> dict[str, int]:
+    import csv
+
+    with (folder / "places.csv").open(encoding="utf-8") as fh:
+        return {row["image"]: int(row["place"]) for row in csv.DictReader(fh)}
+
+
+def extrapolate(run: dict[str, Any], *, places: int = TARGET_PLACES, machines: tuple[int, ...] = (1, 4, 16, 64)
+                ) -> list[dict[str, Any]]:
+    """Hours per command for a route of ``places`` on N machines like the measured one (2 workers each).
+
+    Items scale with the route (the map and added images with its places; the queries are
+    per query, so their rate is kept).  A command's measured rate on one machine is
+    multiplied by N: linear, and optimistic for the client-side part (k-means, merging the
+    shards, writing lines), which does not scale with N; the measured client seconds bound
+    it from above.
+    """
+    out = []
+    factor = places / run["places"]
+    for r in run["stages"]:
+        items = r["items"] * (1 if r["stage"] == "localize" else factor)
+        for n in machines:
+            out.append({"stage": r["stage"], "machines": n, "items": items,
+                        "hours": items / (r["items_per_s"] * n) / 3600.0})
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--places", type=int, nargs="+", default=[2_000, 8_000])
+    ap.add_argument("--work", type=Path, default=ROOT / "build" / "cluster_route")
+    ap.add_argument("--words", type=int, default=2000)
+    ap.add_argument("--max-features", type=int, default=300)
+    ap.add_argument("--add-every", type=int, default=4, help="one segment in N has a tour to add")
+    ap.add_argument("--queries", type=int, default=200, help="queries timed on one thread from the map file")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--page-only", action="store_true", help="rewrite the pages from cluster.json, measure nothing")
+    args = ap.parse_args()
+    if args.page_only:
+        data = json.loads((args.out / "cluster.json").read_text())
+        write_pages(data, args.out)
         return
+    args.work.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
-    measured = [run_pipeline(route, w, args.work, n_words=args.words, max_features=args.max_features)
-                for w in args.workers]
-    ext = extrapolate(measured)
+    runs = []
+    for places in sorted(args.places):
+        route, gen_s = _render(places, args.work, args.add_every)
+        # About 2,500 map images a shard: a worker holds one shard's features (a few hundred MB at most).
+        shards = max(2 * WORKERS, -(-route.n_map_images // 2_500))
+        run = run_route(route, args.work, words=args.words, max_features=args.max_features, shards=shards,
+                        queries=args.queries)
+        run["generation_s"] = gen_s
+        runs.append(run)
     meta = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "machine": platform.machine(),
             "cores": os.cpu_count(), "python": platform.python_version(), "load_before": load_before,
-            "generation_s": gen_s, "places": args.places, "map_images": route.n_map_images,
-            "query_images": route.n_query_images, "image_size": [route.width, route.height],
-            "words": args.words, "max_features": args.max_features}
-    (args.out / "cluster.json").write_text(json.dumps({"meta": meta, "measured": measured, "extrapolated": ext},
-                                                      indent=2, default=float) + "\n")
-    write_pages(meta, measured, ext, args.out)
+            "load_after": os.getloadavg()[0], "places": sorted(args.places), "words": args.words,
+            "max_features": args.max_features, "workers": WORKERS, "image_size": [route.width, route.height]}
+    data = {"meta": meta, "runs": runs, "extrapolated": extrapolate(runs[-1])}
+    (args.out / "cluster.json").write_text(json.dumps(data, indent=2, default=float) + "\n")
+    write_pages(data, args.out)
     print((args.out / "cluster.md").read_text())
 
 
-def write_pages(meta: dict[str, Any], measured: list[dict[str, Any]], ext: list[dict[str, Any]], out: Path, *,
-                recheck: dict[str, Any] | None = None) -> None:
+def write_pages(data: dict[str, Any], out: Path) -> None:
     """docs/results/cluster.md (measured) and docs/cluster_scaling.md (the extrapolation)."""
-    cmd = f".venv/bin/python -m benchmarks.bench_cluster --places {meta['places']}"
+    meta, runs = data["meta"], data["runs"]
+    ext = extrapolate(runs[-1])
+    cmd = ".venv/bin/python -m benchmarks.bench_cluster --places " + " ".join(str(p) for p in meta["places"])
     lines = [
-        "# The pipeline on a Dask cluster: measured stage rates\n\n",
+        "# The command line on a Dask cluster: measured rates and memory\n\n",
         f"Generated by `{cmd}`; do not edit by hand ({meta['machine']}, {meta['cores']} cores, "
-        f"Python {meta['python']}, {meta['date']}; 1-minute load average before the run "
-        f"{meta['load_before']:.2f}).\n\n",
-        f"Route: {meta['places']:,} places, {meta['map_images']:,} map images and {meta['query_images']:,} query "
-        f"images of {meta['image_size'][0]} x {meta['image_size'][1]} pixels (synthetic streets end to end, "
-        f"`topoloc.bench.cluster_scale`; rendered in {meta['generation_s']:.0f} s on 2 workers, not counted). "
-        f"Cooc-Map, SIFT at most {meta['max_features']} per image, {meta['words']:,} words. Each worker count "
-        "starts a fresh `distributed.LocalCluster` (worker processes of one thread) and a fresh cache.\n\n",
-        "| workers | stage | items | seconds | items/s | worker peak MiB | client peak MiB | cache on disk MiB |\n",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |\n",
+        f"Python {meta['python']}, {meta['date']}; 1-minute load average {meta['load_before']:.2f} before "
+        f"the run, {meta['load_after']:.2f} after).\n\n",
+        f"Synthetic routes of {', '.join(f'{p:,}' for p in meta['places'])} places "
+        f"({meta['image_size'][0]} x {meta['image_size'][1]} images, `topoloc.bench.cluster_scale`): a map tour "
+        "over every place, a tour added with `map add` over one segment of 100 places in four, a query tour "
+        f"over one in twenty. Cooc-Map, SIFT at most {meta['max_features']} per image, {meta['words']:,} words. "
+        f"Each route gets a fresh `distributed.LocalCluster` of {meta['workers']} worker processes (one thread "
+        "each) and a fresh cache, and each command runs as a process of its own with `--scheduler` "
+        "(`benchmarks.peak_run` records its peak memory, VmHWM). Worker peaks are VmHWM after a reset before "
+        "each command.\n\n",
+        "| places | command | images | seconds | images/s | client peak MiB | worker peak MiB | cache on disk MiB "
+        "| load |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n",
     ]
-    for i, m in enumerate(measured):
-        for r in m["stages"]:
-            # Linux keeps a process's peak RSS across fork and exec: workers started after this
-            # process had grown report its peak, not their own, so only the first cluster's count.
-            wpeak = f"{r['worker_peak_mb']:.0f}" if i == 0 else "n/a"
-            lines.append(f"| {r['workers']} | {r['stage']} | {r['items']:,} | {r['seconds']:.1f} | "
-                         f"{r['items_per_s']:.1f} | {wpeak} | {r['client_peak_mb']:.0f} | "
-                         f"{r['disk_bytes'] / 2**20:.1f} |\n")
-    lines.append("\n| workers | map file MiB | feature store MiB | median features per image | "
-                 "queries localised within 1 place |\n| --- | --- | --- | --- | --- |\n")
-    for m in measured:
-        lines.append(f"| {m['workers']} | {m['map_bytes'] / 2**20:.1f} | {m['store_bytes'] / 2**20:.1f} | "
-                     f"{m['n_features_median']:.0f} | {m['query_right_within_1']:.3f} |\n")
-    lines.append("\nThe machine has 2 cores, so the 2-worker rows share them with the client (k-means, "
-                 "merging the shards, writing result lines); the speed-up from 1 to 2 workers per stage is the "
-                 "efficiency used in [the extrapolation](../cluster_scaling.md). Worker peak memory is shown "
-                 "for the first cluster only: the others were started after this process had grown, and Linux "
-                 "reports a parent's peak to the processes it starts. The client's peak is this whole process "
-                 "(it holds every image's features of the route after the features stage).\n")
-    if recheck:
-        q = recheck["queries_per_s"]
-        lines.append("\nLocalisation re-measured after this run with `.venv/bin/python -m benchmarks."
-                     f"bench_cluster_localize` (same map and {recheck['queries']:,} queries, load average "
-                     f"{recheck['load_before']:.2f}): " + ", ".join(f"{rate:.1f} queries/s on {w} worker(s)"
-                                                                   for w, rate in q.items()) + ".\n")
-    if meta.get("notes"):
-        lines.append("\n" + meta["notes"] + "\n")
+    for run in runs:
+        for r in run["stages"]:
+            lines.append(f"| {run['places']:,} | `{r['stage']}` | {r['items']:,} | {r['seconds']:.1f} | "
+                         f"{r['items_per_s']:.1f} | {r['client_peak_mib']:.0f} | {r['worker_peak_mib']:.0f} | "
+                         f"{r['disk_bytes'] / 2**20:.1f} | {r['load']:.2f} |\n")
+    lines.append("\n| places | shards | map file MiB | map file KiB per place | open s (fresh process) | "
+                 "ms per query, matching (median / p95) | ms per query, features | feature store KiB per "
+                 "image | per-image cache files | queries within 1 place |\n"
+                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n")
+    for run in runs:
+        lo = run["local"]
+        lines.append(f"| {run['places']:,} | {run['shards']} | {run['map_bytes'] / 2**20:.1f} | "
+                     f"{run['map_bytes'] / run['places'] / 1024:.2f} | {lo['open_s']:.2f} | "
+                     f"{lo['ms_matching_median']:.1f} / {lo['ms_matching_p95']:.1f} | "
+                     f"{lo['ms_features_median']:.1f} | {run['store_bytes_per_image'] / 1024:.1f} | "
+                     f"{run['per_image_cache_files']} | {run['query_right_within_1']:.3f} |\n")
+    peaks = [(run["places"], max(r["client_peak_mib"] for r in run["stages"]),
+              max(r["worker_peak_mib"] for r in run["stages"])) for run in runs]
+    growth = ", ".join(f"{p:,} places: client {c:.0f} MiB, workers {w:.0f} MiB" for p, c, w in peaks)
+    lines.append(f"\n**Memory against route length** (highest peak of any command): {growth}. "
+                 "The client holds the vocabulary's bounded sample, the merged map (its size grows with the "
+                 "route, as the file does) and one wave of block results (word ids and keypoint positions, "
+                 "never descriptors: `tests/maps/test_cluster_client_memory.py`); a worker holds one block of "
+                 "images or one shard. `vocab train`'s client peak grows with the route until its descriptor "
+                 "sample reaches the cap (`Vocabulary.max_descriptors`, 500,000 by default: 244 MiB of float32 "
+                 "SIFT descriptors, k-means working on that), then stays. ms per query are measured in one "
+                 "process on one thread from the map "
+                 "file (after one warm-up query), matching excluding feature extraction.\n")
+    gen = runs[-1]["generation_s"] * TARGET_PLACES / runs[-1]["places"]
+    one = sum(e["hours"] for e in ext if e["machines"] == 1)
+    lines.append(f"\n**The {TARGET_PLACES:,}-place run on this machine**, estimated from the rates of the "
+                 f"{runs[-1]['places']:,}-place route: {gen / 3600:.1f} h to render the route, then {one:.1f} h "
+                 "for the four commands ([extrapolation](../cluster_scaling.md)); `--places 100000` runs it.\n")
     (out / "cluster.md").write_text("".join(lines))
 
-    one = {r["stage"]: r for r in measured[0]["stages"]}
-    per_place_map = measured[0]["map_bytes"] / meta["places"]
-    per_image_store = measured[0]["store_bytes"] / max(1, meta["map_images"] + meta["query_images"])
+    last = runs[-1]
+    machines = sorted({e["machines"] for e in ext})
     doc = [
         "# From a laptop to a cluster: what a 1,000 km route costs\n\n",
-        f"Generated by `{cmd}` from the rates measured in [results/cluster.md](results/cluster.md); "
-        "do not edit by hand.\n\n",
-        "FAB-MAP 2.0's 1,000 km route has about 100,000 places. The table scales each stage's measured "
-        "1-worker rate to 100,000 map images on N workers, times the stage's measured 2-worker efficiency "
-        "(pessimistic: on a real cluster workers do not share cores with the client). Image size matters: "
-        "the benchmark's images are "
-        f"{meta['image_size'][0]} x {meta['image_size'][1]}; SIFT on 640 x 480 frames is about 15 images/s "
-        "per core (docs/results/performance.md), so multiply the features row by the ratio of the two rates "
-        "for camera-size images.\n\n",
-        "| stage | " + " | ".join(f"{n} workers (h)" for n in sorted({e['workers'] for e in ext})) +
-        " | 2-worker efficiency |\n",
-        "| --- |" + " --- |" * (len({e['workers'] for e in ext}) + 1) + "\n",
+        f"Generated by `{cmd}` from the rates measured in [results/cluster.md](results/cluster.md) on its "
+        f"longest route ({last['places']:,} places); do not edit by hand.\n\n",
+        f"FAB-MAP 2.0's 1,000 km route has about {TARGET_PLACES:,} places. Each command's measured rate on this "
+        f"machine ({meta['workers']} workers on {meta['cores']} cores, shared with the client) is scaled to "
+        f"{TARGET_PLACES:,} places (map and added images in proportion; the queries as measured) on N such "
+        "machines. Linear in N, so optimistic for the client's own part (k-means on the bounded sample, merging "
+        "shards, writing lines), which does not shrink with N. Image size matters: these images are "
+        f"{meta['image_size'][0]} x {meta['image_size'][1]}; SIFT on 640 x 480 frames is about 15 images/s per "
+        "core (docs/results/performance.md), so the feature-bound commands (`vocab train` extracts the map's "
+        "features) scale by the ratio of the two rates for camera-size images.\n\n",
+        "| command | images at 100,000 places | " + " | ".join(f"{n} machine(s) (h)" for n in machines) + " |\n",
+        "| --- | --- |" + " --- |" * len(machines) + "\n",
     ]
-    for stage in one:
+    for stage in [r["stage"] for r in last["stages"]]:
         es = [e for e in ext if e["stage"] == stage]
-        doc.append(f"| {stage} | " + " | ".join(f"{e['hours']:.2f}" for e in es) +
-                   f" | {es[0]['efficiency_at_2']:.2f} |\n")
-    worst = max(one, key=lambda s: one[s]["seconds"])
-    doc += [
-        "\n**Disk**: the feature store takes "
-        f"{per_image_store / 1024:.1f} KiB per image here ({100_000 * per_image_store / 2**30:.1f} GiB for "
-        "100,000 images); the Cooc-Map map file "
-        f"{per_place_map / 1024:.1f} KiB per place ({100_000 * per_place_map / 2**30:.2f} GiB). "
-        f"**Memory**: a worker peaked at {max(r['worker_peak_mb'] for r in measured[0]['stages']):.0f} MiB "
-        "(it holds one block of images or one shard, not the route). The client peaked at "
-        f"{max(r['client_peak_mb'] for m in measured for r in m['stages']):.0f} MiB at {meta['places']:,} places: "
-        "the benchmark asks it for every image's features of the route at once (`Resources.features`), which "
-        "grows with the route and would not fit at 100,000 places; the workers' own stages (quantisation, "
-        "shards, localisation) read their blocks from the store and do not need that.\n\n",
-        f"**Which stage limits it**: on one worker the slowest stage is {worst}. Stages run by workers scale "
-        "with N; what runs on the client does not (k-means of the vocabulary sample, merging shard models, "
-        "the sequence search and writing lines), so at large N the client-side part of the vocabulary and map "
-        "building stages is the floor; before that, the client's memory, if it gathers the whole route's "
-        "features.\n",
-    ]
-    if meta.get("notes"):
-        doc.append("\n" + meta["notes"] + "\n")
+        doc.append(f"| `{stage}` | {es[0]['items']:,.0f} | " + " | ".join(f"{e['hours']:.2f}" for e in es) + " |\n")
+    per_place = last["map_bytes"] / last["places"]
+    doc.append(
+        f"\n**Disk**: the feature store takes {last['store_bytes_per_image'] / 1024:.1f} KiB per image "
+        f"({TARGET_PLACES * last['store_bytes_per_image'] / 2**30:.2f} GiB for {TARGET_PLACES:,} images; the "
+        "vocabulary's sample is drawn from the same store, so no image is stored twice: "
+        f"{last['per_image_cache_files']} per-image cache files); the Cooc-Map map file "
+        f"{per_place / 1024:.2f} KiB per place ({TARGET_PLACES * per_place / 2**30:.2f} GiB). "
+        f"**Memory**: the client peaked at {max(c for _, c, _ in peaks):.0f} MiB and a worker at "
+        f"{max(w for _, _, w in peaks):.0f} MiB over routes of {', '.join(f'{p:,}' for p, _, _ in peaks)} places "
+        "(see the results page for each).\n")
     (out.parent / "cluster_scaling.md").write_text("".join(doc))
 
 

@@ -51,6 +51,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
+PlacedWords = tuple[np.ndarray, np.ndarray, tuple[int, int]]
+"""One image's word ids (n,), its keypoints' (x, y) as float32 (n, 2), and its (height, width)."""
+
 @runtime_checkable
 class Resources(Protocol):
     """Per-image inputs of the recognisers (see the module docstring)."""
@@ -78,6 +81,10 @@ class Resources(Protocol):
 
     def words(self, traverse: Traverse, *, timed: bool = True) -> list[np.ndarray]:
         """Visual-word ids of every image's features, each of shape (n_features,)."""
+        ...
+
+    def placed_words(self, traverse: Traverse, *, limit: int | None = None) -> list[PlacedWords]:
+        """Word ids of every image's first ``limit`` features, with their keypoints' (x, y) and the image shape."""
         ...
 
     def per_image(
@@ -224,6 +231,19 @@ class _MemoisedResources:
         if self.memoise:
             self._memo[memo_key] = words
         return words
+
+    def placed_words(self, traverse: Traverse, *, limit: int | None = None) -> list[PlacedWords]:
+        """Word ids of every image's first ``limit`` features (all: None), their (x, y) and the image shape.
+
+        What a method that places words in the image (Cooc-Map) needs, without
+        the descriptors: on a cluster the workers read and quantise their
+        blocks and send back only this (12 bytes a feature instead of the
+        descriptor's 128 and more), so the client never holds a tour's features.
+        """
+        feats = self.features(traverse)
+        words = self.words(traverse)
+        return [(w[:limit], np.asarray(f.keypoints[:limit, :2], np.float32), f.image_shape)
+                for f, w in zip(feats, words, strict=True)]
 
     def _file_features(self, traverse: Traverse, key: str, timed: bool) -> list[FeatureSet]:
         """Features of a traverse of image files (here: per image, through the extractor's own cache)."""
@@ -394,13 +414,34 @@ class CachedResources(_MemoisedResources):
             self._memo[memo_key] = feats
         return feats
 
+    def _on_workers(self, traverse: Traverse) -> bool:
+        """Whether the traverse's blocks are read and quantised by cluster workers (not gathered here)."""
+        return traverse.kind == "files" and self.distributed and self.extractor.use_cache
+
+    def _block_tasks(self, traverse: Traverse, timed: bool, limit: int | None = None) -> list[QuantizeTask]:
+        store, results = self._fill(traverse, "features:" + self.extractor.config.key(), timed)
+        ref = vocabulary_file(self.vocabulary, self.extractor.cache_dir)
+        return [QuantizeTask(block=store.task(r.block), sha1=tuple(r.sha1), vocabulary=ref[0],
+                             fingerprint=ref[1], limit=limit) for r in results]
+
+    def placed_words(self, traverse: Traverse, *, limit: int | None = None) -> list[PlacedWords]:
+        if not self._on_workers(traverse):
+            return super().placed_words(traverse, limit=limit)
+        tasks = self._block_tasks(traverse, True, limit)
+        advance = self.progress(f"words {traverse.name}", len(traverse))
+        sizes = [len(t.block.images) for t in tasks]
+        done = [0]
+
+        def step(_: int) -> None:
+            advance(sizes[done[0]])
+            done[0] += 1
+
+        return flatten([split_placed(b) for b in self.executor.map(placed_block, tasks, advance=step)])
+
     def _quantize(self, traverse: Traverse, timed: bool) -> list[np.ndarray]:
-        if traverse.kind == "files" and self.distributed and self.extractor.use_cache:
+        if self._on_workers(traverse):
             # The workers read their blocks from the store and quantise them: no descriptor crosses the network.
-            store, results = self._fill(traverse, "features:" + self.extractor.config.key(), timed)
-            ref = vocabulary_file(self.vocabulary, self.extractor.cache_dir)
-            tasks = [QuantizeTask(block=store.task(r.block), sha1=tuple(r.sha1), vocabulary=ref[0],
-                                  fingerprint=ref[1]) for r in results]
+            tasks = self._block_tasks(traverse, timed)
             advance = self.progress(f"words {traverse.name}", len(traverse))
             sizes = [len(t.block.images) for t in tasks]
             done = [0]
@@ -464,12 +505,16 @@ class InMemoryResources(_MemoisedResources):
 
 @dataclass(frozen=True)
 class QuantizeTask:
-    """Quantise one feature-store block on a worker: the block, its images' SHA-1s, the vocabulary file."""
+    """Quantise one feature-store block on a worker: the block, its images' SHA-1s, the vocabulary file.
+
+    ``limit``: only each image's first ``limit`` features (:func:`placed_block`; None: all).
+    """
 
     block: BlockTask
     sha1: tuple[str, ...]
     vocabulary: str
     fingerprint: str
+    limit: int | None = None
 
 
 _worker_vocabularies: dict[str, Vocabulary] = {}
@@ -515,17 +560,48 @@ def quantize_block(task: QuantizeTask) -> list[np.ndarray]:
     The block is read and checked against its images' SHA-1s; one that fails
     (changed since it was filled) is extracted again first.
     """
+    voc = _load_worker_vocabulary(task.vocabulary, task.fingerprint)
+    return [voc.quantize(fs.descriptors) for fs in _block_sets(task)]
+
+
+def _block_sets(task: QuantizeTask) -> list[FeatureSet]:
+    """The block's features, read and checked; extracted again when the file fails its checks."""
     from dataclasses import replace
 
     from topoloc.features.store import fill_block, read_block
 
-    voc = _load_worker_vocabulary(task.vocabulary, task.fingerprint)
     try:
-        sets = read_block(task.block.path, task.block.config, task.sha1)
+        return read_block(task.block.path, task.block.config, task.sha1)
     except TopolocError as exc:
         log.warning("feature block is unusable, extracting it again (%s)", exc)
-        sets = fill_block(replace(task.block, keep=True, force=True)).features or []
-    return [voc.quantize(fs.descriptors) for fs in sets]
+        return fill_block(replace(task.block, keep=True, force=True)).features or []
+
+
+def placed_block(task: QuantizeTask) -> dict[str, np.ndarray]:
+    """Word ids, keypoint (x, y) and image shape of every image of one block, as four flat arrays.
+
+    ``words`` (int32) and ``xy`` (float32, (n, 2)) hold the images' first
+    ``task.limit`` features concatenated; image ``i`` owns rows
+    ``offsets[i]:offsets[i + 1]``; ``shapes`` is (n_images, 2).  Flat arrays
+    pickle as a few buffers, not one object per image.
+    """
+    voc = _load_worker_vocabulary(task.vocabulary, task.fingerprint)
+    sets = _block_sets(task)
+    lim = task.limit
+    words = [voc.quantize(fs.descriptors[:lim]).astype(np.int32) for fs in sets]
+    counts = np.array([len(w) for w in words], np.int64)
+    return {"words": np.concatenate(words) if words else np.empty(0, np.int32),
+            "xy": (np.concatenate([fs.keypoints[:lim, :2] for fs in sets]).astype(np.float32)
+                   if sets else np.empty((0, 2), np.float32)),
+            "offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            "shapes": np.array([fs.image_shape for fs in sets], np.int64).reshape(len(sets), 2)}
+
+
+def split_placed(block: dict[str, np.ndarray]) -> list[PlacedWords]:
+    """The per-image views of one :func:`placed_block` result."""
+    off, shapes = block["offsets"], block["shapes"]
+    return [(block["words"][off[i]:off[i + 1]], block["xy"][off[i]:off[i + 1]],
+             (int(shapes[i, 0]), int(shapes[i, 1]))) for i in range(len(shapes))]
 
 
 def traverse_key(traverse: Traverse) -> str:
@@ -533,4 +609,5 @@ def traverse_key(traverse: Traverse) -> str:
     return str(traverse.root.resolve()) + "|" + ",".join(p.name for p in traverse.images)
 
 
-__all__ = ["CachedResources", "InMemoryResources", "ProgressFactory", "Resources", "no_progress", "traverse_key"]
+__all__ = ["CachedResources", "InMemoryResources", "PlacedWords", "ProgressFactory", "Resources", "no_progress",
+           "traverse_key"]

@@ -64,7 +64,9 @@ def test_a_write_killed_before_its_rename_is_cleaned_up_by_the_next_write(tmp_pa
     left = [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
     assert len(left) == 1 and left[0].name.startswith(".c.tlm.") and left[0].stat().st_size == 100_000
     assert path.read_bytes() == b"old map"
-    atomic_write_bytes(path, b"new map")
+    # The next process that writes into the folder removes it (each process sweeps a folder once).
+    assert _python(f"import topoloc.io.container as c\nc.atomic_write_bytes({str(path)!r}, b'new map')\n"
+                   ).wait(timeout=60) == 0
     assert [p.name for p in tmp_path.iterdir()] == ["c.tlm"] and path.read_bytes() == b"new map"
 
 
@@ -195,3 +197,21 @@ def test_the_lock_is_re_entrant_and_its_timeout_checked(tmp_path: Path, monkeypa
         lock_timeout()
     monkeypatch.setenv("TOPOLOC_LOCK_TIMEOUT", "2.5")
     assert lock_timeout() == 2.5
+
+
+def test_a_process_sweeps_a_folder_once_however_many_files_it_writes(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    import topoloc.io.container as container
+
+    scans: list[Path] = []
+    real = container.remove_stale
+
+    def counting(folder: Path, *args: object, **kw: object) -> list[Path]:
+        scans.append(folder)
+        return real(folder, *args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(container, "remove_stale", counting)
+    for k in range(20):
+        atomic_write_bytes(tmp_path / f"f{k}.tlf", b"x")
+        atomic_write_bytes(tmp_path / "sub" / f"f{k}.tlf", b"x")
+    assert scans == [tmp_path, tmp_path / "sub"]

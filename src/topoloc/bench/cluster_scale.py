@@ -6,8 +6,9 @@ The route is made of independent synthetic streets (:mod:`topoloc.synth`),
 :class:`~topoloc.cluster.Executor`, so a route of tens of thousands of places is
 generated on the same cluster the pipeline then runs on.  The map tour covers
 every place (at ``map_hour``); a query tour (at ``query_hour``) is rendered for
-one segment in ``query_every``.  Both are written as ordinary traverse folders
-(``map/``, ``query/``) with a ``places.csv`` (``image,place,time,x,y``; ``x`` in
+one segment in ``query_every``, and a tour to add to the map (``map add``, at
+``add_hour``) for one segment in ``add_every`` (0: none).  They are written as
+ordinary traverse folders (``map/``, ``query/``, ``add/``) with a ``places.csv`` (``image,place,time,x,y``; ``x`` in
 metres along the whole route), so ``topoloc`` commands read them as they read
 any recording.  Images made here are for timing, never for accuracy claims.
 """
@@ -34,11 +35,11 @@ class ScaleRoute:
     Attributes
     ----------
     root : Path
-    map_dir, query_dir : Path
-        Traverse folders (images + ``places.csv``).
+    map_dir, query_dir, add_dir : Path
+        Traverse folders (images + ``places.csv``); ``add_dir`` is empty without an added tour.
     n_places : int
         Places of the map tour.
-    n_map_images, n_query_images : int
+    n_map_images, n_query_images, n_add_images : int
     width, height : int
         Image size in pixels.
     """
@@ -51,9 +52,11 @@ class ScaleRoute:
     n_query_images: int
     width: int
     height: int
+    add_dir: Path | None = None
+    n_add_images: int = 0
 
 
-def _render_segment(task: tuple[str, int, int, int, int, float, float, bool, int]) -> dict[str, list[list[str]]]:
+def _render_segment(task: tuple[Any, ...]) -> dict[str, list[list[str]]]:
     """Render segment ``seg`` into ``root/map`` (and ``root/query``); return its ``places.csv`` rows.
 
     A module-level function so that Dask workers can run it; a segment already
@@ -62,7 +65,7 @@ def _render_segment(task: tuple[str, int, int, int, int, float, float, bool, int
     """
     from topoloc.synth import RouteConfig, generate_route
 
-    root_s, seg, per_seg, width, height, map_hour, query_hour, with_query, seed = task
+    root_s, seg, per_seg, width, height, map_hour, query_hour, with_query, seed, add_hour = task
     root = Path(root_s)
     done = root / "segments" / f"{seg:05d}.csv"
     if done.is_file():
@@ -70,10 +73,11 @@ def _render_segment(task: tuple[str, int, int, int, int, float, float, bool, int
     config = RouteConfig(n_places=per_seg, width=width, height=height, seed=seed + seg)
     tmp = root / "segments" / f"{seg:05d}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
-    tours = [("map", map_hour)] + ([("query", query_hour)] if with_query else [])
+    tours = ([("map", map_hour)] + ([("query", query_hour)] if with_query else [])
+             + ([("add", add_hour)] if add_hour is not None else []))
     folders = generate_route(tmp, config=config, tours=tours)
     length_m = per_seg * config.place_spacing_m
-    out: dict[str, list[list[str]]] = {"map": [], "query": []}
+    out: dict[str, list[list[str]]] = {"map": [], "query": [], "add": []}
     for folder in folders:
         dest = root / folder.name
         with (folder / "places.csv").open(encoding="utf-8") as fh:
@@ -94,7 +98,7 @@ def _render_segment(task: tuple[str, int, int, int, int, float, float, bool, int
 
 
 def _read_rows(path: Path) -> dict[str, list[list[str]]]:
-    out: dict[str, list[list[str]]] = {"map": [], "query": []}
+    out: dict[str, list[list[str]]] = {"map": [], "query": [], "add": []}
     with path.open(encoding="utf-8") as fh:
         for tour, *row in csv.reader(fh):
             out[tour].append(row)
@@ -104,7 +108,7 @@ def _read_rows(path: Path) -> dict[str, list[list[str]]]:
 def generate_scale_route(
     root: str | Path, *, n_places: int, executor: Executor, places_per_segment: int = 100, width: int = 160,
     height: int = 120, query_every: int = 20, map_hour: float = 12.0, query_hour: float = 16.0, seed: int = 0,
-    progress: ProgressFactory | None = None,
+    add_every: int = 0, add_hour: float = 18.0, progress: ProgressFactory | None = None,
 ) -> ScaleRoute:
     """Write a route of ``n_places`` places (see the module docstring).
 
@@ -120,6 +124,8 @@ def generate_scale_route(
     places_per_segment, width, height, query_every, map_hour, query_hour, seed
         Size of a segment, image size, one query segment in ``query_every``,
         the tours' hours, and the seed of segment 0 (segment ``s`` uses ``seed + s``).
+    add_every, add_hour
+        One segment in ``add_every`` (0: none) also has a tour at ``add_hour``, in ``add/``.
     progress : callable, optional
         Progress factory (one step per segment).
 
@@ -133,17 +139,18 @@ def generate_scale_route(
     if query_every < 1:
         raise input_error("scale route: query_every must be >= 1")
     root = Path(root)
-    for sub in ("map", "query", "segments"):
+    for sub in ("map", "query", "add", "segments"):
         (root / sub).mkdir(parents=True, exist_ok=True)
     n_seg = n_places // places_per_segment
     # One segment in query_every has a query tour (at least one, however short the route).
     queried = set(range(min(query_every // 2, n_seg - 1), n_seg, query_every))
+    added = set(range(0, n_seg, add_every)) if add_every > 0 else set()
     tasks: list[Any] = [(str(root), s, places_per_segment, width, height, map_hour, query_hour,
-                         s in queried, seed) for s in range(n_seg)]
+                         s in queried, seed, add_hour if s in added else None) for s in range(n_seg)]
     advance = (progress or no_progress)("rendering segments", n_seg)
     parts = executor.map(_render_segment, tasks, advance=advance)
     counts = {}
-    for tour in ("map", "query"):
+    for tour in ("map", "query", "add"):
         rows = [r for part in parts for r in part[tour]]
         with (root / tour / "places.csv").open("w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh, lineterminator="\n")
@@ -151,7 +158,8 @@ def generate_scale_route(
             w.writerows(rows)
         counts[tour] = len(rows)
     return ScaleRoute(root=root, map_dir=root / "map", query_dir=root / "query", n_places=n_places,
-                      n_map_images=counts["map"], n_query_images=counts["query"], width=width, height=height)
+                      n_map_images=counts["map"], n_query_images=counts["query"], width=width, height=height,
+                      add_dir=root / "add", n_add_images=counts["add"])
 
 
 __all__ = ["ScaleRoute", "generate_scale_route"]

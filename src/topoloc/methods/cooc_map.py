@@ -207,11 +207,9 @@ class CoocMap(PlaceRecognizer):
         self.confidence = confidence
 
     def _observations(self, traverse: Traverse, resources: Resources) -> list[Item]:
-        feats = resources.features(traverse)
-        words = resources.words(traverse)
-        k = self.max_words_per_image or None
-        return [(np.asarray(w[:k], np.int64), normalise_xy(f.keypoints[:k, :2], f.image_shape))
-                for f, w in zip(feats, words, strict=True)]
+        # Words and positions only: on a cluster the workers quantise the blocks, no descriptor comes here.
+        placed = resources.placed_words(traverse, limit=self.max_words_per_image or None)
+        return [(np.asarray(w, np.int64), normalise_xy(xy, shape)) for w, xy, shape in placed]
 
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         place_ids = map_place_ids(maps)

@@ -42,6 +42,7 @@ from topoloc.progress import stage
 if TYPE_CHECKING:
     from topoloc.cluster import Executor
     from topoloc.features import FeatureExtractor
+    from topoloc.features.store import BlockTask
 
 log = logging.getLogger(__name__)
 
@@ -518,17 +519,37 @@ def _to_space(X: np.ndarray, *, binary: bool) -> np.ndarray:
 
 # -- training from image folders -----------------------------------------------------------
 
-SAMPLE_BLOCK_IMAGES = 256
+SAMPLE_BLOCK_IMAGES = 128
 """Images per sampling task: the unit of work sent to a worker, and of the sample's seeds.
 
 Block ``b`` draws its descriptors' random keys from the seed ``(seed, b)``, so the
 sample is a function of the images, the seed and this block size only, never
-of how many workers (or threads) run the blocks."""
+of how many workers (or threads) run the blocks.  Equal to the feature store's
+block (:data:`topoloc.features.store.BLOCK_IMAGES`), so that a sampling task
+is one block of the training images' store, which a map built on the same
+folder then reads again rather than extracting it a second time."""
+
+
+def _sample_of(descs: list[np.ndarray], seed: int, block: int, max_descriptors: int, dim: int, dtype: Any
+               ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Keys and descriptors of the ``max_descriptors`` smallest keys of one block's descriptors."""
+    descs = [d for d in descs if len(d)]
+    if not descs:
+        return np.empty(0, np.float64), np.empty((0, dim), dtype), 0
+    new = np.concatenate(descs)
+    keys = np.random.default_rng([int(seed), int(block)]).random(len(new))
+    if len(keys) > max_descriptors:
+        sel = np.sort(np.argpartition(keys, max_descriptors - 1)[:max_descriptors])
+        return keys[sel], new[sel], len(new)
+    return keys, new, len(new)
 
 
 def _block_sample(extractor: FeatureExtractor, images: Sequence[Path], seed: int, max_descriptors: int,
                   block_images: int, block: int) -> tuple[np.ndarray, np.ndarray, int]:
     """Keys and descriptors of the ``max_descriptors`` smallest keys of one block of images (a task).
+
+    Used when the extractor keeps no cache (nothing is written); otherwise
+    :func:`_store_block_sample` reads the block from the feature store.
 
     Returns
     -------
@@ -540,16 +561,23 @@ def _block_sample(extractor: FeatureExtractor, images: Sequence[Path], seed: int
     """
     part = images[block * block_images:(block + 1) * block_images]
     sets = extractor.extract_paths(part)
-    descs = [fs.descriptors for fs in sets if len(fs)]
-    dim, dtype = extractor.config.descriptor_dim, extractor.config.descriptor_dtype
-    if not descs:
-        return np.empty(0, np.float64), np.empty((0, dim), dtype), 0
-    new = np.concatenate(descs)
-    keys = np.random.default_rng([int(seed), int(block)]).random(len(new))
-    if len(keys) > max_descriptors:
-        sel = np.sort(np.argpartition(keys, max_descriptors - 1)[:max_descriptors])
-        return keys[sel], new[sel], len(new)
-    return keys, new, len(new)
+    return _sample_of([fs.descriptors for fs in sets], seed, block, max_descriptors,
+                      extractor.config.descriptor_dim, extractor.config.descriptor_dtype)
+
+
+def _store_block_sample(seed: int, max_descriptors: int, task: BlockTask) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`_block_sample` of one feature-store block: filled (extracted once, written) and sampled.
+
+    Only the block's sample comes back, never its features: the store
+    holds them, once, for the map or quantisation that reads them next.
+    """
+    from dataclasses import replace
+
+    from topoloc.features.store import fill_block
+
+    sets = fill_block(replace(task, keep=True)).features or []
+    return _sample_of([fs.descriptors for fs in sets], seed, task.block, max_descriptors,
+                      task.config.descriptor_dim, task.config.descriptor_dtype)
 
 
 def sample_descriptors(
@@ -568,19 +596,22 @@ def sample_descriptors(
     images draws its keys from the seed ``(seed, b)``) and the
     ``max_descriptors`` smallest keys over all images are kept: a uniform
     sample without replacement.  Each block is one task of ``executor``
-    (:func:`topoloc.cluster.connect`: local threads or Dask workers, which
-    extract the features and send back only their block's smallest keys);
-    the client keeps the smallest keys as waves of blocks come back, so its
-    memory stays bounded by ``max_descriptors`` plus one wave, and k-means
-    then runs here, where the sample is.  The sample -- hence the vocabulary
-    -- is the same whichever executor and however many workers run it.
+    (:func:`topoloc.cluster.connect`: local threads or Dask workers).  With
+    the extractor's cache on, a task fills one block of the images' feature
+    store (:class:`~topoloc.features.store.FeatureStore`; the images are
+    described once and stored once, where a map of the same folder reads them
+    again) and sends back only its block's smallest keys; the client keeps the
+    smallest keys as waves of blocks come back, so its memory stays bounded by
+    ``max_descriptors`` plus one wave, and k-means then runs here, on that
+    bounded sample.  The sample -- hence the vocabulary -- is the same
+    whichever executor and however many workers run it.
 
     Parameters
     ----------
     images : sequence of Path
         Image files, in a fixed order (:func:`~topoloc.datasets.traverse.find_images`).
     extractor : FeatureExtractor
-        Local features (cached on disk; Dask workers need that folder shared).
+        Local features (stored under its cache folder; Dask workers need that folder shared).
     max_descriptors, seed : int
         Sample size and global seed.
     executor : Executor, optional
@@ -601,24 +632,42 @@ def sample_descriptors(
 
     # Locally one block at a time: each block already extracts its images on the extractor's threads.
     ex = executor if executor is not None else LocalExecutor(1)
+    local = isinstance(ex, LocalExecutor)
     block_images = int(block_images or SAMPLE_BLOCK_IMAGES)
     n_blocks = -(-len(images) // block_images)
     advance = progress("vocabulary features", len(images)) if progress is not None else None
-    task = functools.partial(_block_sample, extractor, list(images), int(seed), int(max_descriptors),
-                             int(block_images))
+    task: Callable[[Any], tuple[np.ndarray, np.ndarray, int]]
+    items: list[Any]
+    if extractor.use_cache and images:
+        from topoloc.features.store import FeatureStore, check_shared_cache
+
+        if not local:
+            check_shared_cache(ex, extractor.cache_dir)
+        # The store of these images as a traverse rooted at their common folder (Resources.training_words).
+        common = Path(os.path.commonpath([str(Path(p).parent.resolve()) for p in images]))
+        store = FeatureStore(extractor.config, images, root=common, cache_dir=extractor.cache_dir,
+                             block_size=block_images)
+        store._write_manifest()
+        threads = n_workers(extractor.n_jobs) if local else 1
+        task = functools.partial(_store_block_sample, int(seed), int(max_descriptors))
+        items = [store.task(b, threads=threads) for b in range(n_blocks)]
+    else:
+        task = functools.partial(_block_sample, extractor, list(images), int(seed), int(max_descriptors),
+                                 block_images)
+        items = list(range(n_blocks))
     dim, dtype = extractor.config.descriptor_dim, extractor.config.descriptor_dtype
     keys = np.empty(0, np.float64)
     kept = np.empty((0, dim), dtype)
     n_total = 0
     wave = max(1, 2 * ex.n_workers)  # blocks in flight at once: bounds the client's memory
     for first in range(0, n_blocks, wave):
-        blocks = list(range(first, min(first + wave, n_blocks)))
+        blocks = items[first:first + wave]
         for k, d, n in ex.map(task, blocks):
             n_total += n
             keys = np.concatenate([keys, k])
             kept = np.concatenate([kept, d])
         if advance is not None:
-            advance(len(images[first * block_images:(blocks[-1] + 1) * block_images]))
+            advance(len(images[first * block_images:(first + len(blocks)) * block_images]))
         if len(keys) > max_descriptors:
             sel = np.sort(np.argpartition(keys, max_descriptors - 1)[:max_descriptors])
             keys, kept = keys[sel], kept[sel]
