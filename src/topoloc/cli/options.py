@@ -35,7 +35,6 @@ MaxFeaturesOption = Annotated[int, typer.Option(help="Cap on features per image.
 MaxSideAutoOption = Annotated[str, typer.Option(
     help="Downscale images to this longer side before extraction; 'auto' = 640 (smaller images "
          "are kept as they are), 0 = never.")]
-MaxSideOption = Annotated[int, typer.Option(help="Downscale images to this longer side first (0 = never).")]
 PreprocessOption = Annotated[str, typer.Option(
     help="Photometric preprocessing: auto (default; CLAHE weighted per image by how far its "
          "histogram is from uniform, so dark night frames are equalised and well-exposed ones barely "

@@ -483,6 +483,17 @@ PARTS: dict[str, type] = {
 
 
 __all__ = [
-    "AUTO_MAX_SIDE", "PARTS", "SEQUENCE_MODES", "stream_sequence_for", "travels_the_route", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec", "InputSpec", "SequenceSpec",
-    "VocabularySpec", "parse_max_side", "parse_recall_at",
+    "AUTO_MAX_SIDE",
+    "PARTS",
+    "SEQUENCE_MODES",
+    "ExecutionSpec",
+    "FeatureSpec",
+    "GroundTruthSpec",
+    "InputSpec",
+    "SequenceSpec",
+    "VocabularySpec",
+    "parse_max_side",
+    "parse_recall_at",
+    "stream_sequence_for",
+    "travels_the_route",
 ]

@@ -284,7 +284,7 @@ class VocabTrainSpec(_ChecksOutputs):
 
     folders: tuple[Path, ...] = ()
     out: Path | None = None
-    features: FeatureSpec = field(default_factory=lambda: FeatureSpec(max_side=0))
+    features: FeatureSpec = field(default_factory=FeatureSpec)
     vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
 
