@@ -490,10 +490,16 @@ _HELPERS_LOCK = threading.Lock()
 
 
 def _helpers(n: int) -> ThreadPoolExecutor:
-    """The process's helper threads (created on first use, kept for later queries)."""
+    """The process's helper threads (created on first use, kept for later queries).
+
+    The calling thread never waits for them, so a pool whose threads are gone
+    (after a fork) only leaves the matching serial.
+    """
     global _HELPERS, _HELPERS_SIZE
     with _HELPERS_LOCK:
         if _HELPERS is None or _HELPERS_SIZE < n:
+            if _HELPERS is not None:
+                _HELPERS.shutdown(wait=False)  # its threads finish what they hold, then exit
             _HELPERS = ThreadPoolExecutor(max_workers=n, thread_name_prefix="topoloc-coocmap")
             _HELPERS_SIZE = n
         return _HELPERS
