@@ -22,6 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from benchmarks.bench_load import render_section, write_section
 from benchmarks.common import GP, RESULTS, WEBCAM, require_data
 from topoloc.bench.quantisation import measure_quantisation, quantisation_agreement
 from topoloc.datasets.traverse import find_images, read_image
@@ -94,6 +95,9 @@ def main() -> None:
     out["peak_rss_mb"] = peak_rss_mb()
     (RESULTS / "performance.json").write_text(json.dumps(out, indent=2) + "\n")
     (RESULTS / "performance.md").write_text(render(out))
+    load = RESULTS / "load.json"
+    if load.is_file():  # the load section is benchmarks/bench_load.py's, kept as that run wrote it
+        write_section(RESULTS / "performance.md", render_section(json.loads(load.read_text())))
     print(f"wrote {RESULTS / 'performance.md'}")
 
 

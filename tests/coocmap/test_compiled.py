@@ -104,26 +104,60 @@ def test_one_location_with_and_without_the_translation_bound() -> None:
 
 @pytest.mark.parametrize("seed", range(4))
 def test_parallel_batches_give_the_same_scores(seed: int) -> None:
-    """Threads and batch sizes change which locations get finished, never what S says."""
-    import numba
-
+    """Threads change which locations get finished and when, never what S says (bit for bit)."""
     rng = np.random.default_rng(100 + seed)
     model, w, xy = _case(rng, n_loc=80, position_bits=6)
     ref = match_sequential(consistency_graphs(model, w, xy, seed=seed, spatial_tolerance=1))
     for k in (1, 5):
         serial, g1 = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=1, parallel=False)
-        old = numba.get_num_threads()
-        try:
-            numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-            par, g2 = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=1, parallel=True)
-        finally:
-            numba.set_num_threads(old)
-        np.testing.assert_array_equal(serial.scores, par.scores)
-        np.testing.assert_array_equal(serial.exact, par.exact)
-        np.testing.assert_array_equal(g1, g2)
+        for threads in (2, 3):
+            par, g2 = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=1, threads=threads)
+            np.testing.assert_array_equal(serial.scores, par.scores)
+            np.testing.assert_array_equal(serial.exact, par.exact)
+            np.testing.assert_array_equal(g1, g2)
         assert serial.best == par.best == ref.best
         T = np.sort(ref.scores)[::-1][k - 1]
         # Locations at or above the top_k-th best score are exact; the others report min(n_i, T - 1/2).
         np.testing.assert_array_equal(serial.exact, ref.scores >= T)
         assert (serial.scores[~serial.exact] < T).all()
         assert (serial.scores >= ref.scores).all()
+
+
+def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A helper that holds a location and is never run again: the query finishes without it, same S."""
+    import threading
+    import time
+
+    from topoloc.coocmap import compiled
+
+    rng = np.random.default_rng(7)
+    model, w, xy = _case(rng, n_loc=60, position_bits=6)
+    serial, g1 = match_compiled(model, w, xy, top_k=3, spatial_tolerance=1, parallel=False)
+    claimed, release = threading.Event(), threading.Event()
+
+    def stuck_helper(shared: compiled._Shared) -> None:  # claims the first free location, then sleeps
+        job = shared.claim(helper=True)
+        claimed.set()
+        release.wait(30)
+        if job is not None:
+            shared.run(*job)  # too late: the query recorded it itself
+
+    claim = compiled._Shared.claim
+
+    def helper_first(shared: compiled._Shared, helper: bool) -> tuple[int, float] | None:
+        if not helper:
+            claimed.wait(10)  # the helper holds a location before the calling thread starts
+        return claim(shared, helper)
+
+    monkeypatch.setattr(compiled, "_helper", stuck_helper)
+    monkeypatch.setattr(compiled._Shared, "claim", helper_first)
+    t0 = time.perf_counter()
+    try:
+        par, g2 = match_compiled(model, w, xy, top_k=3, spatial_tolerance=1, threads=2)
+        assert claimed.is_set() and not release.is_set()  # it returned while the helper still held its location
+    finally:
+        release.set()
+    assert time.perf_counter() - t0 < 10
+    np.testing.assert_array_equal(serial.scores, par.scores)
+    np.testing.assert_array_equal(serial.exact, par.exact)
+    np.testing.assert_array_equal(g1, g2)

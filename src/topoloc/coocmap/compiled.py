@@ -42,6 +42,12 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   identical to the reference's, and the best location and ranks
   ``1..top_k`` are exact.
 
+* Threads: the calling thread and ``threads - 1`` helpers claim locations one
+  at a time from a shared cursor; no thread ever waits for another (no batch
+  barrier), so on a machine whose cores are busy with other work the query
+  runs at the serial loop's pace instead of stalling behind a descheduled
+  thread (``benchmarks/bench_load.py``, docs/results/performance.md).
+
 Nothing here is approximate; :func:`match_compiled` only computes less.
 """
 
@@ -49,11 +55,13 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
-import numba
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
+from topoloc._parallel import n_workers
 from topoloc.cluster import in_worker_task
 from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
@@ -93,7 +101,7 @@ def _candidate_counts(wloc_ptr: np.ndarray, wloc: np.ndarray, qwords: np.ndarray
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _triples(s, e, word, xy, qword_sorted, qf_sorted, qx, qy, present, cand_of_f, gx, gy):
     """Candidates and (query feature, stored feature) triples of the location stored in ``s:e``.
 
@@ -174,7 +182,7 @@ def _triples(s, e, word, xy, qword_sorted, qf_sorted, qx, qy, present, cand_of_f
     return n, cand_feat, t_f, t_a, t_b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r):
     """Upper bound on the final group of a location from its triples' translations alone.
 
@@ -217,7 +225,7 @@ def _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r):
     return bound
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, seed, keep,
                   tb_prune=True):
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
@@ -398,29 +406,130 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
     return float(size), True, steps, tests, 0
 
 
-def _match_locations_py(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy,
-                     top_k, tol, gx, gy, seed, seed_first, max_batch, scores, exact, stats, best_keep):
+class _Shared:
+    """One query's location loop, shared by the calling thread and the helpers (see :func:`_match_locations`).
+
+    Every field is read and written under ``lock``; the compiled kernels run outside it.
+    """
+
+    def __init__(self, order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[Any, ...], top_k: int,
+                 seed_first: int, F: int) -> None:
+        self.lock = threading.Lock()
+        self.order = order
+        self.n_cand = n_cand
+        self.kernel_args = kernel_args
+        self.top_k = top_k
+        self.seed_first = seed_first
+        self.F = F
+        L = len(order)
+        self.next = 0  # the next position of ``order`` nobody has claimed
+        self.stopped = False
+        self.claimed_by_helper = np.zeros(L, bool)
+        self.done = np.zeros(L, bool)
+        self.top = np.full(max(top_k, 1), -1.0)  # the top_k best finished scores, ascending
+        self.n_fin = 0
+        self.best_score = -1.0
+        self.best_loc = -1
+        self.best_keep = np.zeros(F, bool)
+        self.results: dict[int, tuple[float, bool, int, int, int]] = {}
+
+    def threshold(self) -> float:
+        return float(self.top[0]) if self.n_fin >= self.top_k else -1.0
+
+    def claim(self, helper: bool) -> tuple[int, float] | None:
+        """The next position to match and the threshold to match it against, or None when matching is over."""
+        with self.lock:
+            if self.stopped or self.next >= len(self.order):
+                self.stopped = True
+                return None
+            thr = self.threshold()
+            if self.next >= self.seed_first and self.n_cand[self.order[self.next]] < thr:
+                self.stopped = True  # every later location has at most this many candidates
+                return None
+            pos = self.next
+            self.next += 1
+            self.claimed_by_helper[pos] = helper
+            return pos, thr
+
+    def run(self, pos: int, thr: float) -> None:
+        """Match the location at ``pos`` (outside the lock) and record it, unless it was recorded meanwhile."""
+        loc = int(self.order[pos])
+        keep = np.zeros(self.F, np.bool_)
+        if self.n_cand[loc] < thr:
+            res = (float(self.n_cand[loc]), False, 0, 0, 0)
+        else:
+            loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, seed = self.kernel_args
+            res = _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy,
+                                seed, keep)
+        with self.lock:
+            if self.done[pos]:
+                return  # the other thread recorded it first: same exact score, or another bound below T
+            self.done[pos] = True
+            self.results[loc] = res
+            if not res[1]:
+                return
+            size = res[0]
+            if size > self.best_score or (size == self.best_score and loc < self.best_loc):
+                self.best_score, self.best_loc, self.best_keep = size, loc, keep
+            if self.n_fin < self.top_k:
+                self.top[0] = size
+                self.n_fin += 1
+            elif size > self.top[0]:
+                self.top[0] = size
+            self.top.sort()
+
+
+def _helper(shared: _Shared) -> None:
+    while (job := shared.claim(helper=True)) is not None:
+        shared.run(*job)
+
+
+_HELPERS: ThreadPoolExecutor | None = None
+_HELPERS_SIZE = 0
+_HELPERS_LOCK = threading.Lock()
+
+
+def _helpers(n: int) -> ThreadPoolExecutor:
+    """The process's helper threads (created on first use, kept for later queries).
+
+    The calling thread never waits for them, so a pool whose threads are gone
+    (after a fork) only leaves the matching serial.
+    """
+    global _HELPERS, _HELPERS_SIZE
+    with _HELPERS_LOCK:
+        if _HELPERS is None or _HELPERS_SIZE < n:
+            if _HELPERS is not None:
+                _HELPERS.shutdown(wait=False)  # its threads finish what they hold, then exit
+            _HELPERS = ThreadPoolExecutor(max_workers=n, thread_name_prefix="topoloc-coocmap")
+            _HELPERS_SIZE = n
+        return _HELPERS
+
+
+def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[Any, ...], top_k: int,
+                     seed_first: int, threads: int, F: int, scores: np.ndarray, exact: np.ndarray,
+                     stats: np.ndarray, best_keep: np.ndarray) -> int:
     """The location loop of :func:`match_compiled` (see the module docstring).
 
     The first ``seed_first`` locations of ``order`` (by candidate count) are
     re-ordered by their translation bound, highest first, so that a good
-    threshold comes early.  Locations are then matched in batches of 1, 2,
-    4, ... ``max_batch``, those of a batch against the threshold known when
-    the batch starts (the ``top_k``-th best finished score: only an upper
-    bound below it drops a location, so the result does not depend on the
-    batches) and, compiled with ``parallel=True``, on all threads at once.
-    ``stats`` (int64, 5): elimination steps, locations whose ``J``
-    was built, pair tests, locations finished, locations dropped by the
-    translation bound.  ``best_keep`` (bool, F): query features of the final
-    group of the best location.  Returns the best location (-1 if none).
+    threshold comes early.  Locations are then claimed one at a time in that
+    order, by the calling thread and by ``threads - 1`` helper threads; each is
+    matched against the threshold known when it is claimed (the ``top_k``-th
+    best finished score: only an upper bound below it drops a location, so
+    which thread matched what, and when, never changes ``S``; see
+    :func:`match_compiled`).  The calling thread never waits for a helper:
+    when nothing is left to claim, it matches itself any location a helper
+    holds but has not finished (whichever records it first counts), so a
+    helper that the operating system does not run costs at most one
+    location's work twice, and a busy machine degrades to the serial loop
+    rather than stalling on a barrier.  ``stats`` (int64, 5): elimination
+    steps, locations whose ``J`` was built, pair tests, locations finished,
+    locations dropped by the translation bound.  ``best_keep`` (bool, F):
+    query features of the final group of the best location.  Returns the best
+    location (-1 if none).
     """
-    F = len(qx)
     L = len(order)
-    r = tol + 1
-    top = np.full(max(top_k, 1), -1.0)  # the top_k best finished scores, ascending
-    n_fin = 0
-    best_score = -1.0
-    best_loc = -1
+    loc_ptr, word, xy, _, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, _ = kernel_args
     present = np.zeros(F, np.bool_)
     cand_of_f = np.full(F, -1, np.int64)
     S = min(seed_first, L)
@@ -429,86 +538,48 @@ def _match_locations_py(order, n_cand, loc_ptr, word, xy, groups, qword_sorted, 
         loc = order[oi]
         n, cand_feat, t_f, _, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
                                              qx, qy, present, cand_of_f, gx, gy)
-        head[oi] = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r) if n else 0
-        for f in range(n):
-            cand_of_f[cand_feat[f]] = -1
+        head[oi] = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, tol + 1) if n else 0
+        cand_of_f[cand_feat] = -1
     order = order.copy()
     order[:S] = order[:S][np.argsort(-head, kind="mergesort")]
-    pos = 0
-    batch = 1
-    while pos < L:
-        thr = top[0] if n_fin >= top_k else -1.0
-        if pos >= S and n_cand[order[pos]] < thr:
-            break  # every later location has at most this many candidates
-        m = min(batch, L - pos)
-        out_s = np.zeros(m)
-        out_e = np.zeros(m, np.bool_)
-        out_steps = np.zeros(m, np.int64)
-        out_tests = np.zeros(m, np.int64)
-        out_tb = np.zeros(m, np.int64)
-        out_built = np.zeros(m, np.int64)
-        keep = np.zeros((m, F), np.bool_)
-        for t in prange(m):
-            loc = order[pos + t]
-            if n_cand[loc] < thr:
-                out_s[t] = n_cand[loc]
-                continue
-            res = _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx,
-                                gy, seed, keep[t])
-            out_s[t] = res[0]
-            out_e[t] = res[1]
-            out_steps[t] = res[2]
-            out_tests[t] = res[3]
-            out_tb[t] = res[4]
-            out_built[t] = 1 if res[3] > 0 or res[1] else 0
-        for t in range(m):
-            loc = order[pos + t]
-            scores[loc] = out_s[t]
-            exact[loc] = out_e[t]
-            stats[0] += out_steps[t]
-            stats[1] += out_built[t]
-            stats[2] += out_tests[t]
-            stats[4] += out_tb[t]
-            if not out_e[t]:
-                continue
-            size = out_s[t]
-            stats[3] += 1
-            if size > best_score or (size == best_score and loc < best_loc):
-                best_score = size
-                best_loc = loc
-                best_keep[:] = keep[t]
-            if n_fin < top_k:  # insert into the ascending top-k list
-                top[0] = size
-                n_fin += 1
-            elif size > top[0]:
-                top[0] = size
-            for i in range(len(top) - 1):
-                if top[i] > top[i + 1]:
-                    tmp = top[i]
-                    top[i] = top[i + 1]
-                    top[i + 1] = tmp
-        pos += m
-        batch = min(2 * batch, max_batch)
+    shared = _Shared(order, n_cand, kernel_args, top_k, S, F)
+    if threads > 1:
+        pool = _helpers(threads - 1)
+        for _ in range(threads - 1):
+            pool.submit(_helper, shared)
+    while (job := shared.claim(helper=False)) is not None:
+        shared.run(*job)
+    # Locations a helper claimed but has not recorded: matched here rather than waited for.
+    for pos in np.flatnonzero(shared.claimed_by_helper[:shared.next] & ~shared.done[:shared.next]):
+        with shared.lock:
+            thr = shared.threshold()
+        shared.run(int(pos), thr)
+    with shared.lock:
+        results = dict(shared.results)
+        best_loc = shared.best_loc
+        best_keep[:] = shared.best_keep
+    for loc, (score, ex, steps, tests, tb) in results.items():
+        scores[loc] = score
+        exact[loc] = ex
+        stats[0] += steps
+        stats[1] += 1 if tests > 0 or ex else 0
+        stats[2] += tests
+        stats[3] += 1 if ex else 0
+        stats[4] += tb
     return best_loc
-
-
-_match_locations = njit(cache=True)(_match_locations_py)
-_match_locations_parallel = njit(cache=True, parallel=True)(_match_locations_py)
-_PARALLEL_LOCK = threading.Lock()
-
-#: Locations per thread in a parallel batch (batches grow 1, 2, 4, ... up to this times the threads).
-BATCH_PER_THREAD = 2
 
 
 def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k: int = 1,
                    interpolate: bool | None = None, seed: int = 0, spatial_tolerance: int = 0,
-                   parallel: bool = True) -> tuple[MatchResult, np.ndarray]:
+                   parallel: bool = True, threads: int | None = None) -> tuple[MatchResult, np.ndarray]:
     """Match one query against all locations (Sec. II-C, II-D); see the module docstring.
 
     Parameters are those of :func:`~topoloc.coocmap.matching.match_lazy`, and
-    ``parallel``: match the locations of a batch on all of numba's threads
-    (``numba.set_num_threads`` or ``NUMBA_NUM_THREADS`` choose how many); the
-    result is the same either way.
+    ``parallel``: match locations on ``threads`` threads at once (default: one
+    per core), the calling thread and helpers that it never waits for
+    (:func:`_match_locations`), so that on a busy machine the matching slows
+    to the serial loop's pace rather than stalling; the result is the same
+    whatever the threads.
 
     Returns
     -------
@@ -541,17 +612,11 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     # Candidate ids follow ascending query feature index, as in consistency_graphs;
     # out-of-vocabulary features never become candidates (absent from by_word).
     # In a Dask worker task the worker's threads already use the cores (topoloc.cluster.in_worker_task).
-    threads = numba.get_num_threads() if parallel and not in_worker_task() else 1
-    args = (order, n_cand, model.loc_ptr, model.word, model.xy, groups, words[by_word], by_word.astype(np.int64),
-            qx, qy, int(top_k), int(spatial_tolerance), int(model.grid_x), int(model.grid_y),
-            int(seed) & 0xFFFFFFFF, SEED_FIRST, BATCH_PER_THREAD * threads, scores, exact, stats, keep)
-    if threads > 1:
-        # One parallel kernel at a time: numba's fallback threading layer (workqueue) must not be
-        # entered by two Python threads at once.
-        with _PARALLEL_LOCK:
-            _match_locations_parallel(*args)
-    else:
-        _match_locations(*args)
+    n_threads = 1 if not parallel or in_worker_task() else n_workers(-1 if threads is None else threads)
+    kernel_args = (model.loc_ptr, model.word, model.xy, groups, words[by_word], by_word.astype(np.int64), qx, qy,
+                   int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF)
+    _match_locations(order, n_cand, kernel_args, int(top_k), SEED_FIRST, n_threads, len(words), scores, exact,
+                     stats, keep)
     # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact
     # score (their bounds never fall below the threshold); which others it finishes depends on the
     # order and the batches.  So that S does not depend on the threads, every other location

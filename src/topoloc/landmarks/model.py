@@ -45,6 +45,7 @@ import faiss
 import numpy as np
 import scipy.sparse as sp
 
+from topoloc._parallel import search_threads
 from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
@@ -340,7 +341,8 @@ class LandmarkModel(Configurable):
         if len(desc) == 0 or self.n_landmarks_ == 0:
             return none
         kk = min(self.n_candidates, self.n_landmarks_)
-        dist2, nn = self.index_.search(np.ascontiguousarray(desc, np.float32), kk)
+        with search_threads(len(desc)):
+            dist2, nn = self.index_.search(np.ascontiguousarray(desc, np.float32), kk)
         f_idx = np.repeat(np.arange(len(desc)), kk)
         l_idx = nn.ravel()
         ok = l_idx >= 0

@@ -295,8 +295,6 @@ class VocabTrainSpec(_ChecksOutputs):
             raise ParameterError("folders", "needs at least one image folder")
         if self.out is None:
             raise ParameterError("out", "is needed: the vocabulary file to write")
-        if self.features.max_side == "auto":
-            raise ParameterError("features.max_side", "must be a number of pixels for vocabulary training, got 'auto'")
 
     def read_paths(self) -> tuple[Path, ...]:
         """The image folders and the cache folder."""

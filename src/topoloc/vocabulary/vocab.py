@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Self
 import faiss
 import numpy as np
 
-from topoloc._parallel import n_workers
+from topoloc._parallel import n_workers, search_threads
 from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.datasets.traverse import find_images
 from topoloc.errors import NotFittedError, TopolocError, input_error
@@ -411,7 +411,8 @@ class Vocabulary(Configurable):
         if X.shape[0] == 0:
             return np.empty(0, dtype=np.int32)
         Q = _to_space(X, binary=X.dtype == np.uint8)
-        _, ids = self._get_index().search(Q, 1)
+        with search_threads(len(Q)):
+            _, ids = self._get_index().search(Q, 1)
         words = ids[:, 0].astype(np.int32)
         missing = words < 0
         if missing.any():

@@ -1,0 +1,50 @@
+"""The load section of performance.md (benchmarks/bench_load.py): ratios and verdicts from the numbers."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture()
+def bench(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
+    monkeypatch.syspath_prepend(str(REPO))  # benchmarks/ is not an installed package
+    return importlib.import_module("benchmarks.bench_load")
+
+
+def _row(method: str, quiet: float, three: float) -> dict[str, Any]:
+    def stats(ms: float) -> dict[str, float]:
+        return {"median": ms, "p95": 2 * ms, "n": 10}
+    yardstick = {0: 10.0, 1: 15.0, 3: 20.0}  # fair sharing costs 2x with 3 busy processes
+    return {"method": method, "case": "night", "loads": [
+        {"busy": n, "loadavg_1min_before": 0.5 + n, "evaluate": stats(ms), "localize": stats(10 * ms),
+         "yardstick": stats(yardstick[n])}
+        for n, ms in ((0, quiet), (1, 1.5 * quiet), (3, three))]}
+
+
+def test_the_section_says_which_methods_stay_within_the_allowed_slowdown(bench: ModuleType) -> None:
+    out = {"machine": "m", "date": "d", "quick": True, "loadavg_start": 0.3,
+           "rows": [_row("graceful", 10.0, 25.0), _row("stalling", 10.0, 71.0)]}
+    text = bench.render_section(out)
+    graceful = next(line for line in text.splitlines() if line.startswith("| graceful"))
+    stalling = next(line for line in text.splitlines() if line.startswith("| stalling"))
+    assert "25.00 (2.5x)" in graceful and graceful.endswith("| yes | 2.0x | 1.25 |")
+    assert "71.00 (7.1x)" in stalling and stalling.endswith("| **no** | 2.0x | 3.55 |")
+    assert "0.5 / 1.5 / 3.5" in graceful  # the load average beside each load
+
+
+def test_the_section_is_replaced_in_place_or_appended(bench: ModuleType, tmp_path: Path) -> None:
+    md = tmp_path / "performance.md"
+    md.write_text("# Performance\n\nbefore\n")
+    bench.write_section(md, f"{bench.MARK_START}\nfirst\n{bench.MARK_END}\n")
+    md.write_text(md.read_text() + "\nafter\n")
+    bench.write_section(md, f"{bench.MARK_START}\nsecond\n{bench.MARK_END}\n")
+    text = md.read_text()
+    assert "first" not in text and text.count("second") == 1
+    assert text.index("before") < text.index("second") < text.index("after")
