@@ -259,3 +259,40 @@ def gardens_section(run_dirs: list[Path], name: str, title: str) -> str:
     return (report_table(run_dirs, RESULTS / name, title) + f"\n![PR curves]({name}/pr_curves.png)\n\n"
             + "### Anchors on the same data\n\n" + anchors_table()
             + "\n### Where each row wins and loses (written from the runs' metrics.json)\n\n" + prose_for(run_dirs))
+
+
+def _marks(name: str) -> tuple[str, str]:
+    return f"<!-- generated section: {name} -->\n", f"<!-- end of generated section: {name} -->\n"
+
+
+def write_section(path: Path, name: str, body: str) -> None:
+    """Put ``body`` into ``path`` as the section ``name`` (between its markers): replaced where it is, else appended.
+
+    Several benchmarks write one results page each their own section (``performance.md``); each
+    regenerates only its own, and :func:`keep_sections` carries them over when the page's own
+    benchmark rewrites the rest.
+    """
+    begin, end = _marks(name)
+    block = begin + body.rstrip("\n") + "\n" + end
+    text = path.read_text() if path.is_file() else ""
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        text = head + block + rest.split(end, 1)[1]
+    else:
+        text = text.rstrip("\n") + ("\n\n" if text else "") + block
+    path.write_text(text)
+
+
+def keep_sections(path: Path, text: str) -> str:
+    """``text`` with the generated sections (:func:`write_section`) of the page now at ``path`` appended."""
+    import re
+
+    old = path.read_text() if path.is_file() else ""
+    kept = re.findall(r"<!-- generated section: (.+?) -->\n.*?<!-- end of generated section: \1 -->\n", old,
+                      flags=re.S)
+    for name in kept:
+        begin, end = _marks(name)
+        if begin not in text:
+            block = begin + old.split(begin, 1)[1].split(end, 1)[0] + end
+            text = text.rstrip("\n") + "\n\n" + block
+    return text

@@ -708,6 +708,7 @@ class Localizer:
         self.ms_matching = 0.0
         self.ms_wait = 0.0
         self.wall_s = 0.0
+        self.cpu_s = 0.0
         self.workers = 1
         self.threads = 1
         self.ms_overlap = 0.0
@@ -740,7 +741,7 @@ class Localizer:
         stage times and the wall time accumulate for :meth:`summary`.
         """
         it = iter(frames)
-        t_start = time.perf_counter()
+        t_start, cpu_start = time.perf_counter(), time.process_time()
         try:
             if executor is not None and executor.name != "local":
                 from topoloc.maps.batch import localize_on
@@ -771,6 +772,7 @@ class Localizer:
                     done.close()  # stops the reader and the pool before OpenCV's threads come back
         finally:
             self.wall_s += time.perf_counter() - t_start
+            self.cpu_s += time.process_time() - cpu_start
 
     def _one_at_a_time(self, it: Iterator[tuple[str, float | None, np.ndarray]]) -> Iterator[dict[str, Any]]:
         while True:
@@ -799,7 +801,11 @@ class Localizer:
         the stages add up to more than the wall time; ``ms_wait_mean`` is how
         long matching waited for the next frame to be described (near 0: the
         matching is the bottleneck), and the overhead is the wall time per frame
-        beyond that wait and the matching (building and writing the lines).  On
+        beyond that wait and the matching (building and writing the lines).
+        ``ms_cpu_mean`` is the processor time of the whole process per frame, every
+        thread together: unlike the wall clock it hardly grows when other
+        processes share the cores, so ``cores * 1000 / ms_cpu_mean`` bounds the
+        frames/s the same run reaches on idle cores.  On
         a cluster (``workers``: the worker threads) features and matching are
         each frame's own time on a worker, and frames run side by side, so the
         overhead is the wall time per frame less the part of that work the wall
@@ -828,6 +834,7 @@ class Localizer:
         else:
             out["ms_wait_mean"] = round(self.ms_wait / n, 2)
             out["threads"] = self.threads
+            out["ms_cpu_mean"] = round(1e3 * self.cpu_s / n, 2)
         return out
 
     def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]:
