@@ -118,3 +118,23 @@ def test_a_bad_prefetch_is_refused_by_name(tiny_route: dict[str, Any], tmp_path:
         m.localizer(prefetch=-2)
     with pytest.raises(ParameterError, match="prefetch"):
         m.localizer(prefetch=np.float64(2.0))  # type: ignore[arg-type]
+
+
+def test_a_frame_is_described_once_when_a_method_asks_for_features_and_words(tiny_route: dict[str, Any],
+                                                                              tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    from topoloc.features import FeatureExtractor
+
+    m = Map.build(method="coocmap", tours=[tiny_route["map"]], params={"top_k": 3},
+                  vocabulary=tiny_route["vocabulary"], cache_dir=tmp_path / "cache")
+    calls = [0]
+    extract = FeatureExtractor.extract_image
+
+    def counted(self: FeatureExtractor, image: np.ndarray) -> Any:
+        calls[0] += 1
+        return extract(self, image)
+
+    monkeypatch.setattr(FeatureExtractor, "extract_image", counted)
+    frames = tiny_route["query_frames"][:4]
+    lines = m.localize_many(frames)  # Cooc-Map takes each frame's keypoints and its words
+    assert calls[0] == len(frames) == len(lines)

@@ -32,6 +32,7 @@ from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig
 from topoloc.io.lock import file_lock
+from topoloc.maps.frame_resources import FrameResources, describe
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
 from topoloc.methods import get_method
@@ -624,41 +625,6 @@ class Map:
             raise ParameterError("vocabulary", f"is not the one this map was built with{where}")
 
 
-class _TimedResources(InMemoryResources):
-    """In-memory resources of one describing thread that time feature extraction and quantisation apart.
-
-    ``words`` extracts the features first (through :meth:`features`), so the
-    quantisation is the time of ``words`` less the extraction inside it.
-    """
-
-    def __init__(self, m: Map) -> None:
-        super().__init__(feature_config=m.features, vocabulary=m.vocabulary, memoise=False, n_jobs=1)
-        self.ms_features = 0.0
-        self.ms_quantise = 0.0
-
-    def features(self, traverse: Traverse, *, timed: bool = True) -> list[Any]:
-        t0 = time.perf_counter()
-        try:
-            return super().features(traverse, timed=timed)
-        finally:
-            self.ms_features += 1e3 * (time.perf_counter() - t0)
-
-    def per_image(self, traverse: Traverse, key: str, fn: Any, description: str = "", *,
-                  timed: bool = True) -> list[Any]:
-        t0 = time.perf_counter()
-        try:
-            return super().per_image(traverse, key, fn, description, timed=timed)
-        finally:
-            self.ms_features += 1e3 * (time.perf_counter() - t0)
-
-    def words(self, traverse: Traverse, *, timed: bool = True) -> list[np.ndarray]:
-        t0, before = time.perf_counter(), self.ms_features
-        try:
-            return super().words(traverse, timed=timed)
-        finally:
-            self.ms_quantise += 1e3 * (time.perf_counter() - t0) - (self.ms_features - before)
-
-
 class Localizer:
     """Online localisation against a :class:`Map`, one frame at a time, with bounded memory.
 
@@ -714,19 +680,12 @@ class Localizer:
         self.ms_overlap = 0.0
         self._tls = threading.local()
 
-    def _resources(self) -> _TimedResources:
-        """This thread's resources (a feature detector is not shared between threads)."""
-        res: _TimedResources | None = getattr(self._tls, "res", None)
-        if res is None:
-            res = self._tls.res = _TimedResources(self.map)
-        return res
-
     def describe(self, image: np.ndarray, *, name: str = "") -> tuple[list[Any], float, float]:
         """``(items, ms features, ms quantisation)`` of one frame: the recogniser's ``encode``, safe on any thread."""
-        res = self._resources()
-        res.ms_features = res.ms_quantise = 0.0
-        items = self.map.recognizer.encode(Traverse.from_images([image], name=name), resources=res)
-        return items, res.ms_features, res.ms_quantise
+        res: FrameResources | None = getattr(self._tls, "res", None)
+        if res is None:  # one per thread: a feature detector is not shared between threads
+            res = self._tls.res = FrameResources(self.map.features, self.map.vocabulary)
+        return describe(self.map.recognizer, res, image, name)
 
     def stream(self, frames: Iterable[tuple[str, float | None, np.ndarray]], *,
                executor: Executor | None = None) -> Iterator[dict[str, Any]]:
