@@ -86,13 +86,14 @@ def write_video(path: Path, images: list[Path]) -> Path:
     """The images as a video at :data:`CAMERA_HZ` frames/s (MPEG-4 part 2, as phones and dashcams write)."""
     import cv2
 
-    first = cv2.imread(str(images[0]))
-    h, w = first.shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), CAMERA_HZ, (w, h))
+    from topoloc.datasets.traverse import read_image
+
+    h, w = read_image(images[0], gray=False).shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), CAMERA_HZ, (w, h))
     if not writer.isOpened():
         raise SystemExit(f"this OpenCV cannot write {path.suffix} videos")
     for p in images:
-        writer.write(cv2.imread(str(p)))
+        writer.write(read_image(p, gray=False))
     writer.release()
     return path
 
