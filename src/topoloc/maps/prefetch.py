@@ -10,9 +10,10 @@ change.  At most ``depth`` frames are read and not yet returned, whatever the
 input's length: a recording is never held in memory.
 
 OpenCV's SIFT and faiss release the GIL, so the describing threads really run
-side by side.  Each also runs its own OpenCV and faiss calls on one thread
-(:func:`single_threaded_libraries`): with every core already describing a frame,
-library threads on top of them would only contend for the same cores.
+side by side.  They, and the thread that matches, run their OpenCV and faiss
+calls on one thread each (:func:`single_threaded_libraries`): with every core
+already describing a frame, library threads on top of them would only contend
+for the same cores.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import time
 from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from topoloc._parallel import n_workers
 
@@ -59,27 +60,43 @@ def prefetch_depth(prefetch: int) -> int:
 
 @contextlib.contextmanager
 def single_threaded_libraries() -> Iterator[None]:
-    """OpenCV on one thread for the duration (process-wide; restored after).
+    """OpenCV on one thread (process-wide), and faiss on one thread in the calling thread; both restored after.
 
-    faiss's OpenMP thread count is per calling thread, so each describing
-    thread sets its own (:func:`_one_faiss_thread`, the pool's initializer).
+    The calling thread is the one that matches frames while the pool describes
+    the next ones: with every core already busy, an OpenMP team of its own
+    only waits at its barriers for threads the describing ones have
+    descheduled.  faiss's OpenMP thread count is per calling thread, so each
+    describing thread sets its own (:func:`_one_faiss_thread`, the pool's
+    initializer).
     """
     import cv2
 
     before = cv2.getNumThreads()
+    faiss = _faiss()
+    omp_before = faiss.omp_get_max_threads() if faiss is not None else 1
     cv2.setNumThreads(1)
+    if faiss is not None:
+        faiss.omp_set_num_threads(1)
     try:
         yield
     finally:
         cv2.setNumThreads(before)
+        if faiss is not None:
+            faiss.omp_set_num_threads(omp_before)
+
+
+def _faiss() -> Any:
+    try:
+        import faiss
+    except ImportError:  # no vocabulary index or landmark search here: nothing to limit
+        return None
+    return faiss
 
 
 def _one_faiss_thread() -> None:
-    try:
-        import faiss
-    except ImportError:  # no vocabulary index here: nothing to limit
-        return
-    faiss.omp_set_num_threads(1)
+    faiss = _faiss()
+    if faiss is not None:
+        faiss.omp_set_num_threads(1)
 
 
 def ahead(items: Iterator[T], work: Callable[[int, T], R], *, depth: int,
