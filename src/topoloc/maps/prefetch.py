@@ -38,7 +38,11 @@ _POLL_S = 0.05
 
 @dataclass
 class Ahead(Generic[T, R]):
-    """One input item with its result: ``item`` as read, ``decode_ms`` reading it took, ``result`` of the work."""
+    """One input item with its result.
+
+    ``item`` as read, ``decode_ms`` that reading it took, ``result`` of the work on it, and
+    ``wait_ms`` that the consumer waited for both once it asked for the next item.
+    """
 
     item: T
     decode_ms: float
@@ -159,7 +163,8 @@ def ahead(items: Iterator[T], work: Callable[[int, T], R], *, depth: int,
         finally:
             close = getattr(items, "close", None)
             if close is not None and stop.is_set():
-                close()  # a generator over an open recording lets go of it
+                with contextlib.suppress(Exception):  # the consumer stopped: nothing is left to tell
+                    close()  # a generator over an open recording lets go of it
         pending.put(_End())
 
     reader = threading.Thread(target=read, name="topoloc-reader", daemon=True)
