@@ -22,8 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from benchmarks.bench_load import render_section, write_section
-from benchmarks.common import GP, RESULTS, WEBCAM, require_data
+from benchmarks.common import GP, RESULTS, WEBCAM, keep_sections, require_data
 from topoloc.bench.quantisation import measure_quantisation, quantisation_agreement
 from topoloc.datasets.traverse import find_images, read_image
 from topoloc.evaluation.timing import peak_rss_mb
@@ -94,10 +93,9 @@ def main() -> None:
         out[name] = json.loads(f.read_text()) if f.is_file() else None
     out["peak_rss_mb"] = peak_rss_mb()
     (RESULTS / "performance.json").write_text(json.dumps(out, indent=2) + "\n")
-    (RESULTS / "performance.md").write_text(render(out))
-    load = RESULTS / "load.json"
-    if load.is_file():  # the load section is benchmarks/bench_load.py's, kept as that run wrote it
-        write_section(RESULTS / "performance.md", render_section(json.loads(load.read_text())))
+    # The sections other benchmarks write into this page (bench_load, bench_camera_rate,
+    # bench_feature_scale) stay.
+    (RESULTS / "performance.md").write_text(keep_sections(RESULTS / "performance.md", render(out)))
     print(f"wrote {RESULTS / 'performance.md'}")
 
 

@@ -297,3 +297,17 @@ def gardens_section(run_dirs: list[Path], name: str, title: str) -> str:
     return (report_table(run_dirs, RESULTS / name, title) + f"\n![PR curves]({name}/pr_curves.png)\n\n"
             + "### Anchors on the same data\n\n" + anchors_table()
             + "\n### Where each row wins and loses (written from the runs' metrics.json)\n\n" + prose_for(run_dirs))
+
+
+def keep_sections(path: Path, text: str) -> str:
+    """``text`` with the marked sections (:func:`write_section`) of the page now at ``path`` that it lacks appended."""
+    old = marked_sections(path)
+    while "<!-- begin " in old:
+        start = old.index("<!-- begin ")
+        name = old[start + len("<!-- begin "):].split(":", 1)[0]
+        begin, end = _markers(name)
+        stop = old.index(end, start) + len(end)
+        if begin not in text:
+            text = text.rstrip("\n") + "\n\n" + old[start:stop]
+        old = old[stop:]
+    return text

@@ -37,14 +37,3 @@ def test_the_section_says_which_methods_stay_within_the_allowed_slowdown(bench: 
     assert "25.00 (2.5x)" in graceful and graceful.endswith("| yes | 2.0x | 1.25 |")
     assert "71.00 (7.1x)" in stalling and stalling.endswith("| **no** | 2.0x | 3.55 |")
     assert "0.5 / 1.5 / 3.5" in graceful  # the load average beside each load
-
-
-def test_the_section_is_replaced_in_place_or_appended(bench: ModuleType, tmp_path: Path) -> None:
-    md = tmp_path / "performance.md"
-    md.write_text("# Performance\n\nbefore\n")
-    bench.write_section(md, f"{bench.MARK_START}\nfirst\n{bench.MARK_END}\n")
-    md.write_text(md.read_text() + "\nafter\n")
-    bench.write_section(md, f"{bench.MARK_START}\nsecond\n{bench.MARK_END}\n")
-    text = md.read_text()
-    assert "first" not in text and text.count("second") == 1
-    assert text.index("before") < text.index("second") < text.index("after")

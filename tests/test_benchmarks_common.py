@@ -111,3 +111,20 @@ def test_sections_of_a_page_are_replaced_in_place_and_kept_by_a_rewrite(common: 
     assert "body of bench_maps" not in kept
     page.write_text("# Maps\n\nnew body\n\n" + kept)  # what bench_maps writes
     assert common.marked_sections(page) == kept
+
+
+def test_generated_sections_are_replaced_in_place_and_survive_a_rewrite_of_the_page(common: ModuleType,
+                                                                                     tmp_path: Path) -> None:
+    page = tmp_path / "performance.md"
+    page.write_text("# Performance\n\nthe page's own table\n")
+    common.write_section(page, "camera-rate", "fps 1")
+    common.write_section(page, "feature-scale", "auc 1")
+    common.write_section(page, "camera-rate", "fps 2")  # regenerated: replaced where it is, not appended
+    text = page.read_text()
+    assert "fps 1" not in text and text.count("fps 2") == 1
+    assert text.index("fps 2") < text.index("auc 1") and text.startswith("# Performance\n\nthe page's own table\n")
+    # The page's own benchmark writes the rest anew; both sections are carried over, once each.
+    rewritten = common.keep_sections(page, "# Performance\n\na new table\n")
+    assert "the page's own table" not in rewritten and "a new table" in rewritten
+    assert rewritten.count("fps 2") == 1 and rewritten.count("auc 1") == 1
+    assert common.keep_sections(page, text) == text

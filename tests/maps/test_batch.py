@@ -27,7 +27,7 @@ def test_batches_equal_the_online_localiser(method: str, params: dict[str, Any],
     # Batches of 5 frames over 2 threads: several windows, batches finishing out of order.
     got = [line for line, _ in localize_on(LocalExecutor(n_jobs=2), loc, items, batch_frames=5)]
     assert got == want
-    assert loc.frames == len(frames) and len(loc.ms_features) == len(frames)
+    assert loc.frames == len(frames) and loc.summary()["frames"] == len(frames)
 
 
 def test_a_map_not_loaded_from_a_file_is_refused(tiny_route: dict[str, Any], tmp_path: Path) -> None:

@@ -99,8 +99,8 @@ def test_memory_does_not_grow_with_frames(tiny_route: dict[str, Any]) -> None:
     for _ in range(3):
         for frame in tiny_route["query_frames"]:
             loc.step(frame)
-    res = loc._res
-    assert not res._memo and not res.image_ms and len(loc._columns) == 3
+    res = loc._tls.res  # this thread's frame resources
+    assert not res._memo and not res.image_ms and res._frame is None and len(loc._columns) == 3
 
 
 def test_add_tour_to_a_saved_map_equals_building_from_both(tiny_route: dict[str, Any], tmp_path: Path) -> None:

@@ -249,6 +249,9 @@ def localize(
     out: Annotated[Path | None, typer.Option(help="JSON lines file, one line per frame, written as it goes.")] = None,
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
     pairs_out: PairsOutOption = None,
+    prefetch: Annotated[int, typer.Option(
+        help="Frames read and described ahead while one is matched, on one thread per core (-1: two per "
+             "core; 0: one frame at a time); the lines are the same.")] = -1,
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     quiet: QuietOption = False,
@@ -299,7 +302,8 @@ def localize(
         log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
                     "hold; run `topoloc map calibrate` with the same --sequence", spec.map_file,
                     _sequence_words(cal.length, cal.mode), _sequence_words(spec.sequence.length, spec.sequence.mode))
-    loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode)
+    loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
+                      prefetch=spec.prefetch)
     # Written line by line: a run that is stopped keeps every frame done so far.
     with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)

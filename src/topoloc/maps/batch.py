@@ -25,9 +25,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from topoloc.cluster import Executor
-from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.resources import InMemoryResources
+from topoloc.maps.frame_resources import FrameResources, describe
 
 if TYPE_CHECKING:  # the map module calls this one; the map class travels with each batch instead
     from topoloc.maps.map import Localizer, Map
@@ -80,11 +79,11 @@ def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float]]:
     """
     m = _worker_map(batch.map_file, batch.stamp, batch.map_type)
     rec = m.recognizer
-    res = InMemoryResources(feature_config=m.features, vocabulary=m.vocabulary, memoise=False, n_jobs=1)
+    res = FrameResources(m.features, m.vocabulary)
     out = []
     for k, image in enumerate(batch.frames):
         t0 = time.perf_counter()
-        items = rec.encode(Traverse.from_images([image], name=f"frame{batch.first + k}"), resources=res)
+        items, _, _ = describe(rec, res, image, f"frame{batch.first + k}")
         t1 = time.perf_counter()
         col = np.asarray(rec.score(items)[:, 0])
         out.append((col, 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1)))

@@ -39,6 +39,11 @@ def _whole(param: str, value: Any, low: int) -> int:
     return value
 
 
+def check_prefetch(value: Any) -> int:
+    """Frames ``localize`` reads and describes ahead (``Localizer``): -1 (two per core) or a whole number >= 0."""
+    return _whole("prefetch", value, -1)
+
+
 class _ChecksOutputs:
     """What every run specification says about the paths it reads and writes."""
 
@@ -229,6 +234,9 @@ class LocalizeSpec(_ChecksOutputs):
     pairs_out : Path, optional
         Also write each frame's ``top_k`` places as retrieval pairs in hloc's
         format, a place as its first map image (:mod:`topoloc.evaluation.pairs`).
+    prefetch : int
+        Frames read and described ahead of the one being matched, on one thread
+        per core (-1: two per core; 0: one frame at a time); the lines are the same.
     sequence, inputs, execution
         The parts (:mod:`topoloc.spec.parts`).
     """
@@ -238,6 +246,7 @@ class LocalizeSpec(_ChecksOutputs):
     out: Path | None = None
     top_k: int = 5
     pairs_out: Path | None = None
+    prefetch: int = -1
     sequence: SequenceSpec = field(default_factory=SequenceSpec)
     inputs: InputSpec = field(default_factory=InputSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
@@ -254,6 +263,7 @@ class LocalizeSpec(_ChecksOutputs):
         if self.out is None:
             raise ParameterError("out", "is needed: the JSON-lines file to write")
         _whole("top_k", self.top_k, 1)
+        check_prefetch(self.prefetch)
 
     def read_paths(self) -> tuple[Path, ...]:
         """The map file (memory-mapped while the run writes) and the images, folders or recordings."""
