@@ -33,7 +33,6 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -197,7 +196,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--render", action="store_true", help="only rewrite the section from load.json")
     args = ap.parse_args(argv)
     if args.render:
-        write_section(RESULTS / "performance.md", SECTION, render_section(json.loads((RESULTS / "load.json").read_text())))
+        saved = json.loads((RESULTS / "load.json").read_text())
+        write_section(RESULTS / "performance.md", SECTION, render_section(saved))
         return
     require_data()
     n_queries, n_frames = (30, 8) if args.quick else (100, 30)
