@@ -320,8 +320,8 @@ def test_train_and_cache_vocabulary(tmp_path: Path, monkeypatch: pytest.MonkeyPa
         [folder], extractor=ex, n_words=20, seed=1, progress=lambda d, t: bars.setdefault(d, []).append
     )
     assert sum(bars["vocabulary features"]) == 6
-    # k-means shows a one-step bar of its own (its elapsed time is what a user waits for).
-    assert [sum(v) for k, v in bars.items() if k.startswith("vocabulary k-means (20 words")] == [1]
+    # k-means shows a bar of its own with one step per iteration.
+    assert [sum(v) for k, v in bars.items() if k.startswith("vocabulary k-means (20 words")] == [voc.n_iter]
     assert voc.descriptor_kind_ == "orb-32-uint8" and voc.n_words_ == 20
     assert voc.provenance_["n_images"] == 6
     assert voc.provenance_["folders"] == [str(folder.resolve())]
