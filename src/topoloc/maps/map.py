@@ -203,7 +203,7 @@ class Map:
         spec = features if isinstance(features, FeatureSpec) else None
         config = features if isinstance(features, FeatureConfig) else (spec or FeatureSpec()).config()
         res, _ = make_resources(config, voc_source, cache_dir=cache_dir, progress=progress, executor=executor,
-                                needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "")
+                                needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "", tours=maps)
         if shards > 1:
             # One partial model per range of places, as independent tasks, merged into the same map
             # (topoloc.methods.shards; docs/map_shards.md says what is exact).
