@@ -28,6 +28,7 @@ def test_evaluate_without_vocabulary_trains_on_the_map_tours_once(cli: Cli, rf: 
     assert runs[1]["vocabulary"]["file"] == voc["file"] and Path(voc["file"]).is_file()
     assert runs[1]["vocabulary"]["objective"] == voc["objective"]
     assert runs[0]["recall_at_1"] > 0.5  # a vocabulary of the noon tour still finds the dusk frames
+    assert "trained on the map tours" in (tmp_path / "first" / "report.md").read_text()
 
 
 @pytest.mark.parametrize("method", ["fabmap", "coocmap"])
@@ -39,6 +40,7 @@ def test_map_build_without_vocabulary_and_add_keeps_it(cli: Cli, rf: dict[str, P
     built = Map.load(out)
     assert built.vocabulary is not None and built.vocabulary.provenance_["source"] == "map tours"
     before = vocabulary_fingerprint(built.vocabulary)
+    assert built.info()["vocabulary"]["trained_on"] == [f"map tours: {rf['map'].name}"]
     # map add quantises the new tour with the build's vocabulary: the words stay those of the build.
     cli.ok(["map", "add", str(out), str(rf["morning"]), "--cache-dir", str(tmp_path / "cache"), "--quiet"])
     after = Map.load(out)

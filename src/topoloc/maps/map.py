@@ -432,7 +432,11 @@ class Map:
         voc = None
         if self.vocabulary is not None:
             fp = vocabulary_fingerprint(self.vocabulary)
-            voc = {**fp, "trained_on": self.vocabulary.provenance_.get("folders")}
+            prov = self.vocabulary.provenance_
+            # The default vocabulary (#27) records the tours it was trained on, not folders.
+            voc = {**fp, "trained_on": prov.get("folders") or (
+                [f"map tours: {', '.join(map(str, prov.get('tours', [])))}"] if prov.get("source") == "map tours"
+                else None)}
         xy_known = int((~np.isnan(self.place_xy[:, 0])).sum()) if len(self.place_xy) else 0
         return {
             "file": str(self.path) if self.path else None,
