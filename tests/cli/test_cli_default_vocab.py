@@ -28,7 +28,7 @@ def test_evaluate_without_vocabulary_trains_on_the_map_tours_once(cli: Cli, rf: 
     assert runs[1]["vocabulary"]["file"] == voc["file"] and Path(voc["file"]).is_file()
     assert runs[1]["vocabulary"]["objective"] == voc["objective"]
     assert runs[0]["recall_at_1"] > 0.5  # a vocabulary of the noon tour still finds the dusk frames
-    assert "trained on the map tours" in (tmp_path / "first" / "report.md").read_text()
+    assert "\"source\": \"map tours\"" in (tmp_path / "first" / "report.md").read_text()
 
 
 @pytest.mark.parametrize("method", ["fabmap", "coocmap"])
