@@ -61,7 +61,7 @@ def measure(pair: str, method: str, source: str) -> dict[str, Any]:
     voc = m["run"]["vocabulary"]
     return {"pair": pair, "method": method, "source": source, "auc": m["auc"], "recall_at_1": m["recall_at_1"],
             "recall_at_100_precision": m["recall_at_100_precision"],
-            "vocabulary_seconds": m["run"].get("vocabulary_seconds", 0.0),
+            "vocabulary_seconds": m["run"].get("vocabulary_seconds", 0.0), "vocabulary_used": bool(voc.get("used")),
             # A vocabulary made in this run (not loaded from the cache): its k-means time is the first run's cost.
             "vocabulary_trained_this_run": "created" in voc and datetime.fromisoformat(voc["created"]) >= started,
             "kmeans_seconds": voc.get("train_seconds"), "vocabulary_n_descriptors": voc.get("n_descriptors"),
@@ -104,8 +104,18 @@ def _delta(r: dict[str, Any] | None, base: dict[str, Any] | None) -> str:
     return f"{r['auc'] - base['auc']:+.3f} / {r['recall_at_1'] - base['recall_at_1']:+.3f}"
 
 
+def _used(r: dict[str, Any]) -> bool:
+    """Whether the run used a vocabulary (rows stored before the field was recorded: from its metrics.json)."""
+    if "vocabulary_used" in r:
+        return bool(r["vocabulary_used"])
+    metrics = RESULTS / r["run"] / "metrics.json"
+    return not metrics.is_file() or bool(json.loads(metrics.read_text())["run"]["vocabulary"].get("used"))
+
+
 def render(data: dict[str, Any]) -> str:
-    rows = {(r["pair"], r["method"], r["source"]): r for r in data["rows"]}
+    # A method that uses no vocabulary (its runs say so) scores alike whatever the source: left out.
+    skipped = sorted({r["method"] for r in data["rows"] if not _used(r)})
+    rows = {(r["pair"], r["method"], r["source"]): r for r in data["rows"] if r["method"] not in skipped}
     loads = [x for r in data["rows"] for x in (r["load_before"], r["load_after"])]
     lines = [
         "# Default vocabulary: what a first run without `--vocab-train` costs\n\n",
@@ -149,9 +159,17 @@ def render(data: dict[str, Any]) -> str:
                          f"{r['vocabulary_n_descriptors']:,} | {r['kmeans_seconds']:.0f} | "
                          f"{r['vocabulary_seconds']:.0f} | {r['load_before']} |\n")
         lines.append("\n")
+    if skipped:
+        what = "Method" if len(skipped) == 1 else "Methods"
+        lines.append(f"{what} {_and_words(skipped)}: no visual vocabulary used (the runs record none), so left "
+                     "out of the tables; a first run needs none.\n\n")
     lines += _summary(rows, pairs)
     lines += _verdict(rows, pairs)
     return "".join(lines)
+
+
+def _and_words(words: list[str]) -> str:
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
 
 
 def _verdict(rows: dict[tuple[str, str, str], dict[str, Any]], pairs: list[str]) -> list[str]:
