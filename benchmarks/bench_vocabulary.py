@@ -8,8 +8,11 @@ On this machine, with the project's own code paths:
    (``sample_descriptors``, default SIFT features, default sample size and seed) from
    webcam_daynight/map -- the training set of the gardens_point results -- clustered by
    ``Vocabulary.fit`` into the default number of words for twice ``DEFAULT_N_ITER``
-   iterations; the objective and time of each iteration (faiss k-means is deterministic
-   for a seed, so the first ``DEFAULT_N_ITER`` iterations are the default run).
+   iterations; the objective and time of each iteration (the k-means is deterministic
+   for a seed, so the first ``DEFAULT_N_ITER`` iterations are the default run).  Then the
+   same ``DEFAULT_N_ITER``-iteration training with exact assignment (``index="flat"``),
+   so that the time and objective of the default approximate (HNSW) assignment have a
+   yardstick: wall and CPU seconds of each, and each one's final objective.
 2. efSearch (``DEFAULT_EF_SEARCH``): the default cached vocabulary of the same images
    (``cached_vocabulary``, as ``topoloc evaluate --vocab-train`` uses it) quantising a
    seeded sample of 20,000 SIFT descriptors of all gardens_point images with HNSW
@@ -63,7 +66,9 @@ def kmeans_section(extractor: FeatureExtractor, *, n_words: int, max_descriptors
     load = _load()
     print(f"k-means: {len(sample)} of {n_total} descriptors, {n_words} words, load {load}", flush=True)
     voc = Vocabulary(n_words=n_words, n_iter=2 * DEFAULT_N_ITER, max_descriptors=max_descriptors, seed=SEED)
+    cpu = time.process_time()
     voc.fit(sample, descriptor_kind=extractor.config.descriptor_kind)
+    cpu = time.process_time() - cpu
     p = voc.provenance_
     conv = kmeans_convergence(p["objective_per_iteration"], p["iteration_seconds"], at=DEFAULT_N_ITER)
     print(json.dumps(conv), flush=True)
@@ -72,7 +77,23 @@ def kmeans_section(extractor: FeatureExtractor, *, n_words: int, max_descriptors
             "n_words": voc.n_words_, "n_iter": voc.n_iter, "default_n_iter": DEFAULT_N_ITER,
             "train_seconds": p["train_seconds"], "objective_per_iteration": p["objective_per_iteration"],
             "iteration_seconds": p["iteration_seconds"], "load_before": load, "load_after": _load(),
-            "threads": faiss.omp_get_max_threads(), **conv}
+            "threads": faiss.omp_get_max_threads(), "cpu_seconds": round(cpu, 1),
+            "exact": exact_assignment(sample, extractor, n_words=n_words, max_descriptors=max_descriptors), **conv}
+
+
+def exact_assignment(sample: np.ndarray, extractor: FeatureExtractor, *, n_words: int,
+                     max_descriptors: int) -> dict[str, Any]:
+    """The default training with exact (flat) assignment: its seconds and objective, the yardstick of HNSW's."""
+    load = _load()
+    print(f"k-means with exact assignment: {n_words} words, load {load}", flush=True)
+    voc = Vocabulary(n_words=n_words, n_iter=DEFAULT_N_ITER, max_descriptors=max_descriptors, seed=SEED,
+                     index="flat")
+    cpu = time.process_time()
+    voc.fit(sample, descriptor_kind=extractor.config.descriptor_kind)
+    p = voc.provenance_
+    return {"train_seconds": p["train_seconds"], "cpu_seconds": round(time.process_time() - cpu, 1),
+            "objective": p["objective"], "objective_per_iteration": p["objective_per_iteration"],
+            "load_before": load, "load_after": _load()}
 
 
 def query_descriptors(extractor: FeatureExtractor, n: int) -> tuple[np.ndarray, int, int]:
@@ -158,6 +179,22 @@ def main() -> None:
     print(f"wrote {RESULTS / 'vocabulary.md'} in {out['wall_seconds']:.0f} s")
 
 
+def _exact_lines(k: dict[str, Any], at: int) -> list[str]:
+    """The comparison with exact assignment (absent from pages of the earlier faiss k-means)."""
+    x = k.get("exact")
+    if not x:
+        return []
+    hnsw_obj = k["objective_per_iteration"][at - 1]
+    hnsw_cpu = k.get("cpu_seconds")
+    cpu = "" if hnsw_cpu is None else (f"; CPU {hnsw_cpu * k['seconds_at'] / k['seconds_n']:.0f} s "
+                                       f"(pro rata of the {k['n']}-iteration run) against {x['cpu_seconds']:.0f} s")
+    return [f"* the same {at} iterations with exact assignment (`index=\"flat\"`, load average {x['load_before']} "
+            f"before, {x['load_after']} after): **{x['train_seconds']:.0f} s**, objective {x['objective']:.6g}; the "
+            f"default HNSW assignment takes {k['seconds_at'] / x['train_seconds']:.2f}x its wall time{cpu}, and its "
+            f"objective after {at} iterations is {100 * (hnsw_obj - x['objective']) / x['objective']:+.2f}% from "
+            "exact k-means'\n"]
+
+
 def render(o: dict[str, Any]) -> str:
     k, e = o["kmeans"], o["ef_search"]
     n, at = k["n"], k["at"]
@@ -169,6 +206,8 @@ def render(o: dict[str, Any]) -> str:
               else f"{k['n_sample']:,} of the {k['n_descriptors']:,}")
     lines = [
         "# Vocabulary defaults: k-means iterations and HNSW efSearch\n\n",
+        "What the default vocabulary of a run without `--vocab`/`--vocab-train` costs per method: "
+        "[default_vocabulary.md](default_vocabulary.md) (`benchmarks.bench_default_vocab`).\n\n",
         "Generated by `.venv/bin/python -m benchmarks.bench_vocabulary` (raw numbers in `vocabulary.json`); ",
         f"do not edit by hand. Machine: {o['machine']}; {o['date']}; {o['wall_seconds']:.0f} s in all. ",
         f"1-minute load average: {o['load_at_start']} at the start, {o['load_at_end']} at the end (the machine ",
@@ -180,12 +219,14 @@ def render(o: dict[str, Any]) -> str:
         f"{k['images']} images of `{', '.join(k['folders'])}` (the vocabulary training set of the gardens_point "
         f"results), drawn by `sample_descriptors` with the default cap of {k['max_descriptors']:,} and seed 0; "
         f"`Vocabulary.fit` with {k['n_words']:,} words and n_iter = {n}, {k['threads']} faiss threads "
-        f"(load average {k['load_before']} before, {k['load_after']} after). faiss k-means is deterministic "
+        f"(load average {k['load_before']} before, {k['load_after']} after). The k-means is deterministic "
         f"for a seed, so iterations 1-{at} are the default {at}-iteration run{check}.\n\n",
         f"* seconds per iteration (median of iterations 2-{n}): **{k['median_seconds_per_iteration']:.1f} s**\n",
         f"* {at} iterations: **{k['seconds_at']:.0f} s**; {n} iterations: **{k['seconds_n']:.0f} s** "
         f"(whole `fit`: {k['train_seconds']:.0f} s)\n",
-        f"* objective after {at} iterations is **{k['gap_percent']:.2f}%** above its value after {n}\n\n",
+        f"* objective after {at} iterations is **{k['gap_percent']:.2f}%** above its value after {n}\n",
+        *_exact_lines(k, at),
+        "\n",
         f"| iteration | seconds | cumulative s | objective (sum of squared distances) | above iteration {n} |\n",
         "| --- | --- | --- | --- | --- |\n",
     ]

@@ -55,11 +55,17 @@ def test_unknown_method_and_param(tmp_path: Path) -> None:
     _one_line_error(r, "no parameter 'nosuch'")
 
 
-def test_bow_without_vocabulary(tmp_path: Path) -> None:
-    m = _folder(tmp_path / "m")
+def test_bow_without_vocabulary_on_featureless_tours(tmp_path: Path) -> None:
+    # Without --vocab the default vocabulary is trained on the map's tours (#27): blank images have
+    # no local features to train it on, which is said in one line naming the tour.
+    m = tmp_path / "m"
+    m.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(m / f"{i}.png"), np.full((32, 32), 128, np.uint8))
     r = runner.invoke(app, ["evaluate", "--method", "bow", "--map", str(m), "--query", str(m),
-                            "--out", str(tmp_path / "o")])
-    _one_line_error(r, "needs a vocabulary")
+                            "--out", str(tmp_path / "o"), "--cache-dir", str(tmp_path / "cache"), "--quiet"])
+    _one_line_error(r, "cannot train the default vocabulary")
+    assert str(m) in r.stderr
 
 
 @pytest.mark.parametrize("tol", ["x", "5:1"])

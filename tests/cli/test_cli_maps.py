@@ -101,8 +101,7 @@ def test_bad_input_is_one_line_and_leaves_the_map_untouched(cli: Cli, rf: dict[s
             "--out", str(tmp_path)], "folder")
     cli.error(["map", "build", "--method", "nope", "--map", str(rf["map"]), "--out", str(tmp_path / "x.tlm")],
            "unknown method")
-    cli.error(["map", "build", "--method", "bow", "--map", str(rf["map"]), "--out", str(tmp_path / "x.tlm")],
-           "vocabulary")
+    # (No vocabulary is no error since #27: the default is trained on the map's tours, test_cli_default_vocab.)
     cli.error(["map", "add", str(tlm), str(rf["morning"]), "--preprocess", "clahe"], "differs from the map's")
     other = tmp_path / "other.tlv"
     from topoloc.testing import word_vocabulary

@@ -52,7 +52,6 @@ from topoloc.spec import (
                           vocabulary=VocabularySpec(train=(Path("d"),))), "map_file"),
     (lambda: MapBuildSpec(method="bow", maps=(Path("m"),), shards=0), "shards"),
     (lambda: LocalizeSpec(map_file=Path("m.tlm"), images=(Path("i"),), out=Path("o"), top_k=0), "top_k"),
-    (lambda: VocabTrainSpec(folders=(Path("d"),), out=Path("v"), features=FeatureSpec()), "features.max_side"),
 ])
 def test_a_bad_value_names_its_parameter_in_one_line(make, param) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ParameterError) as info:

@@ -383,6 +383,7 @@ def show_match_cmd(
         resources, _ = make_resources(
             config_, voc_spec, cache_dir=cache_dir,
             needs_vocabulary=f"show-match with {rec.name}" if rec.uses_vocabulary else "", progress=progress,
+            tours=maps,
         )
         rec.fit(maps, resources=resources)
         canvas, info = labelled_match(rec, query_image, maps, resources=resources, place=place,
@@ -443,7 +444,7 @@ def slam(
     trav = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic).load([traverse])[0]
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(feature_spec.config(), voc_spec, cache_dir=cache_dir,
-                                      needs_vocabulary="slam", progress=progress)
+                                      needs_vocabulary="slam", progress=progress, tours=[trav])
         result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
                           threshold=threshold, p_new=p_new, min_gap=min_gap)
         if html is not None:

@@ -39,10 +39,13 @@ PreprocessOption = Annotated[str, typer.Option(
     help="Photometric preprocessing: auto (default; CLAHE weighted per image by how far its "
          "histogram is from uniform, so dark night frames are equalised and well-exposed ones barely "
          "touched), none, clahe, equalize.")]
-VocabOption = Annotated[Path | None, typer.Option(help="Vocabulary file (topoloc vocab train).")]
+VocabOption = Annotated[Path | None, typer.Option(
+    help="Vocabulary file (topoloc vocab train). Without --vocab and --vocab-train, one is trained on the "
+         "map's own tours (cached).")]
 VocabTrainOption = Annotated[list[Path] | None, typer.Option(
     "--vocab-train", metavar="<path>", help="Folders (searched recursively) to train a vocabulary on (repeatable).")]
-VocabWordsOption = Annotated[int, typer.Option(help="Words when training with --vocab-train.")]
+VocabWordsOption = Annotated[int, typer.Option(
+    help="Words when training a vocabulary (--vocab-train, or the default one on the map's tours).")]
 # -- ground truth and matching ----------------------------------------------------------------------------
 ToleranceOption = Annotated[str, typer.Option(help="Ground-truth tolerance HARD:SOFT in place ids.")]
 ToleranceMOption = Annotated[str | None, typer.Option(

@@ -56,6 +56,8 @@ def _vocabulary_text(voc: dict[str, Any]) -> str:
         words = voc["centers_shape"][0]
     source = voc.get("folders") or voc.get("train_folders")
     where = ", ".join(_short(str(f)) for f in source) if source else _short(str(voc.get("file", "?")))
+    if voc.get("source") == "map tours":  # the default vocabulary (#27)
+        where = "the map tours"
     n_img = f", {voc['n_images']} images" if voc.get("n_images") else ""
     size = f"{words} words, " if words else ""
     return f"{size}trained on {where}{n_img}"

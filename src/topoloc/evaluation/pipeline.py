@@ -135,7 +135,7 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         resources, vocab_info = make_resources(
             config, spec.vocabulary, cache_dir=spec.execution.cache_dir,
             needs_vocabulary=f"method {method.name!r}" if method.uses_vocabulary else "", progress=progress,
-            executor=executor,
+            executor=executor, tours=maps,
         )
         t0 = time.perf_counter()
         with progress_stage(prog, f"fit {method.name} on {sum(len(m) for m in maps)} map images"):

@@ -249,7 +249,7 @@ class Map:
         spec = features if isinstance(features, FeatureSpec) else None
         config = features if isinstance(features, FeatureConfig) else (spec or FeatureSpec()).config()
         res, _ = make_resources(config, voc_source, cache_dir=cache_dir, progress=progress, executor=executor,
-                                needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "")
+                                needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "", tours=maps)
         if shards > 1:
             # One partial model per range of places, as independent tasks, merged into the same map
             # (topoloc.methods.shards; docs/map_shards.md says what is exact).
@@ -487,7 +487,11 @@ class Map:
         voc = None
         if self.vocabulary is not None:
             fp = vocabulary_fingerprint(self.vocabulary)
-            voc = {**fp, "trained_on": self.vocabulary.provenance_.get("folders")}
+            prov = self.vocabulary.provenance_
+            # The default vocabulary (#27) records the tours it was trained on, not folders.
+            voc = {**fp, "trained_on": prov.get("folders") or (
+                [f"map tours: {', '.join(map(str, prov.get('tours', [])))}"] if prov.get("source") == "map tours"
+                else None)}
         xy_known = int((~np.isnan(self.place_xy[:, 0])).sum()) if len(self.place_xy) else 0
         return {
             "file": str(self.path) if self.path else None,

@@ -154,6 +154,9 @@ NOT_BOTH = "is either a file or folders to train one on, not both"
 class VocabularySpec:
     """Where a run's visual vocabulary comes from: a file, or folders to train one on (cached).
 
+    With neither, a method that needs a vocabulary gets the default: one trained on the
+    map's own tours (:func:`topoloc.spec.setup.tours_vocabulary`), with ``words`` and ``seed``.
+
     Parameters
     ----------
     file : Path, optional

@@ -5,18 +5,31 @@ Every command and every benchmark that extracts features goes through
 :class:`~topoloc.features.FeatureConfig`, the vocabulary of its
 :class:`~topoloc.spec.parts.VocabularySpec` (loaded and checked now, or trained
 lazily on first use and cached), and the executor per-image work runs on.
+
+With no vocabulary given, a method that needs one gets the **default
+vocabulary**: one trained on the map's own tours (as RTAB-Map does), on first
+use, from the features the method extracts anyway, and cached by the tours'
+fingerprints (:func:`tours_vocabulary`).  ``docs/results/vocabulary.md``
+("Default vocabulary", ``benchmarks/bench_default_vocab.py``) measures what it
+costs per method against a vocabulary trained on separate images.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from topoloc.cluster import Executor
-from topoloc.datasets.traverse import find_images
-from topoloc.errors import ParameterError
+from topoloc.datasets.traverse import Traverse, find_images
+from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig, FeatureExtractor
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, parse_param
@@ -24,6 +37,9 @@ from topoloc.progress import ProgressFactory
 from topoloc.resources import CachedResources
 from topoloc.spec.parts import VocabularySpec
 from topoloc.vocabulary import Vocabulary
+from topoloc.vocabulary.vocab import VOCAB_SCHEMA
+
+log = logging.getLogger(__name__)
 
 
 def build_method(name: str, params: Mapping[str, Any]) -> PlaceRecognizer:
@@ -50,6 +66,7 @@ def make_resources(
     needs_vocabulary: str = "",
     progress: ProgressFactory | None = None,
     executor: Executor | None = None,
+    tours: Sequence[Traverse] = (),
 ) -> tuple[CachedResources, dict[str, Any]]:
     """Feature extractor and vocabulary for a run, and the vocabulary's record for ``metrics.json``.
 
@@ -67,6 +84,11 @@ def make_resources(
         The user of the vocabulary (a method); when set, no vocabulary is an error.
     progress, executor
         Progress bars; where per-block work runs (default: this process's threads).
+    tours : sequence of Traverse
+        The map's tours.  With no vocabulary given and ``needs_vocabulary`` set,
+        the default vocabulary is trained on them on first use
+        (:func:`tours_vocabulary`) and they are also the training images of
+        the methods that learn word statistics (FAB-MAP).
 
     Returns
     -------
@@ -108,6 +130,20 @@ def make_resources(
 
         voc = provide
         vocab_info = {"used": False, "train_folders": [str(f) for f in spec.train]}
+    elif needs_vocabulary and tours:
+        spec = vocabulary if vocabulary is not None else VocabularySpec()
+        res = CachedResources(extractor=extractor, progress=progress, training=list(tours), executor=executor)
+
+        def default() -> Any:
+            t0 = time.perf_counter()
+            trained, path = tours_vocabulary(tours, res, words=spec.words, seed=spec.seed, cache_dir=cache_dir)
+            vocab_info.update({"used": True, "file": str(path), "n_words": int(trained.n_words_),
+                               **trained.provenance_, "seconds_this_run": round(time.perf_counter() - t0, 3)})
+            return trained
+
+        res._vocabulary = default
+        vocab_info = {"used": False, "source": "map tours"}
+        return res, vocab_info
     elif needs_vocabulary:
         raise ParameterError("vocabulary", f"is missing: {needs_vocabulary} needs a vocabulary; give a vocabulary "
                                            "file or folders to train one on")
@@ -116,4 +152,83 @@ def make_resources(
     return res, vocab_info
 
 
-__all__ = ["build_method", "make_resources"]
+def tours_vocabulary(
+    tours: Sequence[Traverse],
+    resources: CachedResources,
+    *,
+    words: int,
+    seed: int,
+    cache_dir: str | Path | None = None,
+) -> tuple[Vocabulary, Path]:
+    """The default vocabulary: ``words`` k-means words of the tours' own features, trained once and cached.
+
+    The features are the tours' (``resources.features``: the ones the method
+    then uses, extracted once); a uniform sample of at most the default
+    ``max_descriptors`` of them, drawn with ``seed`` (random keys per tour from
+    the seed ``(seed, tour number)``), is clustered by :meth:`Vocabulary.fit`.
+    The file is ``<cache>/vocab/tours-<key>.tlv``, the key hashing the tours'
+    fingerprints and every training setting, so a second run on the same
+    tours loads it.
+
+    Returns
+    -------
+    vocabulary : Vocabulary
+        ``provenance_["source"] == "map tours"``, with the tours' names and roots.
+    path : Path
+        The cache file.
+
+    Raises
+    ------
+    TopolocError
+        When the tours have fewer than 2 local features in all.
+    """
+    extractor = resources.extractor
+    proto = Vocabulary(n_words=words, seed=seed)
+    key_src = {"schema": VOCAB_SCHEMA, "tours": [t.fingerprint() for t in tours], "features": extractor.config.key(),
+               **{k: v for k, v in proto.get_params().items() if k != "ef_search"}, "kmeans": "lloyd-hnsw"}
+    key = hashlib.sha1(json.dumps(key_src, sort_keys=True).encode()).hexdigest()[:20]
+    root = Path(cache_dir).expanduser() if cache_dir is not None else extractor.cache_dir
+    file = root / "vocab" / f"tours-{key}.tlv"
+    if file.is_file():
+        try:
+            return Vocabulary.load(file), file
+        except TopolocError as exc:
+            log.warning("ignoring unusable cached vocabulary, training again (%s)", exc)
+    cap = int(proto.max_descriptors)
+    keys = np.empty(0, np.float64)
+    kept: list[np.ndarray] = []
+    n_total, n_images = 0, 0
+    for i, tour in enumerate(tours):
+        descs = [f.descriptors for f in resources.features(tour) if len(f)]
+        n_images += len(tour)
+        if not descs:
+            continue
+        d = np.concatenate(descs)
+        n_total += len(d)
+        keys = np.concatenate([keys, np.random.default_rng([int(seed), i]).random(len(d))])
+        kept.append(d)
+        if len(keys) > cap:  # keep the cap's smallest keys: a uniform sample, memory bounded by one tour
+            sel = np.sort(np.argpartition(keys, cap - 1)[:cap])
+            allk = np.concatenate(kept)
+            keys, kept = keys[sel], [allk[sel]]
+    if n_total < 2:
+        raise input_error(f"the map's tours have only {n_total} local features: cannot train the default "
+                          "vocabulary on them (give --vocab or --vocab-train)", ", ".join(str(t.root) for t in tours))
+    sample = np.concatenate(kept)
+    provenance = {"source": "map tours", "tours": [t.name for t in tours],
+                  "folders_of_tours": [str(t.root) for t in tours if t.kind == "files"],
+                  "n_images": n_images, "n_descriptors": n_total, "feature_key": extractor.config.key(),
+                  "feature_config": asdict(extractor.config)}
+    t0 = time.perf_counter()
+    voc = Vocabulary(n_words=words, seed=seed, max_descriptors=cap).fit(
+        sample, descriptor_kind=extractor.config.descriptor_kind, provenance=provenance,
+        progress=resources.progress)
+    voc.provenance_["total_seconds"] = round(time.perf_counter() - t0, 3)
+    try:
+        voc.save(file)
+    except OSError as exc:
+        log.warning("cannot write vocabulary cache %s (%s)", file, exc)
+    return voc, file
+
+
+__all__ = ["build_method", "make_resources", "tours_vocabulary"]

@@ -1,9 +1,9 @@
 """Visual vocabulary: k-means words over local descriptors, with fast quantisation.
 
-A :class:`Vocabulary` is trained with faiss k-means on (a seeded random sample
-of) descriptors and assigns each descriptor to its nearest word.  Quantisation
-uses a faiss index over the words: HNSW by default (approximate, fast) or a flat
-index (exact).
+A :class:`Vocabulary` is trained with k-means (:func:`lloyd_kmeans`) on (a
+seeded random sample of) descriptors and assigns each descriptor to its nearest
+word.  Quantisation -- and the assignment step of k-means -- use a faiss index
+over the words: HNSW by default (approximate, fast) or a flat index (exact).
 
 Binary descriptors (ORB, AKAZE: uint8 bit strings) are clustered on their
 unpacked bits as float32 0/1 vectors (``np.unpackbits``: 32 bytes -> 256 values).
@@ -37,7 +37,6 @@ from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.datasets.traverse import find_images
 from topoloc.errors import NotFittedError, TopolocError, input_error
 from topoloc.io import read_container, write_container
-from topoloc.progress import stage
 
 if TYPE_CHECKING:
     from topoloc.cluster import Executor
@@ -60,7 +59,10 @@ faiss 1.15): 10,000 words on the 137,561 SIFT descriptors of ``webcam_daynight/m
 (the training set of the gardens_point results; all of them, below the default cap
 of 500,000).  After 10 iterations the k-means objective is 0.15% above its value
 after 20, and 10 iterations take 137 s instead of 250 s (median 11.4 s per
-iteration), so 10 about halves training time at almost no cost.
+iteration), so 10 about halves training time at almost no cost.  Those figures are of
+faiss k-means with exact assignment, which :func:`lloyd_kmeans` (HNSW assignment)
+replaced in #27; rerunning the benchmark measures the convergence of the k-means in use
+and its time against exact assignment.
 """
 
 HNSW_M = 32
@@ -124,7 +126,8 @@ class Vocabulary(Configurable):
     seed : int
         Seed of the sample and of the k-means initialisation.
     index : {"hnsw", "flat"}
-        Quantisation index: approximate HNSW (fast, see :data:`DEFAULT_EF_SEARCH`)
+        Quantisation index, also used by k-means to assign descriptors to words
+        while training: approximate HNSW (fast, see :data:`DEFAULT_EF_SEARCH`)
         or exact brute force.
     ef_search : int
         HNSW search beam width; larger is more exact and slower.
@@ -219,8 +222,9 @@ class Vocabulary(Configurable):
         *,
         descriptor_kind: str,
         provenance: dict[str, Any] | None = None,
+        progress: Callable[[str, int], Callable[[int], None]] | None = None,
     ) -> Self:
-        """Learn the words with faiss k-means (all cores).
+        """Learn the words with k-means (:func:`lloyd_kmeans`, all cores).
 
         Parameters
         ----------
@@ -232,6 +236,9 @@ class Vocabulary(Configurable):
         provenance : dict, optional
             Extra JSON-serialisable facts to record in ``provenance_`` (e.g.
             ``folders``, ``n_images``); its keys take precedence over computed ones.
+        progress : callable, optional
+            ``progress(description, total)`` returning ``advance(n)``: one step per
+            k-means iteration.
 
         Returns
         -------
@@ -268,23 +275,12 @@ class Vocabulary(Configurable):
             k = len(train)
         t0 = time.perf_counter()
         faiss.omp_set_num_threads(n_workers(-1))
-        km = faiss.Kmeans(
-            train.shape[1],
-            k,
-            niter=int(self.n_iter),
-            seed=int(self.seed),
-            verbose=False,
-            # Sampling is done above with our seed; stop faiss from subsampling again
-            # or warning about few points per centroid.
-            min_points_per_centroid=1,
-            max_points_per_centroid=max(1, -(-len(train) // k)),
+        words, objective, iteration_seconds = lloyd_kmeans(
+            train, k, n_iter=int(self.n_iter), seed=int(self.seed), index=self.index,
+            ef_search=int(self.ef_search), progress=progress,
         )
-        km.train(train)
         seconds = time.perf_counter() - t0
-        objective = km.obj  # k-means loss per iteration
-        # faiss reports the time since the start of training at the end of each iteration.
-        elapsed = [float(st["time"]) for st in getattr(km, "iteration_stats", [])]
-        self.words_ = np.ascontiguousarray(km.centroids, dtype=np.float32)
+        self.words_ = words
         self.n_words_ = k
         self.descriptor_kind_ = str(descriptor_kind)
         self.n_features_in_ = dim
@@ -292,12 +288,12 @@ class Vocabulary(Configurable):
             "n_descriptors": n_total,
             "n_descriptors_used": len(train),
             "train_seconds": round(seconds, 3),
-            "objective": float(objective[-1]) if objective is not None and len(objective) else None,
+            "objective": objective[-1],
             # Convergence record (benchmarks/bench_vocabulary.py reads it): sum of squared
-            # distances after each iteration and each iteration's seconds (the first includes
-            # the initialisation).
-            "objective_per_iteration": [float(o) for o in objective] if objective is not None else [],
-            "iteration_seconds": [round(b - a, 4) for a, b in zip([0.0, *elapsed], elapsed, strict=False)],
+            # distances of each iteration's assignment and each iteration's seconds.
+            "objective_per_iteration": objective,
+            "iteration_seconds": [round(t, 4) for t in iteration_seconds],
+            "kmeans_assignment": self.index,
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "faiss_version": faiss.__version__,
         }
@@ -369,22 +365,7 @@ class Vocabulary(Configurable):
             return self._index
 
     def _build_index(self) -> Any:
-        d = self.words_.shape[1]
-        if self.index == "flat":
-            flat = faiss.IndexFlatL2(d)
-            flat.add(self.words_)
-            return flat
-        hnsw = faiss.IndexHNSWFlat(d, HNSW_M)
-        hnsw.hnsw.efConstruction = HNSW_EF_CONSTRUCTION
-        # A multi-threaded HNSW build is not deterministic; one thread makes the graph
-        # (hence every quantisation) identical after each load.
-        threads = faiss.omp_get_max_threads()
-        faiss.omp_set_num_threads(1)
-        try:
-            hnsw.add(self.words_)
-        finally:
-            faiss.omp_set_num_threads(threads)
-        return hnsw
+        return _word_index(self.words_, self.index)
 
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
         """Nearest word of each descriptor.
@@ -503,6 +484,151 @@ class Vocabulary(Configurable):
         vocab.n_features_in_ = dim
         vocab.provenance_ = provenance
         return vocab
+
+
+def _word_index(words: np.ndarray, index: str) -> Any:
+    """A faiss index over ``words``: exact (``"flat"``) or HNSW (``HNSW_M``, ``HNSW_EF_CONSTRUCTION``)."""
+    d = words.shape[1]
+    if index == "flat":
+        flat = faiss.IndexFlatL2(d)
+        flat.add(words)
+        return flat
+    hnsw = faiss.IndexHNSWFlat(d, HNSW_M)
+    hnsw.hnsw.efConstruction = HNSW_EF_CONSTRUCTION
+    # A multi-threaded HNSW build is not deterministic; one thread makes the graph
+    # (hence every quantisation, and every k-means run) identical each time.
+    threads = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)
+    try:
+        hnsw.add(words)
+    finally:
+        faiss.omp_set_num_threads(threads)
+    return hnsw
+
+
+def lloyd_kmeans(
+    X: np.ndarray,
+    k: int,
+    *,
+    n_iter: int,
+    seed: int,
+    index: str = "hnsw",
+    ef_search: int = DEFAULT_EF_SEARCH,
+    progress: Callable[[str, int], Callable[[int], None]] | None = None,
+) -> tuple[np.ndarray, list[float], list[float]]:
+    """k-means (Lloyd) whose assignment step searches the centres with the quantisation index.
+
+    Each iteration assigns every row to its nearest centre, found with the index
+    :class:`Vocabulary` quantises with (``index="hnsw"``: an HNSW graph over the
+    current centres, built on one thread so that the result is deterministic, and
+    searched with ``ef_search``; ``"flat"``: exact search), then moves each centre
+    to the mean of its rows.  Approximate assignment is what makes 10,000 words
+    affordable: it costs a few hundred distance computations per row instead of
+    ``k`` (``benchmarks/bench_vocabulary.py`` measures its time and objective
+    against exact assignment, docs/results/vocabulary.md).  Centres start at
+    ``k`` distinct rows drawn with ``seed``; a centre left without rows takes
+    over half of the largest cluster (its centre, nudged apart), as faiss does.
+
+    Parameters
+    ----------
+    X : ndarray of float32, shape (n, d)
+        Rows to cluster, ``n >= k``.
+    k : int
+        Number of centres.
+    n_iter : int
+        Iterations (assignment + update).
+    seed : int
+        Seed of the initial centres.
+    index : {"hnsw", "flat"}
+        Assignment search, as :class:`Vocabulary`'s ``index``.
+    ef_search : int
+        HNSW search beam width.
+    progress : callable, optional
+        ``progress(description, total)`` returning ``advance(n)``; advanced once per iteration.
+
+    Returns
+    -------
+    centres : ndarray of float32, shape (k, d)
+    objective : list of float
+        Sum of squared distances of the rows to their assigned centres, per iteration.
+    iteration_seconds : list of float
+        Wall seconds of each iteration.
+    """
+    from scipy import sparse
+
+    X = np.ascontiguousarray(X, dtype=np.float32)
+    n, d = X.shape
+    rng = np.random.default_rng(seed)
+    centres = X[np.sort(rng.choice(n, size=k, replace=False))].copy()
+    advance = progress(f"vocabulary k-means ({k:,} words, {n:,} descriptors)", n_iter) if progress else None
+    objective: list[float] = []
+    seconds: list[float] = []
+    rows = np.arange(n)
+    previous: np.ndarray | None = None
+    for it in range(n_iter):
+        t0 = time.perf_counter()
+        idx = _word_index(centres, index)
+        if index == "hnsw":
+            idx.hnsw.efSearch = int(ef_search)
+        dist_, ids = idx.search(X, 1)
+        dist, assign = dist_[:, 0], ids[:, 0].astype(np.int64)
+        lost = assign < 0
+        if lost.any():  # HNSW returns -1 only in degenerate graphs: exact search for those rows
+            exact = faiss.IndexFlatL2(d)
+            exact.add(centres)
+            d_lost, i_lost = exact.search(X[lost], 1)
+            dist[lost], assign[lost] = d_lost[:, 0], i_lost[:, 0]
+        if previous is not None:
+            # An approximate search can miss a row's nearest centre; keeping the previous centre
+            # when it is nearer makes every assignment at least as good as the last, so the
+            # objective never rises (Lloyd's guarantee) whatever the search misses.
+            d_prev = _row_distances(X, centres, previous)
+            keep = d_prev < dist
+            dist[keep], assign[keep] = d_prev[keep], previous[keep]
+        previous = assign
+        objective.append(float(dist.astype(np.float64).sum()))
+        # Sums per centre as one sparse (k x n) product: linear in n, no Python loop.
+        member = sparse.csr_matrix((np.ones(n, np.float32), (assign, rows)), shape=(k, n))
+        sums = np.asarray(member @ X, dtype=np.float64)
+        counts = np.bincount(assign, minlength=k).astype(np.float64)
+        filled = counts > 0
+        centres[filled] = (sums[filled] / counts[filled, None]).astype(np.float32)
+        _split_largest(centres, counts)
+        seconds.append(time.perf_counter() - t0)
+        log.info("vocabulary k-means iteration %d/%d: objective %.6g, %.1f s", it + 1, n_iter, objective[-1],
+                 seconds[-1])
+        if advance is not None:
+            advance(1)
+    return centres, objective, seconds
+
+
+def _row_distances(X: np.ndarray, centres: np.ndarray, assign: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """Squared distance of each row of ``X`` to ``centres[assign]``, in chunks (bounded memory)."""
+    out = np.empty(len(X), np.float32)
+    for a in range(0, len(X), chunk):
+        diff = X[a:a + chunk] - centres[assign[a:a + chunk]]
+        out[a:a + chunk] = np.einsum("ij,ij->i", diff, diff)
+    return out
+
+
+def _split_largest(centres: np.ndarray, counts: np.ndarray) -> None:
+    """Give each empty centre half of one of the largest clusters (in place), as faiss k-means does.
+
+    The empty centre becomes a copy of the large cluster's centre nudged by a
+    relative 1/1024 one way, the large one is nudged the other way, so that the
+    next assignment splits the cluster between them.
+    """
+    empty = np.flatnonzero(counts == 0)
+    if not len(empty):
+        return
+    eps = np.float32(1.0 / 1024)
+    # Stable order: ties between equal sizes resolve by index, so the result is deterministic.
+    donors = np.argsort(-counts, kind="stable")[:len(empty)]
+    for e, dnr in zip(empty, donors, strict=False):
+        sign = np.where(np.arange(centres.shape[1]) % 2 == 0, eps, -eps)
+        centres[e] = centres[dnr] * (1 + sign)
+        centres[dnr] = centres[dnr] * (1 - sign)
+        counts[e] = counts[dnr] = counts[dnr] / 2
 
 
 def _dtype_matches(actual: np.dtype, expected: np.dtype) -> bool:
@@ -755,18 +881,18 @@ def train_vocabulary(
             f"found only {n_total} local features in {len(images)} images; cannot train a vocabulary",
             paths[0] if len(paths) == 1 else ", ".join(map(str, paths)),
         )
-    with stage(progress, f"vocabulary k-means ({n_words} words, {len(sample)} descriptors)"):
-        vocab.fit(
-            sample,
-            descriptor_kind=extractor.config.descriptor_kind,
-            provenance={
-                "folders": [str(p.resolve()) for p in paths],
-                "n_images": len(images),
-                "n_descriptors": n_total,
-                "feature_key": extractor.config.key(),
-                "feature_config": asdict(extractor.config),
-            },
-        )
+    vocab.fit(
+        sample,
+        descriptor_kind=extractor.config.descriptor_kind,
+        provenance={
+            "folders": [str(p.resolve()) for p in paths],
+            "n_images": len(images),
+            "n_descriptors": n_total,
+            "feature_key": extractor.config.key(),
+            "feature_config": asdict(extractor.config),
+        },
+        progress=progress,  # one step per k-means iteration
+    )
     vocab.provenance_["total_seconds"] = round(time.perf_counter() - t0, 3)
     return vocab
 
@@ -791,7 +917,9 @@ def vocabulary_cache_key(
              "n_iter": n_iter, "max_descriptors": max_descriptors,
              # The sample's seeds are per block of images (sample_descriptors): another block size or
              # the earlier single-stream sampling gives another sample, so another cache entry.
-             "sample_blocks": SAMPLE_BLOCK_IMAGES},
+             "sample_blocks": SAMPLE_BLOCK_IMAGES,
+             # lloyd_kmeans with HNSW assignment replaced faiss.Kmeans: earlier cache entries are another k-means.
+             "kmeans": "lloyd-hnsw"},
             sort_keys=True,
         ).encode()
     )
