@@ -16,7 +16,6 @@ from topoloc.spec import (
     LocalizeSpec,
     MapBuildSpec,
     SequenceSpec,
-    VocabTrainSpec,
     VocabularySpec,
     parse_recall_at,
 )
