@@ -32,7 +32,7 @@ def test_evaluate_without_vocabulary_trains_on_the_map_tours_once(cli: Cli, rf: 
 
 
 @pytest.mark.parametrize("method", ["fabmap", "coocmap"])
-def test_map_build_without_vocabulary_and_add_keeps_it(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+def test_map_build_without_vocabulary_and_add_trains_it_on_all_tours(cli: Cli, rf: dict[str, Path], tmp_path: Path,
                                                        method: str) -> None:
     out = tmp_path / "m.tlm"
     cli.ok(["map", "build", "--method", method, "--map", str(rf["map"]), "--vocab-words", "200",
@@ -41,10 +41,14 @@ def test_map_build_without_vocabulary_and_add_keeps_it(cli: Cli, rf: dict[str, P
     assert built.vocabulary is not None and built.vocabulary.provenance_["source"] == "map tours"
     before = vocabulary_fingerprint(built.vocabulary)
     assert built.info()["vocabulary"]["trained_on"] == [f"map tours: {rf['map'].name}"]
-    # map add quantises the new tour with the build's vocabulary: the words stay those of the build.
+    # map add builds again from both tours: the words are those a build of both tours trains.
     cli.ok(["map", "add", str(out), str(rf["morning"]), "--cache-dir", str(tmp_path / "cache"), "--quiet"])
     after = Map.load(out)
-    assert vocabulary_fingerprint(after.vocabulary) == before and len(after.tours) == 2
+    assert vocabulary_fingerprint(after.vocabulary) != before and len(after.tours) == 2
+    both = tmp_path / "both.tlm"
+    cli.ok(["map", "build", "--method", method, "--map", str(rf["map"]), "--map", str(rf["morning"]),
+            "--vocab-words", "200", "--cache-dir", str(tmp_path / "cache"), "--out", str(both), "--quiet"])
+    assert vocabulary_fingerprint(Map.load(both).vocabulary) == vocabulary_fingerprint(after.vocabulary)
     r = cli.ok(["localize", str(out), str(rf["query"]), "--out", str(tmp_path / "r.jsonl"), "--quiet"])
     assert r and len((tmp_path / "r.jsonl").read_text().splitlines()) == len(list(rf["query"].glob("*.jpg")))
 

@@ -104,3 +104,17 @@ def test_a_map_that_refits_to_add_needs_its_earlier_tours_unchanged(tours: dict[
     shutil.rmtree(a)
     with pytest.raises(TopolocError, match="its folder is gone"):
         m.add_tour(b, cache_dir=tours["cache"])
+
+
+@pytest.mark.parametrize("method", ["bow", "fabmap2"])
+def test_with_the_default_vocabulary_add_equals_build_too(tours: dict[str, Any], method: str) -> None:
+    # No vocabulary given: it is trained on the map's own tours, so adding a tour trains it on all
+    # of them, as building from all tours does (the earlier tours are read again).
+    a, b, c, cache = tours["A"], tours["B"]["above"], tours["C"], tours["cache"]
+    common: dict[str, Any] = {"method": method, "params": FAST.get(method, {}), "vocab_words": 200,
+                              "features": FeatureSpec(max_features=300), "cache_dir": cache}
+    both = Map.build(tours=[a, b], **common)
+    added = Map.build(tours=[a], **common).add_tour(b, cache_dir=cache)
+    assert added.vocabulary is not None and added.vocabulary.provenance_["source"] == "map tours"
+    np.testing.assert_array_equal(both.vocabulary.words_, added.vocabulary.words_)
+    np.testing.assert_array_equal(both.similarity(c, cache_dir=cache), added.similarity(c, cache_dir=cache))

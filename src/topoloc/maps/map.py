@@ -293,15 +293,22 @@ class Map:
         if any(old["fingerprint"] == rec["fingerprint"] for old in self.tours):
             raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
                               self.path or t.root)
-        res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
-        if self.recognizer.add_tour_refits:
-            # Adding online would describe the map otherwise than building it from all tours:
-            # refit on the earlier tours (read again, checked unchanged) and this one.
+        own_vocabulary = self.vocabulary is not None and self.vocabulary.provenance_.get("source") == "map tours"
+        if own_vocabulary or self.recognizer.add_tour_refits:
+            # Adding online would make another map than building from all tours: the default
+            # vocabulary is trained on the map's own tours (and FAB-MAP's word statistics with it),
+            # and some methods cannot add exactly.  Build again from the earlier tours (read
+            # again, checked unchanged) and this one; their features come from the cache.
             tours = [reload_tour(old) for old in self.tours] + [t]
-            rec_ = build_method(self.recognizer.name, self.recognizer.get_params())
-            self.recognizer = rec_.fit(tours, resources=res)
-            self.xy_sums = _xy_sums(tours, self.place_ids)
+            voc = self.vocabulary
+            built = Map.build(method=self.recognizer.name, tours=tours, params=self.recognizer.get_params(),
+                              vocabulary=None if own_vocabulary else voc, features=self.features,
+                              vocab_words=voc.n_words if voc is not None else 10000,
+                              seed=voc.seed if voc is not None else 0, cache_dir=cache_dir, progress=progress,
+                              executor=executor)
+            self.recognizer, self.vocabulary, self.xy_sums = built.recognizer, built.vocabulary, built.xy_sums
         else:
+            res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
             old_ids = self.place_ids
             self.recognizer.add_tour(t, resources=res)
             sums = _xy_sums([t], self.place_ids)
