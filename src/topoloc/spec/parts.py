@@ -344,10 +344,10 @@ class GroundTruthSpec:
 #: The sequence matching ``map calibrate`` calibrates by default, which ``localize`` then applies to an
 #: ordered input (a folder, bag or video): each frame with the 10 before it along SeqSLAM's constant-velocity
 #: lines.  Chosen on the development data (``benchmarks/bench_daynight.py``, docs/results/daynight.md): on
-#: gardens_point day_left + day_right -> night_right it lifts coocmap from single images' R@1 0.29 to 0.56 with
-#: R@100P 0.06 -> 0.30, and on nordland_64x32 summer -> winter seqslam-single from R@1 0.06 to 0.83; the
-#: acceleration search is close on gardens_point (better for bow and fabmap2) but falls to R@1 0.40 on
-#: nordland.  Length 10 is SeqSLAM's d_s.
+#: gardens_point day_left + day_right -> night_right it lifts coocmap from single images' R@1 0.27 to 0.40 with
+#: R@100P 0.00 -> 0.24, and on nordland_64x32 summer -> winter seqslam-single from R@1 0.06 to 0.83; the
+#: acceleration search is better on gardens_point (coocmap R@1 0.50) but falls to R@1 0.40 on nordland.
+#: Length 10 is SeqSLAM's d_s.
 STREAM_SEQUENCE_LENGTH = 10
 STREAM_SEQUENCE_MODE = "constant"
 
