@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib
-import sys
-from pathlib import Path
+from collections.abc import Callable
 from types import ModuleType
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def daynight() -> ModuleType:
-    # benchmarks/ is not an installed package: import it from the checkout, however pytest was started.
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    return importlib.import_module("benchmarks.bench_daynight")
-
+def daynight(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    return benchmark_module("bench_daynight")
 
 def _v(auc: float, r100p: float, r1: float) -> dict[str, float]:
     return {"auc": auc, "recall_at_100_precision": r100p, "recall_at_1": r1}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -11,17 +11,10 @@ import pytest
 
 from topoloc.evaluation.report import DEFAULT_PREPROCESS
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def common() -> ModuleType:
-    # benchmarks/ is not an installed package: load the file itself, however pytest was started.
-    spec = importlib.util.spec_from_file_location("bench_common_under_test", REPO / "benchmarks" / "common.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def common(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    return benchmark_module("common")
 
 
 ANCHORS: dict[str, Any] = {

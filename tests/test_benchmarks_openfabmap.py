@@ -8,8 +8,7 @@ equal to topoloc's FAB-MAP 2.0 one, or the timings would not be on the same mode
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
+from collections.abc import Callable
 from types import ModuleType
 
 import numpy as np
@@ -21,16 +20,10 @@ from topoloc.fabmap.normaliser import log_mean_exp
 from topoloc.fabmap.observation import ObservationModel
 from topoloc.synth.words import revisit_queries, zipf_occurrence
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def ofm() -> ModuleType:
-    # benchmarks/ is not an installed package: load the file itself, however pytest was started.
-    spec = importlib.util.spec_from_file_location("bench_openfabmap_under_test", REPO / "benchmarks" / "openfabmap.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+def ofm(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    mod = benchmark_module("openfabmap")
     try:
         mod.build_openfabmap()
     except mod.OpenFabMapUnavailable as e:

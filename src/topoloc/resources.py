@@ -427,30 +427,19 @@ class CachedResources(_MemoisedResources):
     def placed_words(self, traverse: Traverse, *, limit: int | None = None) -> list[PlacedWords]:
         if not self._on_workers(traverse):
             return super().placed_words(traverse, limit=limit)
-        tasks = self._block_tasks(traverse, True, limit)
+        blocks = self._run_blocks(placed_block, self._block_tasks(traverse, True, limit), traverse)
+        return flatten([split_placed(b) for b in blocks])
+
+    def _run_blocks(self, fn: Any, tasks: list[QuantizeTask], traverse: Traverse) -> list[Any]:
+        """``fn`` of every block task on the executor, progress advancing by each block's images."""
         advance = self.progress(f"words {traverse.name}", len(traverse))
-        sizes = [len(t.block.images) for t in tasks]
-        done = [0]
-
-        def step(_: int) -> None:
-            advance(sizes[done[0]])
-            done[0] += 1
-
-        return flatten([split_placed(b) for b in self.executor.map(placed_block, tasks, advance=step)])
+        sizes = iter([len(t.block.images) for t in tasks])
+        return list(self.executor.map(fn, tasks, advance=lambda _: advance(next(sizes))))
 
     def _quantize(self, traverse: Traverse, timed: bool) -> list[np.ndarray]:
         if self._on_workers(traverse):
             # The workers read their blocks from the store and quantise them: no descriptor crosses the network.
-            tasks = self._block_tasks(traverse, timed)
-            advance = self.progress(f"words {traverse.name}", len(traverse))
-            sizes = [len(t.block.images) for t in tasks]
-            done = [0]
-
-            def step(_: int) -> None:
-                advance(sizes[done[0]])
-                done[0] += 1
-
-            return flatten(self.executor.map(quantize_block, tasks, advance=step))
+            return flatten(self._run_blocks(quantize_block, self._block_tasks(traverse, timed), traverse))
         feats = self.features(traverse, timed=timed)
         voc = self.vocabulary
         local = self.executor if not self.distributed else LocalExecutor(self.n_jobs)
