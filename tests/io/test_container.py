@@ -174,3 +174,19 @@ def test_a_full_disk_is_one_line_naming_the_file_and_keeps_the_old_one(tmp_path:
     assert isinstance(info.value, TopolocError) and isinstance(info.value, OSError)
     assert info.value.errno == errno.ENOSPC
     assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["m.tlm"]
+
+
+def test_arrays_are_written_from_their_own_memory(tmp_path: Path) -> None:
+    # A map at 100,000 places is hundreds of MB: no second copy of it while it is written.
+    import tracemalloc
+
+    big = np.arange(5_000_000, dtype=np.int32)
+    tracemalloc.start()
+    try:
+        write_container(tmp_path / "big.bin", "test", 1, {"big": big})
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < big.nbytes / 10
+    _, arrays = read_container(tmp_path / "big.bin", "test", 1)
+    assert np.array_equal(arrays["big"], big)

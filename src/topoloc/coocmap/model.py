@@ -57,6 +57,8 @@ from topoloc.coocmap.spatial import n_spatial_words, spatial_words
 from topoloc.errors import TopolocError
 
 MAX_TOURS = 64
+#: The arrays :meth:`CoocModel._index` derives from the features (the inverted files of Sec. II-C).
+INDEX_ARRAYS = ("loc_ptr", "by_word", "word_ptr", "wloc", "wloc_ptr")
 
 #: One image's observation: (location row, word ids (n,), normalised xy (n, 2) uint16).
 Observation = tuple[int, np.ndarray, np.ndarray]
@@ -197,59 +199,68 @@ class CoocModel(Configurable):
                 raise TopolocError(f"coocmap: location {loc} out of range 0..{self.n_locations - 1}")
             if len(w) and (w.min() < 0 or w.max() >= self.n_words):
                 raise TopolocError(f"coocmap: word ids must lie in [0, {self.n_words})")
-            locs.append(np.full(len(w), int(loc), np.int64))
-            words.append(w.astype(np.int64))
+            locs.append(np.full(len(w), int(loc), _small_uint(self.n_locations)))
+            words.append(w.astype(_small_uint(self.n_words)))
             xys.append(xy)
-        new_loc = np.concatenate(locs) if locs else np.zeros(0, np.int64)
-        new_word = np.concatenate(words) if words else np.zeros(0, np.int64)
-        new_xy = np.concatenate(xys) if xys else np.zeros((0, 2), np.uint16)
-        # Insert bit k: bits below k stay, bits from k up move one place up.
-        old = self.tours.astype(np.uint64)
-        low = np.uint64((1 << k) - 1)
-        old = (old & low) | ((old & ~low) << np.uint64(1))
-        new_mask = np.full(len(new_loc), np.uint64(1) << np.uint64(k), np.uint64)
+        n_new = sum(len(w) for w in words)
+        # Insert bit k: bits below k stay, bits from k up move one place up.  The mask grows by
+        # one bit, so it is widened to the new tour count's dtype before shifting.
+        mask_dt = _mask_dtype(n_old + 1)
+        old = self.tours.astype(mask_dt)
+        low = mask_dt.type((1 << k) - 1)
+        old = (old & low) | ((old & ~low) << mask_dt.type(1))
         self.tour_names.insert(k, name or f"tour{n_old}")
         self.tour_hours.insert(k, hour)
+        # In the map's own compact dtypes: a route's whole feature table is concatenated here.
         self._set_features(
-            np.concatenate([self.loc.astype(np.int64), new_loc]),
-            np.concatenate([self.word.astype(np.int64), new_word]),
-            np.concatenate([self.xy, new_xy]),
-            np.concatenate([old, new_mask]),
+            np.concatenate([self.loc, *locs]).astype(_small_uint(self.n_locations), copy=False),
+            np.concatenate([self.word, *words]).astype(_small_uint(self.n_words), copy=False),
+            np.concatenate([self.xy, *xys]) if xys else np.asarray(self.xy),
+            np.concatenate([old, np.full(n_new, mask_dt.type(1 << k), mask_dt)]),
         )
         return self
 
     def _set_features(self, loc: np.ndarray, word: np.ndarray, xy: np.ndarray,
                       mask: np.ndarray) -> None:
-        """Deduplicate features (OR-ing tour masks) and rebuild the inverted files."""
+        """Deduplicate features (OR-ing tour masks) and rebuild the inverted files.
+
+        Features are sorted by (location, word, y, x); equal ones become one
+        feature whose tour mask is the OR of theirs.
+        """
         if len(loc):
-            order = np.lexsort((xy[:, 0], xy[:, 1], word, loc))
-            loc, word, xy, mask = loc[order], word[order], xy[order], mask[order]
-            new = np.ones(len(loc), bool)
-            new[1:] = ((loc[1:] != loc[:-1]) | (word[1:] != word[:-1])
-                       | (xy[1:, 0] != xy[:-1, 0]) | (xy[1:, 1] != xy[:-1, 1]))
-            starts = np.flatnonzero(new)
-            mask = np.bitwise_or.reduceat(mask, starts)
-            loc, word, xy = loc[starts], word[starts], xy[starts]
+            loc, word, xy, mask = sort_unique_features(loc, word, xy, mask, n_locations=self.n_locations,
+                                                       n_words=self.n_words)
+        self._set_sorted(loc, word, xy, mask)
+
+    def _set_sorted(self, loc: np.ndarray, word: np.ndarray, xy: np.ndarray, mask: np.ndarray) -> None:
+        """Store features already sorted and unique (as :meth:`_set_features` leaves them); index them."""
         n_tours = max(len(self.tour_names), 1)
-        self.loc = loc.astype(_small_uint(self.n_locations))
-        self.word = word.astype(_small_uint(self.n_words))
-        self.xy = np.ascontiguousarray(xy, dtype=np.uint16)
-        self.tours = mask.astype(_mask_dtype(n_tours))
+        self.loc = np.asarray(loc).astype(_small_uint(self.n_locations), copy=False)
+        self.word = np.asarray(word).astype(_small_uint(self.n_words), copy=False)
+        self.xy = np.ascontiguousarray(xy, dtype=np.uint16).reshape(-1, 2)
+        self.tours = np.asarray(mask).astype(_mask_dtype(n_tours), copy=False)
         self._index()
 
     def _index(self) -> None:
-        loc = self.loc.astype(np.int64)
-        word = self.word.astype(np.int64)
-        self.loc_ptr = np.searchsorted(loc, np.arange(self.n_locations + 1)).astype(np.int64)
+        # Built from the compact arrays, one temporary at a time: at 100,000 places the feature
+        # table has tens of millions of rows and int64 copies of it would dominate the memory of
+        # `map build` and `map add` (benchmarks/bench_cluster.py).
+        self.loc_ptr = np.zeros(self.n_locations + 1, np.int64)
+        np.cumsum(np.bincount(self.loc, minlength=self.n_locations), out=self.loc_ptr[1:])
         # Inverted file word -> features, by location within a word (stable sort).
-        self.by_word = np.argsort(word, kind="stable").astype(np.int32)
-        self.word_ptr = np.searchsorted(word[self.by_word], np.arange(self.n_words + 1)).astype(np.int64)
-        # Inverted file word -> locations (Sec. II-C), unique per word.
-        wl = word[self.by_word] * (self.n_locations + 1) + loc[self.by_word]
-        keep = np.ones(len(wl), bool)
-        keep[1:] = wl[1:] != wl[:-1]
-        self.wloc = loc[self.by_word][keep].astype(np.int32)
-        self.wloc_ptr = np.searchsorted(word[self.by_word][keep], np.arange(self.n_words + 1)).astype(np.int64)
+        self.by_word = np.argsort(self.word, kind="stable").astype(np.int32)
+        self.word_ptr = np.zeros(self.n_words + 1, np.int64)
+        np.cumsum(np.bincount(self.word, minlength=self.n_words), out=self.word_ptr[1:])
+        # Inverted file word -> locations (Sec. II-C), unique per word: within a word the
+        # features are in location order, so a repeated location is the one just before.
+        loc_w = self.loc[self.by_word]
+        word_w = self.word[self.by_word]
+        keep = np.ones(len(loc_w), bool)
+        keep[1:] = (loc_w[1:] != loc_w[:-1]) | (word_w[1:] != word_w[:-1])
+        self.wloc = loc_w[keep].astype(np.int32)
+        del loc_w
+        self.wloc_ptr = np.zeros(self.n_words + 1, np.int64)
+        np.cumsum(np.bincount(word_w[keep], minlength=self.n_words), out=self.wloc_ptr[1:])
         self._groups: dict[bool, np.ndarray] = {}
 
     def quantise_xy(self, xy: np.ndarray) -> np.ndarray:
@@ -351,6 +362,64 @@ class CoocModel(Configurable):
                 "wloc": self.wloc, "wloc_ptr": self.wloc_ptr}
 
 
+def sort_unique_features(loc: np.ndarray, word: np.ndarray, xy: np.ndarray, mask: np.ndarray, *,
+                         n_locations: int, n_words: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Features sorted by (location, word, y, x), equal ones merged by OR-ing their tour masks.
+
+    Parameters
+    ----------
+    loc, word : ndarray of int, shape (n,)
+        Location row and word id of each feature (``0 <= loc < n_locations``,
+        ``0 <= word < n_words``).
+    xy : ndarray of uint16, shape (n, 2)
+        Quantised positions.
+    mask : ndarray of uint, shape (n,)
+        Tour bit masks.
+
+    Returns
+    -------
+    loc, word, xy, mask
+        The ``m <= n`` distinct features in that order.
+
+    Notes
+    -----
+    When location, word and both coordinates fit in 64 bits (up to 2^16
+    locations x 2^16 words, or 2^20 x 2^12, ...) the four keys are packed
+    into one ``uint64`` and sorted once, which needs a third of the memory of
+    a four-key ``lexsort`` on int64 copies; the order is the same.
+    """
+    lb = max(int(n_locations - 1).bit_length(), 1)
+    wb = max(int(n_words - 1).bit_length(), 1)
+    xy = np.asarray(xy, np.uint16).reshape(-1, 2)
+    if lb + wb + 32 > 64:
+        order = np.lexsort((xy[:, 0], xy[:, 1], word, loc))
+        loc, word, xy, mask = loc[order], word[order], xy[order], mask[order]
+        new = np.ones(len(loc), bool)
+        new[1:] = ((loc[1:] != loc[:-1]) | (word[1:] != word[:-1])
+                   | (xy[1:, 0] != xy[:-1, 0]) | (xy[1:, 1] != xy[:-1, 1]))
+        starts = np.flatnonzero(new)
+        return loc[starts], word[starts], xy[starts], np.bitwise_or.reduceat(mask, starts)
+    key = np.asarray(loc).astype(np.uint64) << np.uint64(wb + 32)
+    key |= np.asarray(word).astype(np.uint64) << np.uint64(32)
+    key |= xy[:, 1].astype(np.uint64) << np.uint64(16)
+    key |= xy[:, 0]
+    order = np.argsort(key)
+    key = key[order]
+    new = np.ones(len(key), bool)
+    np.not_equal(key[1:], key[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
+    del new
+    mask = np.bitwise_or.reduceat(np.asarray(mask)[order], starts)
+    del order
+    key = key[starts]
+    out_xy = np.empty((len(key), 2), np.uint16)
+    out_xy[:, 0] = key & np.uint64(0xFFFF)
+    out_xy[:, 1] = (key >> np.uint64(16)) & np.uint64(0xFFFF)
+    out_word = ((key >> np.uint64(32)) & np.uint64((1 << wb) - 1)).astype(_small_uint(n_words))
+    out_loc = (key >> np.uint64(wb + 32)).astype(_small_uint(n_locations))
+    return out_loc, out_word, out_xy, mask
+
+
 def merge_models(parts: Sequence[CoocModel]) -> CoocModel:
     """One model from the models of consecutive location ranges (map shards), locations in order.
 
@@ -392,10 +461,13 @@ def merge_models(parts: Sequence[CoocModel]) -> CoocModel:
     out.vocabulary = dict(first.vocabulary)
     out.built_from = dict(first.built_from)
     offsets = np.cumsum([0] + [p.n_locations for p in parts[:-1]])
-    out._set_features(
-        np.concatenate([p.loc.astype(np.int64) + int(o) for p, o in zip(parts, offsets, strict=True)]),
-        np.concatenate([p.word.astype(np.int64) for p in parts]),
+    loc_dt = _small_uint(out.n_locations)
+    # Each part is sorted and unique by (location, word, y, x) and the parts' locations are
+    # consecutive ranges, so their concatenation already is: no sort, compact dtypes throughout.
+    out._set_sorted(
+        np.concatenate([p.loc.astype(loc_dt) + loc_dt.type(o) for p, o in zip(parts, offsets, strict=True)]),
+        np.concatenate([p.word for p in parts]),
         np.concatenate([np.asarray(p.xy, np.uint16).reshape(-1, 2) for p in parts]),
-        np.concatenate([p.tours.astype(np.uint64) for p in parts]),
+        np.concatenate([p.tours for p in parts]),
     )
     return out

@@ -37,7 +37,7 @@ import struct
 import tempfile
 import threading
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -82,7 +82,7 @@ def _sweep_once(folder: Path) -> None:
     remove_stale_temporaries(folder / "_", any_target=True)
 
 
-def atomic_write_bytes(path: str | Path, chunks: list[bytes] | bytes) -> None:
+def atomic_write_bytes(path: str | Path, chunks: Sequence[bytes | memoryview] | bytes) -> None:
     """Write ``chunks`` to ``path`` atomically (temporary file, fsync, rename).
 
     The file gets the permissions of any file the user creates (``0666`` less
@@ -158,7 +158,9 @@ def write_container(
         JSON-serialisable metadata.
     """
     entries = []
-    blobs: list[bytes] = []
+    # Views of the arrays' own memory, not copies: a map at 100,000 places is hundreds of MB,
+    # and a second copy of it in bytes would be the largest allocation of `map build`.
+    blobs: list[bytes | memoryview] = []
     offset = 0
     crc = 0
     for name, arr in arrays.items():
@@ -170,14 +172,14 @@ def write_container(
             blobs.append(b"\x00" * pad)
             crc = zlib.crc32(b"\x00" * pad, crc)
             offset += pad
-        raw = a.tobytes()
+        raw = a.reshape(-1).view(np.uint8).data
         entries.append(
             {"name": name, "dtype": a.dtype.str, "shape": list(a.shape),
-             "offset": offset, "nbytes": len(raw)}
+             "offset": offset, "nbytes": raw.nbytes}
         )
         blobs.append(raw)
         crc = zlib.crc32(raw, crc)
-        offset += len(raw)
+        offset += raw.nbytes
     header = json.dumps(
         {"kind": kind, "kind_version": kind_version, "meta": dict(meta or {}),
          "arrays": entries, "payload_nbytes": offset, "payload_crc32": crc},

@@ -42,7 +42,7 @@ from topoloc.coocmap.matching import (
     match_lazy,
     match_simultaneous,
 )
-from topoloc.coocmap.model import CoocModel, Observation, merge_models
+from topoloc.coocmap.model import INDEX_ARRAYS, CoocModel, Observation, merge_models
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
 from topoloc.io.state import new_object, object_state, restore_state
@@ -247,7 +247,10 @@ class CoocMap(PlaceRecognizer):
                                       in zip(rows, self._observations(shard[i], resources), strict=True)]
             model.add_tour(obs, name=maps[i].name, hour=maps[i].median_time_of_day())
         model.vocabulary = vocabulary_fingerprint(vocab)
-        meta, arrays = object_state(model, prefix="model/", skip=[k for k in vars(model) if k.startswith("_")])
+        # The inverted files are rebuilt by the merge: sent back, they would double what the
+        # client gathers from the shards.
+        meta, arrays = object_state(model, prefix="model/",
+                                    skip=[k for k in vars(model) if k.startswith("_") or k in INDEX_ARRAYS])
         return {"model": meta}, {**arrays, "place_ids": place_ids}
 
     def _merge_shards(self, parts: list[ShardPart], maps: list[Traverse], resources: Resources) -> None:
@@ -272,10 +275,9 @@ class CoocMap(PlaceRecognizer):
         place_ids, old_rows = extend_place_ids(self.place_ids_, tour.places)
         model = self.model_
         if len(place_ids) != len(self.place_ids_):
-            # Old rows keep their order, so remapping keeps the features sorted by location.
+            # Old rows keep their order, so the remapped features stay sorted and unique.
             model.n_locations = len(place_ids)
-            model._set_features(old_rows[model.loc.astype(np.int64)], model.word.astype(np.int64),
-                                np.asarray(model.xy), model.tours.astype(np.uint64))
+            model._set_sorted(old_rows[model.loc], model.word, model.xy, model.tours)
         hour = tour.median_time_of_day()
         hours = model.tour_hours
         position = None
