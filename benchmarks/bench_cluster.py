@@ -229,6 +229,27 @@ def main() -> None:
     print((args.out / "cluster.md").read_text())
 
 
+#: Issue #30's bounds on peak memory, whatever the route's length (MiB).
+CLIENT_BOUND_MIB = 2048
+WORKER_BOUND_MIB = 4096
+
+
+def _growth_sentence(runs: list[dict[str, Any]], peaks: list[tuple[int, float, float]]) -> str:
+    """The shortest route against the longest: how the peaks grew beside the route and the map file."""
+    (p0, c0, w0), (p1, c1, w1) = peaks[0], peaks[-1]
+    m0, m1 = runs[0]["map_bytes"] / 2**20, runs[-1]["map_bytes"] / 2**20
+    by_command = ", ".join(
+        f"`{r1['stage']}` {r0['client_peak_mib']:.0f} → {r1['client_peak_mib']:.0f}"
+        for r0, r1 in zip(runs[0]["stages"], runs[-1]["stages"], strict=True))
+    within = c1 <= CLIENT_BOUND_MIB and w1 <= WORKER_BOUND_MIB and all(
+        c <= CLIENT_BOUND_MIB and w <= WORKER_BOUND_MIB for _, c, w in peaks)
+    return (f"\n**Growth.** From {p0:,} to {p1:,} places ({p1 / p0:.0f}x the route) the client's highest peak went "
+            f"from {c0:.0f} to {c1:.0f} MiB ({c1 / c0:.2f}x; per command, MiB: {by_command}), the workers' from "
+            f"{w0:.0f} to {w1:.0f} MiB ({w1 / w0:.2f}x), and the map file from {m0:.1f} to {m1:.1f} MiB. "
+            f"Every peak is {'within' if within else '**not** within'} {CLIENT_BOUND_MIB:,} MiB for the client and "
+            f"{WORKER_BOUND_MIB:,} MiB for a worker.\n")
+
+
 def write_pages(data: dict[str, Any], out: Path) -> None:
     """docs/results/cluster.md (measured) and docs/cluster_scaling.md (the extrapolation)."""
     meta, runs = data["meta"], data["runs"]
@@ -278,6 +299,7 @@ def write_pages(data: dict[str, Any], out: Path) -> None:
                  "SIFT descriptors, k-means working on that), then stays. ms per query are measured in one "
                  "process on one thread from the map "
                  "file (after one warm-up query), matching excluding feature extraction.\n")
+    lines.append(_growth_sentence(runs, peaks))
     gen = runs[-1]["generation_s"] * TARGET_PLACES / runs[-1]["places"]
     one = sum(e["hours"] for e in ext if e["machines"] == 1)
     lines.append(f"\n**The {TARGET_PLACES:,}-place run on this machine**, estimated from the rates of the "

@@ -1,0 +1,34 @@
+"""The cluster results page (benchmarks/bench_cluster.py): its memory verdict comes from the numbers."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def cluster(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    return benchmark_module("bench_cluster")
+
+
+def _run(places: int, client: float, worker: float, map_mib: float) -> dict[str, Any]:
+    return {"places": places, "map_bytes": map_mib * 2**20,
+            "stages": [{"stage": "map build", "client_peak_mib": client, "worker_peak_mib": worker}]}
+
+
+def test_growth_sentence_compares_shortest_and_longest_route(cluster: ModuleType) -> None:
+    runs = [_run(5_000, 200.0, 400.0, 14.0), _run(100_000, 900.0, 600.0, 280.0)]
+    text = cluster._growth_sentence(runs, [(5_000, 200.0, 400.0), (100_000, 900.0, 600.0)])
+    assert "From 5,000 to 100,000 places (20x the route) the client's highest peak went from 200 to 900 MiB " \
+           "(4.50x; per command, MiB: `map build` 200 → 900)" in text
+    assert "map file from 14.0 to 280.0 MiB" in text
+    assert "Every peak is within 2,048 MiB for the client and 4,096 MiB for a worker." in text
+
+
+def test_growth_sentence_says_when_a_bound_is_broken(cluster: ModuleType) -> None:
+    runs = [_run(5_000, 200.0, 400.0, 14.0), _run(100_000, 2_500.0, 600.0, 280.0)]
+    text = cluster._growth_sentence(runs, [(5_000, 200.0, 400.0), (100_000, 2_500.0, 600.0)])
+    assert "Every peak is **not** within 2,048 MiB" in text
