@@ -25,6 +25,7 @@ milliseconds of per-image work (``ms_features`` of the protocol).
 from __future__ import annotations
 
 import copy
+import hashlib
 import logging
 import os
 import threading
@@ -124,7 +125,9 @@ class _MemoisedResources:
         self.n_jobs = n_jobs
         self.training = [training] if isinstance(training, Traverse) else list(training or [])
         self.training_images = [Path(p) for p in training_images]
-        self.image_ms: dict[tuple[str, str], float] = {}
+        # Per (traverse, key): one array of per-image ms (per-image dict entries would cost a
+        # Python object each, and a key naming the traverse, on a 100,000-image route).
+        self.image_ms: dict[tuple[str, str], np.ndarray] = {}
         self._memo: dict[tuple[str, str], list[Any]] = {}
 
     def _default_extractor(self) -> FeatureExtractor:
@@ -164,15 +167,14 @@ class _MemoisedResources:
         if memo_key in self._memo:
             return self._memo[memo_key]
         advance = self.progress(description or f"{key} {traverse.name}", len(traverse))
-        tkey = memo_key[0]
+        times = np.full(len(traverse), np.nan) if timed and self.memoise else None
 
         def run(k: int) -> T:
             t0 = time.perf_counter()
             out = fn(k)
-            if timed and self.memoise:
+            if times is not None:
                 ms = getattr(out, "extract_ms", None)
-                self.image_ms[(f"{tkey}#{k}", key)] = (
-                    float(ms) if ms is not None else 1e3 * (time.perf_counter() - t0))
+                times[k] = float(ms) if ms is not None else 1e3 * (time.perf_counter() - t0)
             advance(1)
             return out
 
@@ -184,6 +186,8 @@ class _MemoisedResources:
                 result = list(pool.map(run, range(len(traverse))))
         if self.memoise:
             self._memo[memo_key] = result
+        if times is not None:
+            self.image_ms[memo_key] = times
         return result
 
     def per_image(
@@ -282,8 +286,8 @@ class _MemoisedResources:
         return self.words(pseudo, timed=False)
 
     def ms_features_median(self) -> float:
-        vals = list(self.image_ms.values())
-        return float(np.median(vals)) if vals else 0.0
+        vals = np.concatenate([np.empty(0), *self.image_ms.values()])
+        return float(np.median(vals)) if vals.size else 0.0
 
     def for_task(self, *, remote: bool = False) -> _MemoisedResources:
         """A shallow copy for one task of an executor: no progress display.
@@ -349,7 +353,7 @@ class CachedResources(_MemoisedResources):
                          training=training, training_images=training_images)
         self.executor: Executor = executor if executor is not None else LocalExecutor(n_jobs)
         self.block_size = block_size
-        self._fills: dict[tuple[str, str], tuple[FeatureStore, list[BlockResult]]] = {}
+        self._fills: dict[tuple[str, str], _Filled] = {}
         self._shared_checked = False
 
     def _default_extractor(self) -> FeatureExtractor:
@@ -370,16 +374,20 @@ class CachedResources(_MemoisedResources):
             out._fills = {}
         return out
 
-    def _fill(self, traverse: Traverse, key: str, timed: bool) -> tuple[FeatureStore, list[BlockResult]]:
-        """Complete the feature store of a file traverse through the executor (memoised per run)."""
-        from topoloc.features.store import BLOCK_IMAGES, FeatureStore, check_shared_cache
+    def _fill(self, traverse: Traverse, key: str, timed: bool) -> _Filled:
+        """Complete the feature store of a file traverse through the executor (memoised per run).
+
+        A traverse cut from a whole tour (:meth:`Traverse.take`, a map shard) is read from
+        the blocks of the whole tour's store when those are all complete, so no image is
+        stored twice; otherwise it gets a store of its own.
+        """
+        from topoloc.features.store import BLOCK_IMAGES, FeatureStore, check_shared_cache, fill_block
 
         memo_key = (traverse_key(traverse), key)
         if memo_key in self._fills:
             return self._fills[memo_key]
         ex = self.extractor
-        store = FeatureStore(ex.config, traverse.images, root=traverse.root, cache_dir=ex.cache_dir,
-                             block_size=self.block_size or BLOCK_IMAGES)
+        size = self.block_size or BLOCK_IMAGES
         local = not self.distributed
         if not local and not self._shared_checked:
             check_shared_cache(self.executor, ex.cache_dir)
@@ -390,15 +398,22 @@ class CachedResources(_MemoisedResources):
         runner: Executor = LocalExecutor(1) if local else self.executor
         threads = self.executor.n_workers if local else 1
         advance = self.progress(f"features {traverse.name}", len(traverse))
-        results = store.fill(runner, advance=advance, keep=local, threads=threads)
+        whole = _whole_tour_blocks(traverse, ex.config, ex.cache_dir, size)
+        if whole is not None:
+            store, blocks, select = whole
+            results = runner.map(fill_block, [store.task(b, threads=threads, keep=local) for b in blocks])
+            advance(len(traverse))
+        else:
+            store = FeatureStore(ex.config, traverse.images, root=traverse.root, cache_dir=ex.cache_dir,
+                                 block_size=size)
+            results, select = store.fill(runner, advance=advance, keep=local, threads=threads), None
+        filled = _Filled(store, results, select)
         if timed and self.memoise:
-            tkey = memo_key[0]
-            ms = np.concatenate([r.extract_ms for r in results]) if results else np.empty(0)
-            for k, value in enumerate(ms):
-                self.image_ms[(f"{tkey}#{k}", key)] = float(value)
+            self.image_ms[memo_key] = filled.pick(np.concatenate([r.extract_ms for r in results])
+                                                  if results else np.empty(0))
         if self.memoise:
-            self._fills[memo_key] = (store, results)
-        return store, results
+            self._fills[memo_key] = filled
+        return filled
 
     def _file_features(self, traverse: Traverse, key: str, timed: bool) -> list[FeatureSet]:
         if not self.extractor.use_cache:
@@ -406,9 +421,9 @@ class CachedResources(_MemoisedResources):
         memo_key = (traverse_key(traverse), key)
         if memo_key in self._memo:
             return self._memo[memo_key]
-        store, results = self._fill(traverse, key, timed)
-        feats = store.read(results)
-        for r in results:
+        filled = self._fill(traverse, key, timed)
+        feats = filled.pick(filled.store.read(filled.results))
+        for r in filled.results:
             r.features = None  # held once, in the memo below
         if self.memoise:
             self._memo[memo_key] = feats
@@ -418,17 +433,18 @@ class CachedResources(_MemoisedResources):
         """Whether the traverse's blocks are read and quantised by cluster workers (not gathered here)."""
         return traverse.kind == "files" and self.distributed and self.extractor.use_cache
 
-    def _block_tasks(self, traverse: Traverse, timed: bool, limit: int | None = None) -> list[QuantizeTask]:
-        store, results = self._fill(traverse, "features:" + self.extractor.config.key(), timed)
+    def _block_tasks(self, traverse: Traverse, timed: bool, limit: int | None = None
+                     ) -> tuple[list[QuantizeTask], _Filled]:
+        filled = self._fill(traverse, "features:" + self.extractor.config.key(), timed)
         ref = vocabulary_file(self.vocabulary, self.extractor.cache_dir)
-        return [QuantizeTask(block=store.task(r.block), sha1=tuple(r.sha1), vocabulary=ref[0],
-                             fingerprint=ref[1], limit=limit) for r in results]
+        return [QuantizeTask(block=filled.store.task(r.block), sha1=tuple(r.sha1), vocabulary=ref[0],
+                             fingerprint=ref[1], limit=limit) for r in filled.results], filled
 
     def placed_words(self, traverse: Traverse, *, limit: int | None = None) -> list[PlacedWords]:
         if not self._on_workers(traverse):
             return super().placed_words(traverse, limit=limit)
-        blocks = self._run_blocks(placed_block, self._block_tasks(traverse, True, limit), traverse)
-        return flatten([split_placed(b) for b in blocks])
+        tasks, filled = self._block_tasks(traverse, True, limit)
+        return filled.pick(flatten([split_placed(b) for b in self._run_blocks(placed_block, tasks, traverse)]))
 
     def _run_blocks(self, fn: Any, tasks: list[QuantizeTask], traverse: Traverse) -> list[Any]:
         """``fn`` of every block task on the executor, progress advancing by each block's images."""
@@ -439,7 +455,8 @@ class CachedResources(_MemoisedResources):
     def _quantize(self, traverse: Traverse, timed: bool) -> list[np.ndarray]:
         if self._on_workers(traverse):
             # The workers read their blocks from the store and quantise them: no descriptor crosses the network.
-            return flatten(self._run_blocks(quantize_block, self._block_tasks(traverse, timed), traverse))
+            tasks, filled = self._block_tasks(traverse, timed)
+            return filled.pick(flatten(self._run_blocks(quantize_block, tasks, traverse)))
         feats = self.features(traverse, timed=timed)
         voc = self.vocabulary
         local = self.executor if not self.distributed else LocalExecutor(self.n_jobs)
@@ -593,9 +610,57 @@ def split_placed(block: dict[str, np.ndarray]) -> list[PlacedWords]:
              (int(shapes[i, 0]), int(shapes[i, 1]))) for i in range(len(shapes))]
 
 
+@dataclass
+class _Filled:
+    """A file traverse's features in a store: its blocks' results, and which of their images are the traverse's.
+
+    ``select`` is None when the blocks hold exactly the traverse's images; else the row, among the
+    images of the listed blocks in order, of each of the traverse's images (a cut of a whole tour).
+    """
+
+    store: FeatureStore
+    results: list[BlockResult]
+    select: np.ndarray | None
+
+    def pick(self, per_image: Sequence[T] | np.ndarray) -> Any:
+        """The traverse's entries of a per-image sequence over the blocks' images."""
+        if self.select is None:
+            return per_image
+        if isinstance(per_image, np.ndarray):
+            return per_image[self.select]
+        return [per_image[int(k)] for k in self.select]
+
+
+def _whole_tour_blocks(traverse: Traverse, config: Any, cache_dir: Path | None, block_size: int
+                       ) -> tuple[FeatureStore, list[int], np.ndarray] | None:
+    """The whole tour's store, the blocks holding the images of a cut of it, and their rows; None if any is missing.
+
+    Only complete blocks are used: a sparse cut (every tenth frame) of a tour never described
+    would otherwise extract ten times the images it needs.
+    """
+    from topoloc.features.store import FeatureStore
+
+    if traverse.origin is None or traverse.kind != "files":
+        return None
+    parent, index = traverse.origin
+    store = FeatureStore(config, parent.images, root=parent.root, cache_dir=cache_dir, block_size=block_size)
+    blocks = np.unique(index // block_size)
+    if not all(store.block_path(int(b)).is_file() for b in blocks):
+        return None
+    sizes = np.array([len(store.block_range(int(b))) for b in blocks], np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    select = starts[np.searchsorted(blocks, index // block_size)] + index % block_size
+    return store, [int(b) for b in blocks], select
+
+
 def traverse_key(traverse: Traverse) -> str:
-    """Memo key of a traverse: its folder and file names (an in-memory traverse's root is unique)."""
-    return str(traverse.root.resolve()) + "|" + ",".join(p.name for p in traverse.images)
+    """Memo key of a traverse: its folder and a digest of its file names (an in-memory traverse's root is unique).
+
+    Of fixed size whatever the tour's length: the names themselves would make a key of
+    megabytes on a 100,000-image route.
+    """
+    names = hashlib.sha1("\0".join(p.name for p in traverse.images).encode(), usedforsecurity=False)
+    return f"{traverse.root.resolve()}|{len(traverse.images)}|{names.hexdigest()}"
 
 
 __all__ = ["CachedResources", "InMemoryResources", "PlacedWords", "ProgressFactory", "Resources", "no_progress",

@@ -81,6 +81,8 @@ def test_no_step_gathers_per_image_features_on_the_client(tiny_route: dict[str, 
         for shards in (3, 1):
             m = Map.build(method="coocmap", tours=[map_dir], vocabulary=voc, features=config, cache_dir=cache,
                           shards=shards, executor=ex)
+            # The shards read the map tour's store that the vocabulary filled: no image is stored twice.
+            assert len(list((cache / "features" / config.key() / "store").iterdir())) == 1
         m.save(tmp_path / "route.tlm")
         m = Map.load(tmp_path / "route.tlm")
         m.add_tour(add_dir, cache_dir=cache, executor=ex).save(tmp_path / "route.tlm")

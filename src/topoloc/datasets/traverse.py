@@ -80,6 +80,10 @@ class Traverse:
         Where in-memory frames were read from, when that was a recording: ``{"file": path,
         "topic", "pose_topic", "every_s", "every_m"}`` (the frame selection; unset ones left out),
         so that a map can name the tour (:func:`topoloc.datasets.sources.stream_traverse`).
+    origin : (Traverse, ndarray of int64) or None
+        For a file traverse cut from another by :meth:`take`: that whole traverse and the
+        positions in it of this one's images, so that their features are read from the
+        whole tour's feature store rather than stored again (map shards).
     """
 
     root: Path
@@ -91,6 +95,7 @@ class Traverse:
     kind: str = "files"
     frames: tuple[Any, ...] | None = None
     source: dict[str, Any] | None = None
+    origin: tuple[Traverse, np.ndarray] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if len(self.images) != len(self.places):
@@ -189,11 +194,14 @@ class Traverse:
             Positions in this traverse.
         """
         idx = np.asarray(index, dtype=np.int64).reshape(-1)
+        origin = None
+        if self.kind == "files":
+            origin = (self, idx) if self.origin is None else (self.origin[0], self.origin[1][idx])
         return Traverse(root=self.root, images=tuple(self.images[i] for i in idx), places=self.places[idx],
                         times=None if self.times is None else self.times[idx],
                         xy=None if self.xy is None else self.xy[idx], name=self.name, kind=self.kind,
                         frames=None if self.frames is None else tuple(self.frames[i] for i in idx),
-                        source=self.source)
+                        source=self.source, origin=origin)
 
     def fingerprint(self) -> str:
         """SHA-1 of what the traverse holds: image names, places, times and each file's size (or the frames).
