@@ -124,7 +124,9 @@ class _MemoisedResources:
         self.n_jobs = n_jobs
         self.training = [training] if isinstance(training, Traverse) else list(training or [])
         self.training_images = [Path(p) for p in training_images]
-        self.image_ms: dict[tuple[str, str], float] = {}
+        # Keyed by (traverse key, image index, work key): the tuple shares the traverse key's string,
+        # which names every image of the traverse (a key string per image would make it quadratic).
+        self.image_ms: dict[tuple[str, int, str], float] = {}
         self._memo: dict[tuple[str, str], list[Any]] = {}
 
     def _default_extractor(self) -> FeatureExtractor:
@@ -171,7 +173,7 @@ class _MemoisedResources:
             out = fn(k)
             if timed and self.memoise:
                 ms = getattr(out, "extract_ms", None)
-                self.image_ms[(f"{tkey}#{k}", key)] = (
+                self.image_ms[(tkey, k, key)] = (
                     float(ms) if ms is not None else 1e3 * (time.perf_counter() - t0))
             advance(1)
             return out
@@ -395,7 +397,7 @@ class CachedResources(_MemoisedResources):
             tkey = memo_key[0]
             ms = np.concatenate([r.extract_ms for r in results]) if results else np.empty(0)
             for k, value in enumerate(ms):
-                self.image_ms[(f"{tkey}#{k}", key)] = float(value)
+                self.image_ms[(tkey, k, key)] = float(value)
         if self.memoise:
             self._fills[memo_key] = (store, results)
         return store, results

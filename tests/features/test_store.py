@@ -322,3 +322,16 @@ def test_images_in_the_per_image_cache_are_not_extracted_again(tiny_route: dict[
     assert sorted(counter.calls) == sorted(p.name for p in st.images[4:])
     assert [r.extracted for r in results] == [0, 2, 3, 3]
     _assert_same(st.read(results), _expected(tiny_route))
+
+
+def test_per_image_times_share_the_traverse_key(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    """The times of a traverse's images are keyed by one traverse key object: a string of every image's name per
+    image made them quadratic in the traverse (9 GB of keys for 23,000 images)."""
+    from topoloc.resources import CachedResources, traverse_key
+
+    res = CachedResources(extractor=FeatureExtractor(FeatureConfig(), cache_dir=tmp_path), n_jobs=1)
+    trav = tiny_route["map"]
+    res.features(trav)
+    assert len(res.image_ms) == len(trav) and res.ms_features_median() > 0
+    assert {k[0] for k in res.image_ms} == {traverse_key(trav)}
+    assert len({id(k[0]) for k in res.image_ms}) == 1
