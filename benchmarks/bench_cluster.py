@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.common import RESULTS
+from benchmarks.peak_run import reset_vm_hwm, vm_hwm_mib
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKERS = 2
@@ -52,17 +53,7 @@ def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.exists() else 0
 
 
-def _reset_peak() -> None:
-    """Reset this process's VmHWM to its current RSS (Linux ``clear_refs`` 5)."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-    except OSError:
-        pass
-
-
 def _peak() -> float:
-    from benchmarks.peak_run import vm_hwm_mib
-
     return vm_hwm_mib() or float("nan")
 
 
@@ -139,7 +130,7 @@ def run_route(route: Any, work: Path, *, words: int, max_features: int, shards: 
              ["localize", str(tlm), str(route.query_dir), "--top-k", "1", "--out", str(out / "lines.jsonl"), *sched]),
         ]
         for name, items, args in commands:
-            client.run(_reset_peak)
+            client.run(reset_vm_hwm)
             peak_file = out / f"peak_{name.replace(' ', '_')}.json"
             t0 = time.perf_counter()
             subprocess.run([sys.executable, "-m", "benchmarks.peak_run", str(peak_file), "--", *args],

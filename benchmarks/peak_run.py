@@ -27,6 +27,25 @@ def vm_hwm_mib() -> float | None:
     return None
 
 
+def vm_rss_mib() -> float | None:
+    """This process's resident memory now in MiB (``VmRSS``), or None where /proc has none."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def reset_vm_hwm() -> None:
+    """Reset this process's VmHWM to its current RSS (Linux ``clear_refs`` 5; nothing elsewhere)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
 def main() -> None:
     out, sep, *args = sys.argv[1:]
     if sep != "--":

@@ -219,3 +219,28 @@ def test_optimise_splits_until_ratio() -> None:
     m2 = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
     assert m2.optimise(0.0) == []  # already above r_min: nothing to do
     assert np.isfinite(r_before)
+
+
+
+def test_landmarks_updated_in_chunks_as_in_one_pass() -> None:
+    """``_update_landmarks`` in chunks (bounded memory on long routes) gives every landmark its one-pass values."""
+    from topoloc.landmarks.tracking import chain_tracks
+
+    rng = np.random.default_rng(4)
+    n_nodes, n_feat, n_tracked = 6, 40, 20
+    # 20 landmarks in 5 tight groups, so that other landmarks' features fall in some descriptor ranges.
+    base = np.repeat(rng.standard_normal((5, 128)), 4, axis=0) + 0.06 * rng.standard_normal((n_tracked, 128))
+    feats = []
+    for _ in range(n_nodes):
+        desc = np.vstack([base + 0.1 * rng.standard_normal(base.shape),
+                          rng.standard_normal((n_feat - n_tracked, 128))]).astype(np.float32)
+        feats.append(_fs([tuple(p) for p in rng.uniform(0, 400, (n_feat, 2))], list(desc)))
+    same = np.arange(n_tracked)
+    tracks = chain_tracks(np.full(n_nodes, n_feat), [(same, same)] * (n_nodes - 1))
+    m = LandmarkModel(top_k=2, n_background=200, radius_floor=0.13).build(feats, tracks)
+    assert m.n_landmarks_ == n_tracked
+    one_pass = [m.mean_.copy(), m.radius_.copy(), m.length_.copy(), m.p_desc_.copy()]
+    assert len(np.unique(one_pass[3])) > 5  # the background counts differ between landmarks
+    m._update_landmarks(np.arange(m.n_landmarks_), chunk=7)
+    for before, after in zip(one_pass, [m.mean_, m.radius_, m.length_, m.p_desc_], strict=True):
+        np.testing.assert_array_equal(before, after)

@@ -218,6 +218,7 @@ class LandmarkModel(Configurable):
         self.bg_desc_ = np.ascontiguousarray(all_desc[bg])
         self.bg_obs_ = obs_of_feature[bg]
         self._bg_index = faiss.IndexFlatL2(all_desc.shape[1] if all_desc.ndim == 2 else 128)
+        del all_desc, all_xy, descs, obs_of_feature  # per map feature (the descriptors: the largest arrays here)
         if n_bg:
             self._bg_index.add(self.bg_desc_)
 
@@ -255,14 +256,24 @@ class LandmarkModel(Configurable):
             shape=(self.n_nodes_, self.n_landmarks_),
         )
 
-    def _update_landmarks(self, ids: np.ndarray) -> None:
-        """``d_mean``, ``d_max``, ``a`` and ``p(D_L=1 | L=0)`` of landmarks ``ids``."""
+    def _update_landmarks(self, ids: np.ndarray, chunk: int = 65536) -> None:
+        """``d_mean``, ``d_max``, ``a`` and ``p(D_L=1 | L=0)`` of landmarks ``ids``.
+
+        ``chunk`` landmarks at a time: both steps hold temporaries per observation and per
+        background hit (about a tenth of the background sample per landmark), several times the
+        model's own size if all landmarks were done at once; every landmark's values are its own,
+        so chunks do not change them.
+        """
         if len(ids) == 0:
             return
-        self.mean_[ids], self.radius_[ids], self.length_[ids] = descriptor_ranges(self.obs_desc_, self.lm_ptr_, ids)
         bg_lm = np.where(self.bg_obs_ >= 0, self.obs_lm_[np.maximum(self.bg_obs_, 0)], -1)  # -1: in no landmark
-        self.p_desc_[ids] = descriptor_false_positive(
-            ids, self.mean_[ids], self.effective_radius(ids), self._bg_index, bg_lm, self.n_landmarks_, self.alpha)
+        for start in range(0, len(ids), chunk):
+            part = ids[start:start + chunk]
+            self.mean_[part], self.radius_[part], self.length_[part] = descriptor_ranges(
+                self.obs_desc_, self.lm_ptr_, part)
+            self.p_desc_[part] = descriptor_false_positive(
+                part, self.mean_[part], self.effective_radius(part), self._bg_index, bg_lm, self.n_landmarks_,
+                self.alpha)
 
     def effective_radius(self, ids: np.ndarray | None = None) -> np.ndarray:
         """``max(d_max, radius_floor)`` of landmarks ``ids`` (all by default)."""

@@ -206,18 +206,23 @@ class LandmarkMap(PlaceRecognizer):
         return list(maps) if self.tours == "separate" else list(maps[:1])
 
     def _build(self, maps: list[Traverse], resources: Resources,
-               matches: list[tuple[np.ndarray, np.ndarray]] | None) -> None:
+               matches: list[tuple[np.ndarray, np.ndarray]] | None,
+               normalised: list[np.ndarray] | None = None) -> None:
         """Tracks of the node tours, the model, then online learning from the others (Sec. III-V).
 
         ``matches``: the node tours' adjacent-frame matches in node order when
         they were computed apart (map shards), else None (matched here).  The
         pair joining the last frame of one tour to the first of the next has
-        no matches, so no track crosses it.
+        no matches, so no track crosses it.  ``normalised``: the node images'
+        unit-normalised descriptors in node order when the caller has them
+        (``benchmarks/bench_localize_100k.py`` repeats one route's arrays), else
+        computed here.
         """
         place_ids = map_place_ids(maps)
         node_tours = self._node_tours(maps)
         feats = [f for tour in node_tours for f in resources.features(tour)]
-        normalised = [normalise_descriptors(f.descriptors) for f in feats]
+        if normalised is None:
+            normalised = [normalise_descriptors(f.descriptors) for f in feats]
         if matches is None:
             matches, at = [], 0
             for tour in node_tours:
