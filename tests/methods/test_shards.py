@@ -138,3 +138,17 @@ def test_landmark_shards_built_with_other_tours_are_refused(tiny_route: dict[str
     parts = [cls(tours="first").fit_shard(maps, places=r, index=k, resources=res) for k, r in enumerate(ranges)]
     with pytest.raises(TopolocError, match=r"no shard matched map images \d+ and \d+"):
         cls.from_shards(parts, maps, params={"tours": "separate"}, resources=res)
+
+
+def test_shard_tasks_keep_no_memo_in_the_resources_they_share(tiny_route: dict[str, Any]) -> None:
+    # A Dask worker runs every shard it gets with one deserialised copy of the task's arguments:
+    # what one shard memoises must go with it, or a worker's memory grows with the route.
+    from topoloc.methods.shards import _shard_task
+
+    res = _res(tiny_route)
+    maps = [tiny_route["map"]]
+    ranges = split_places(np.unique(maps[0].places), 3)
+    for k in range(3):
+        part = _shard_task(get_method("coocmap"), FAST["coocmap"], maps, res, ranges, k)
+        assert part.index == k
+    assert not res._memo and not res.image_ms
