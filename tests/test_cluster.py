@@ -175,3 +175,23 @@ def test_code_knows_when_it_runs_in_a_worker_task(dask_scheduler: str) -> None:
     assert LocalExecutor(n_jobs=1).map(_in_task, [0]) == [False]
     with connect(dask_scheduler, timeout_s=20) as ex:
         assert ex.map(_in_task, [0, 1]) == [True, True]
+
+
+def _with_common(k: int, *, table: np.ndarray, offset: int) -> tuple[int, int, int]:
+    """The item's result from the shared arguments, with the worker's pid and the table object's id there."""
+    return int(table[k]) + offset, os.getpid(), id(table)
+
+
+def test_common_arguments_reach_each_worker_once(dask_scheduler: str) -> None:
+    # A whole tour bound into every task made a worker hold one copy per queued task (bench_cluster);
+    # shared arguments are scattered once: every task on a worker sees the same object.
+    table = np.arange(1000, dtype=np.int64) * 3
+    with LocalExecutor(n_jobs=2) as local:
+        expected = [r[0] for r in local.map(_with_common, list(range(40)), common={"table": table, "offset": 7})]
+    with connect(dask_scheduler, timeout_s=20) as ex:
+        got = ex.map(_with_common, list(range(40)), common={"table": table, "offset": 7})
+    assert [r[0] for r in got] == expected == [3 * k + 7 for k in range(40)]
+    ids: dict[int, set[int]] = {}
+    for _, pid, obj in got:
+        ids.setdefault(pid, set()).add(obj)
+    assert all(len(objs) == 1 for objs in ids.values()), ids

@@ -47,7 +47,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol, Self, TypeVar, runtime_checkable
 
@@ -93,9 +93,13 @@ class Executor(Protocol):
         """Parallel workers available (threads, or the cluster's worker threads)."""
         ...
 
-    def map(self, fn: Callable[[T], R], items: Sequence[T], *,
-            advance: Callable[[int], None] | None = None) -> list[R]:
-        """``[fn(x) for x in items]``, run in parallel; ``advance(1)`` after each item completes."""
+    def map(self, fn: Callable[..., R], items: Sequence[T], *,
+            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None) -> list[R]:
+        """``[fn(x, **common) for x in items]``, run in parallel; ``advance(1)`` after each item completes.
+
+        ``common`` holds arguments every call shares (a whole tour, the resources): on a
+        cluster each worker receives them once, not once per task.
+        """
         ...
 
     def close(self) -> None:
@@ -136,10 +140,12 @@ class LocalExecutor(_Closing):
     def n_workers(self) -> int:
         return n_workers(self.n_jobs)
 
-    def map(self, fn: Callable[[T], R], items: Sequence[T], *,
-            advance: Callable[[int], None] | None = None) -> list[R]:
+    def map(self, fn: Callable[..., R], items: Sequence[T], *,
+            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None) -> list[R]:
+        kwargs = dict(common or {})
+
         def run(x: T) -> R:
-            out = fn(x)
+            out = fn(x, **kwargs)
             if advance is not None:
                 advance(1)
             return out
@@ -235,14 +241,17 @@ class DaskExecutor(_Closing):
                     f"with tasks waiting; start one with `dask worker {self.address}`")
         return None
 
-    def map(self, fn: Callable[[T], R], items: Sequence[T], *,
-            advance: Callable[[int], None] | None = None) -> list[R]:
+    def map(self, fn: Callable[..., R], items: Sequence[T], *,
+            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None) -> list[R]:
         import distributed
 
         if not items:
             return []
+        # Shared arguments go to every worker once: bound into each task, a worker would hold a copy
+        # per queued task (800 MB for a 115,000-image tour in 23 tasks, benchmarks/bench_cluster.py).
+        shared = {k: self.client.scatter([v], broadcast=True, hash=False)[0] for k, v in (common or {}).items()}
         # pure=False: two equal items are still two tasks (a task may write a file).
-        futures = self.client.map(fn, list(items), retries=self.retries, pure=False)
+        futures = self.client.map(fn, list(items), retries=self.retries, pure=False, **shared)
         index = {f.key: k for k, f in enumerate(futures)}
         out: list[Any] = [None] * len(futures)
         try:

@@ -149,6 +149,7 @@ def test_shard_tasks_keep_no_memo_in_the_resources_they_share(tiny_route: dict[s
     maps = [tiny_route["map"]]
     ranges = split_places(np.unique(maps[0].places), 3)
     for k in range(3):
-        part = _shard_task(get_method("coocmap"), FAST["coocmap"], maps, res, ranges, k)
+        part = _shard_task(k, cls=get_method("coocmap"), params=FAST["coocmap"], maps=maps, resources=res,
+                           ranges=ranges)
         assert part.index == k
     assert not res._memo and not res.image_ms

@@ -171,9 +171,10 @@ def portable(resources: Resources, *, remote: bool = False) -> Resources:
     return out
 
 
-def _shard_task(cls: type[PlaceRecognizer], params: Mapping[str, Any], maps: Sequence[Traverse],
-                resources: Resources, ranges: Sequence[tuple[int, int]], k: int) -> ShardPart:
-    # Module level, so that Dask can pickle it by reference.
+def _shard_task(k: int, *, cls: type[PlaceRecognizer], params: Mapping[str, Any], maps: Sequence[Traverse],
+                resources: Resources, ranges: Sequence[tuple[int, int]]) -> ShardPart:
+    # Module level, so that Dask can pickle it by reference; the keyword arguments are the
+    # executor's `common` ones, which a cluster sends to each worker once.
     rec = cls(**params)
     # Memos of this task's own: a Dask worker keeps the task's deserialised arguments and runs
     # every shard it gets with the same resources, whose memos would otherwise hold the features
@@ -220,10 +221,14 @@ def build_from_shards(
     # methods.base.map_place_ids, computed here: base imports this module, so this one cannot import it.
     ranges = split_places(np.unique(np.concatenate([m.places for m in maps])), n_shards)
     ex = executor if executor is not None else LocalExecutor()
-    task = functools.partial(_shard_task, cls, params, maps,
-                             portable(resources, remote=not isinstance(ex, LocalExecutor)), ranges)
+    # The tours (every image of the route) are shared, so that a worker holds them once and not
+    # once per queued shard (800 MB at 100,000 places).  The resources stay bound to the task:
+    # Dask refuses a scattered resources object in the graph (an empty error from update_graph).
+    task = functools.partial(_shard_task, cls=cls, params=params, ranges=ranges,
+                             resources=portable(resources, remote=not isinstance(ex, LocalExecutor)))
+    common = {"maps": maps}
     log.info("building %s from %d shards on %s", cls.name, len(ranges), ex.name)
-    parts = ex.map(task, list(range(len(ranges))), advance=advance)
+    parts = ex.map(task, list(range(len(ranges))), advance=advance, common=common)
     return cls.from_shards(parts, maps, params=params, resources=resources)
 
 
