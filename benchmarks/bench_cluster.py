@@ -216,7 +216,8 @@ def main() -> None:
         run["date"] = datetime.now(UTC).isoformat(timespec="seconds")
     if args.keep and (args.out / "cluster.json").is_file():
         old = json.loads((args.out / "cluster.json").read_text())
-        kept = [{"date": old["meta"]["date"], **r} for r in old["runs"] if r["places"] not in {r["places"] for r in runs}]
+        measured = {r["places"] for r in runs}
+        kept = [{"date": old["meta"]["date"], **r} for r in old["runs"] if r["places"] not in measured]
         runs = sorted(runs + kept, key=lambda r: r["places"])
         args.places = [r["places"] for r in runs]
     meta = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "machine": platform.machine(),
