@@ -275,6 +275,11 @@ def too_big(previous: dict[str, Any] | None, places: int, available_mib: float |
     return None
 
 
+def _small_ms(ms: float) -> str:
+    """A time got as the difference of two timings: below half a millisecond it is within their noise."""
+    return f"{ms:.1f} ms" if ms >= 0.5 else "under 0.5 ms (the difference of two timings, within their noise)"
+
+
 def breakdown(rec: Any, items: Sequence[Any]) -> dict[str, float]:
     """Medians over the queries of a landmark query's parts, each query's three timed back to back: the faiss
     search of its features alone, ``match_pairs`` (search and verification: verification is the difference),
@@ -443,7 +448,7 @@ def landmark_section(lm: Sequence[dict[str, Any]], places: int) -> list[str]:
         f"-> {last['search_ms_median']:.1f} ms ({last['search_ms_median'] / first['search_ms_median']:.1f}x), "
         f"node scoring {scoring[0]:.1f} -> {scoring[-1]:.1f} ms ({scoring[-1] / max(scoring[0], 1e-9):.1f}x). At "
         f"{last['places']:,} places the medians per query are {last['search_ms_median']:.1f} ms search, "
-        f"{last['verify_ms_median']:.1f} ms verification and {scoring[-1]:.1f} ms node "
+        f"{_small_ms(last['verify_ms_median'])} verification and {scoring[-1]:.1f} ms node "
         f"scoring ({last['ms_median']:.1f} ms the whole query). ",
     ]
     if last["copies"] > 1:
@@ -525,7 +530,7 @@ def render_page(meta: dict[str, Any], rows: Sequence[dict[str, Any]], lm: Sequen
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, required=True, help="a run folder of benchmarks.bench_cluster")
+    ap.add_argument("--run", type=Path, help="a run folder of benchmarks.bench_cluster (needed to measure)")
     ap.add_argument("--places", type=int, default=100_000)
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--max-features", type=int, default=300, help="as the run was built with")
@@ -534,7 +539,14 @@ def main() -> None:
                     help="places of the landmark maps, comma-separated (default: 1/20, 1/5, 1/2 and all of --places)")
     ap.add_argument("--flat-queries", type=int, default=10, help="queries timed with landmarks' default flat index")
     ap.add_argument("--out", type=Path, default=RESULTS / "localize_100k.md")
+    ap.add_argument("--page-only", action="store_true", help="rewrite the page from its JSON, measure nothing")
     args = ap.parse_args()
+    if args.page_only:
+        data = json.loads(args.out.with_suffix(".json").read_text())
+        args.out.write_text(render_page(data["meta"], data["rows"], data["landmark_sizes"]))
+        return
+    if args.run is None:
+        ap.error("--run is needed to measure")
     methods = args.methods.split(",")
     unknown = set(methods) - set(METHODS)
     if unknown:
