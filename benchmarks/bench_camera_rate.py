@@ -24,14 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import GP, RESULTS, TOPOLOC, VOCAB_FOR_GP, require_data, write_section
+from benchmarks.common import GP, RESULTS, TOPOLOC, VOCAB_FOR_GP, machine_line, require_data, write_section
 
 METHODS = ("bow", "fabmap", "fabmap2", "coocmap", "landmarks")
 USES_VOCABULARY = {"bow", "fabmap", "fabmap2", "coocmap"}
@@ -119,7 +118,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     require_data()
     result: dict[str, Any] = {
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": machine_line(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"), "cores": os.cpu_count() or 1, "rows": [],
     }
     with tempfile.TemporaryDirectory() as tmp:

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from datetime import UTC, datetime
 from typing import Any
@@ -27,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from benchmarks.common import GP, RESULTS, VOCAB_FOR_GP, require_data
+from benchmarks.common import GP, RESULTS, VOCAB_FOR_GP, machine_line, require_data
 from topoloc.datasets.decode import check_image_size, decode_bytes, read_image
 from topoloc.datasets.traverse import Traverse, load_traverse
 
@@ -96,8 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--vocab-words", type=int, default=10000, help="vocabulary of the bow map (map build's)")
     args = parser.parse_args(argv)
     require_data()
-    result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-                         f"OpenCV {cv2.__version__}",
+    result = {"machine": f"{machine_line()}, OpenCV {cv2.__version__}",
               "date": datetime.now(UTC).isoformat(timespec="seconds"), "load_average": list(os.getloadavg()),
               **measure(args.repeats), "bow": bow_agreement(args.vocab_words)}
     (RESULTS / "decode.json").write_text(json.dumps(result, indent=1) + "\n")

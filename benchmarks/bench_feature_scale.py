@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import time
 from datetime import UTC, datetime
@@ -28,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import GP, METRICS, RESULTS, VOCAB_FOR_GP, require_data, run, write_section
+from benchmarks.common import GP, METRICS, RESULTS, VOCAB_FOR_GP, machine_line, require_data, run, write_section
 from topoloc.spec.parts import AUTO_MAX_SIDE
 
 METHODS = ("bow", "fabmap", "fabmap2", "coocmap", "landmarks")
@@ -94,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     methods = [m for m in args.methods.split(",") if m]
     pairs = [p for p in args.pairs.split(",") if p]
     result: dict[str, Any] = {
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": machine_line(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"), "load_before": list(os.getloadavg()),
         "cost": extraction_cost(), "runs": [],
     }

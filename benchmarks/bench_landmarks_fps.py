@@ -22,12 +22,11 @@ from __future__ import annotations
 import json
 import logging
 import os
-import platform
 import sys
 from datetime import UTC, datetime
 from typing import Any
 
-from benchmarks.common import DATA, GP, RESULTS, require_data
+from benchmarks.common import DATA, GP, RESULTS, machine_line, require_data
 from topoloc.bench.landmark_density import (
     Config,
     densest_within_budget,
@@ -281,7 +280,7 @@ def main() -> None:
               "the end): the page says so; rerun on a quiet machine before quoting rates.", flush=True)
     out = {
         "command": COMMAND, "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": machine_line(),
         "loadavg_start": list(load_start), "loadavg_end": list(load_end), "busy_load_threshold": BUSY_LOAD,
         "busy": busy, "strides": list(STRIDES), "budgets_fps": list(BUDGETS), "rates": RATES, "pairs": pairs,
     }

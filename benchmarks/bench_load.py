@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -54,7 +53,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from benchmarks.common import GP, RESULTS, VOCAB_FOR_GP, require_data, write_section
+from benchmarks.common import GP, RESULTS, VOCAB_FOR_GP, machine_line, require_data, write_section
 from topoloc.datasets.traverse import load_traverse, read_image
 from topoloc.maps import Map
 from topoloc.spec.parts import FeatureSpec, VocabularySpec
@@ -366,7 +365,7 @@ def main(argv: list[str] | None = None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     n_queries, n_frames = (30, 8) if args.quick else (100, 30)
     out: dict[str, Any] = {
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": machine_line(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"), "quick": bool(args.quick),
         "loadavg_start": os.getloadavg()[0], "n_queries": n_queries, "n_frames": n_frames, "busy": list(BUSY),
         "paced_hz": args.paced_hz, "paced_n": args.paced_n, "paced_busy": list(PACED_BUSY),

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import RESULTS
-from benchmarks.peak_run import reset_vm_hwm, vm_hwm_mib, vm_rss_mib
+from benchmarks.peak_run import proc_mib, reset_vm_hwm, vm_hwm_mib, vm_rss_mib
 
 METHODS = ("bow", "fabmap2", "coocmap", "landmarks")
 TARGET_MS = {"bow": 20.0, "fabmap2": 20.0, "coocmap": 50.0, "landmarks": 50.0}
@@ -247,13 +247,7 @@ def landmark_sizes(places: int, sizes: str | None) -> list[int]:
 
 def mem_available_mib() -> float | None:
     """``MemAvailable`` of /proc/meminfo in MiB (None where there is none)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
+    return proc_mib("/proc/meminfo", "MemAvailable")
 
 
 def too_big(previous: dict[str, Any] | None, places: int, available_mib: float | None) -> str | None:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import GP, RESULTS, VOCAB_FOR_GP, require_data, write_section
+from benchmarks.common import GP, RESULTS, VOCAB_FOR_GP, machine_line, require_data, write_section
 from topoloc.datasets.traverse import load_traverse
 from topoloc.maps import Map
 from topoloc.methods import get_method
@@ -70,7 +69,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     require_data()
     result: dict[str, Any] = {
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": machine_line(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"), "load_average": list(os.getloadavg()),
         "vocab_words": args.vocab_words, "rows": [],
     }

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -40,6 +41,11 @@ PAIRS: dict[str, tuple[list[Path], Path, list[Path], str]] = {
     "gp_day_2tours": ([GP / "day_left", GP / "night_right"], GP / "day_right", VOCAB_FOR_GP, "0:8"),
     "webcam": (WEBCAM_TOURS, WEBCAM / "queries", VOCAB_FOR_WEBCAM, "0:0"),
 }
+
+
+def machine_line() -> str:
+    """The machine a result was measured on, as results pages name it: architecture, cores, Python."""
+    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def _markers(name: str) -> tuple[str, str]:

@@ -16,26 +16,25 @@ import time
 from pathlib import Path
 
 
-def vm_hwm_mib() -> float | None:
-    """This process's peak resident memory in MiB (``VmHWM``), or None where /proc has none."""
+def proc_mib(path: str, field: str) -> float | None:
+    """A ``kB`` field of a /proc file (``/proc/self/status``, ``/proc/meminfo``) in MiB, or None where there is none."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         return None
     return None
+
+
+def vm_hwm_mib() -> float | None:
+    """This process's peak resident memory in MiB (``VmHWM``), or None where /proc has none."""
+    return proc_mib("/proc/self/status", "VmHWM")
 
 
 def vm_rss_mib() -> float | None:
     """This process's resident memory now in MiB (``VmRSS``), or None where /proc has none."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
+    return proc_mib("/proc/self/status", "VmRSS")
 
 
 def reset_vm_hwm() -> None:
