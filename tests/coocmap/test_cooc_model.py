@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import tracemalloc
 from typing import Any
@@ -9,7 +10,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from topoloc.coocmap.model import CoocModel, merge_models, sort_unique_features
+from topoloc.coocmap.model import (
+    CoocModel,
+    Observation,
+    _mask_dtype,
+    merge_models,
+    merge_sorted_features,
+    sort_unique_features,
+)
 from topoloc.coocmap.spatial import spatial_words
 from topoloc.errors import TopolocError
 from topoloc.io.state import new_object, object_state, restore_state
@@ -186,7 +194,9 @@ def test_add_tour_peak_is_a_small_multiple_of_the_model() -> None:
     m = _model(rng, 1500)
     obs = [(i, rng.integers(0, 2000, 60), rng.integers(0, 65535, (60, 2)).astype(np.uint16)) for i in range(1500)]
     peak = _peak(lambda: m.add_tour(obs, name="b"))
-    assert peak < 4.0 * m.nbytes  # was 7.5x with int64 copies and a four-key lexsort
+    # The merged table and its inverted files: the tour is merged into the sorted table (was 2.7x when
+    # the whole table was sorted again, 7.5x with int64 copies and a four-key lexsort).
+    assert peak < 2.0 * m.nbytes
 
 
 @pytest.mark.parametrize("n_words", [2000, 2**31])  # one packed uint64 key; too wide to pack: lexsort
@@ -206,3 +216,111 @@ def test_sort_unique_features_orders_and_merges_like_lexsort(n_words: int) -> No
     assert len(got_loc) == len(want) < n
     assert [(int(a), int(b), int(c[1]), int(c[0])) for a, b, c in zip(got_loc, got_word, got_xy, strict=True)] == want
     assert [int(v) for v in got_mask] == [rows[k] for k in want]
+
+
+# -- add_tour merges the tour into the sorted table: the same model as sorting everything again ----
+
+
+def _add_tour_by_sorting(m: CoocModel, observations: list, name: str, position: int) -> CoocModel:
+    """The slow reference: add_tour as it was, the whole table and the tour concatenated and sorted again."""
+    m = copy.deepcopy(m)
+    n_old = m.n_tours
+    mask_dt = _mask_dtype(n_old + 1)
+    old = m.tours.astype(mask_dt)
+    low = mask_dt.type((1 << position) - 1)
+    old = (old & low) | ((old & ~low) << mask_dt.type(1))
+    m.tour_names.insert(position, name)
+    m.tour_hours.insert(position, None)
+    locs = [np.full(len(w), loc, m.loc.dtype) for loc, w, _ in observations]
+    words = [np.asarray(w).astype(m.word.dtype) for _, w, _ in observations]
+    xys = [m.quantise_xy(xy) for _, _, xy in observations]
+    n_new = sum(len(w) for w in words)
+    m._set_features(np.concatenate([m.loc, *locs]), np.concatenate([m.word, *words]),
+                    np.concatenate([m.xy, *xys]), np.concatenate([old, np.full(n_new, mask_dt.type(1 << position))]))
+    return m
+
+
+def _assert_same_model(got: CoocModel, want: CoocModel) -> None:
+    assert got.tour_names == want.tour_names and got.tour_hours == want.tour_hours
+    for key, a in want._arrays().items():
+        b = got._arrays()[key]
+        assert b.dtype == a.dtype and b.shape == a.shape, key
+        np.testing.assert_array_equal(b, a, err_msg=key)
+
+
+def _tour_with_repeats(rng: np.random.Generator, m: CoocModel, n_loc: int, n_words: int) -> list[Observation]:
+    """Images with features of the map (features already present), features repeated within the tour,
+    several images of one location, images without features, and new features."""
+    obs: list[Observation] = []
+    for _ in range(int(rng.integers(0, 2 * n_loc + 1))):
+        loc = int(rng.integers(0, n_loc))
+        s, e = int(m.loc_ptr[loc]), int(m.loc_ptr[loc + 1])
+        seen = rng.integers(s, e, int(rng.integers(0, 4))) if e > s else np.zeros(0, np.int64)
+        n = int(rng.integers(0, 5))
+        w = np.r_[m.word[seen].astype(np.int64), rng.integers(0, n_words, n)]
+        xy = np.r_[m.xy[seen], (rng.integers(0, 4, (n, 2)) * 16384).astype(np.uint16)]  # few positions
+        if len(w) and rng.random() < 0.5:
+            w, xy = np.r_[w, w[:2]], np.r_[xy, xy[:2]]
+        obs.append((loc, w, xy))
+    return obs
+
+
+# Tour counts on both sides of each mask dtype's width (8, 16, 32 bits) and the widest, 64.
+@pytest.mark.parametrize("n_old", [0, 1, 3, 7, 8, 15, 16, 31, 32, 63])
+@pytest.mark.parametrize("position_bits", [16, 2])
+def test_add_tour_merge_equals_sorting_everything(n_old: int, position_bits: int) -> None:
+    rng = np.random.default_rng(100 * n_old + position_bits)
+    n_loc, n_words = 5, 6
+    m = CoocModel(n_locations=n_loc, n_words=n_words, position_bits=position_bits, **G)
+    tours: list[list[Observation]] = []
+    for t in range(n_old):
+        tours.append(_tour_with_repeats(rng, m, n_loc, n_words))
+        m.add_tour(tours[-1], name=f"t{t}")
+    for position in sorted({0, n_old // 2, n_old}):
+        obs = _tour_with_repeats(rng, m, n_loc, n_words)
+        want = _add_tour_by_sorting(m, obs, "new", position)
+        got = copy.deepcopy(m).add_tour(obs, name="new", position=position)
+        _assert_same_model(got, want)
+        assert got.tours.dtype == _mask_dtype(n_old + 1)
+        # And the model built from all tours in time order.
+        in_order = [*tours[:position], obs, *tours[position:]]
+        names = [*(f"t{t}" for t in range(position)), "new", *(f"t{t}" for t in range(position, n_old))]
+        built = CoocModel.build(in_order, n_locations=n_loc, n_words=n_words, position_bits=position_bits,
+                                tour_names=names, **G)
+        _assert_same_model(got, built)
+    # An empty tour only moves and widens the masks.
+    empty = copy.deepcopy(m).add_tour([], name="none", position=0)
+    _assert_same_model(empty, _add_tour_by_sorting(m, [], "none", 0))
+
+
+def test_add_tour_without_a_packed_key_sorts_everything() -> None:
+    # 2^17 + 1 locations and 2^16 + 1 words need 18 + 17 + 32 bits: no 64-bit key, the lexsort path.
+    rng = np.random.default_rng(8)
+    n_loc, n_words = 2**17 + 1, 2**16 + 1
+    m = CoocModel(n_locations=n_loc, n_words=n_words)
+    hi = [0, 1, n_loc - 1]
+    for t in range(3):
+        obs = [(loc, rng.integers(n_words - 3, n_words, 4), (rng.integers(0, 2, (4, 2)) * 999).astype(np.uint16))
+               for loc in hi]
+        want = _add_tour_by_sorting(m, obs, f"t{t}", t // 2)
+        m.add_tour(obs, name=f"t{t}", position=t // 2)
+        _assert_same_model(m, want)
+    assert m.n_features > 0 and m.word.dtype == np.int32
+
+
+@pytest.mark.parametrize(("n_table", "n_new"), [(0, 0), (0, 50), (300, 0), (300, 100), (40, 300)])
+def test_merge_sorted_features_equals_sorting_the_concatenation(n_table: int, n_new: int) -> None:
+    rng = np.random.default_rng(n_table + n_new)
+
+    def table(n: int, bit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        xy = (rng.integers(0, 3, (n, 2)) * 20000).astype(np.uint16)
+        mask = np.full(n, 1 << bit, np.uint16)
+        return sort_unique_features(rng.integers(0, 7, n), rng.integers(0, 5, n), xy, mask, n_locations=7, n_words=5)
+
+    a, b = table(n_table, 9), table(n_new, 3)  # 7 x 5 x 9 possible features: many in both
+    want = sort_unique_features(*(np.concatenate([x, y]) for x, y in zip(a, b, strict=True)), n_locations=7,
+                                n_words=5)
+    got = merge_sorted_features(a, b, n_locations=7, n_words=5)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype and g.shape == w.shape
+        np.testing.assert_array_equal(g, w)

@@ -182,6 +182,14 @@ class CoocModel(Configurable):
         position : int, optional
             Index of the tour in time order (default: after all existing tours).
             Later tours' bits move up by one, so adjacency (Sec. II-E) follows.
+
+        Notes
+        -----
+        Only the tour's features are sorted; they are merged into the stored
+        table (:func:`merge_sorted_features`), which is sorted and unique
+        already, and the result is the table that sorting both together gives.
+        Where location, word and position do not fit one 64-bit key
+        (:func:`sort_unique_features`) the whole table is sorted again.
         """
         n_old = len(self.tour_names)
         if n_old + 1 > MAX_TOURS:
@@ -204,20 +212,39 @@ class CoocModel(Configurable):
             xys.append(xy)
         n_new = sum(len(w) for w in words)
         # Insert bit k: bits below k stay, bits from k up move one place up.  The mask grows by
-        # one bit, so it is widened to the new tour count's dtype before shifting.
+        # one bit, so it is widened to the new tour count's dtype before shifting; in place on the
+        # widened copy, so that masks of up to 64 bits cost two temporaries, not five.
         mask_dt = _mask_dtype(n_old + 1)
         old = self.tours.astype(mask_dt)
         low = mask_dt.type((1 << k) - 1)
-        old = (old & low) | ((old & ~low) << mask_dt.type(1))
+        high = old & ~low
+        high <<= mask_dt.type(1)
+        old &= low
+        old |= high
+        del high
         self.tour_names.insert(k, name or f"tour{n_old}")
         self.tour_hours.insert(k, hour)
-        # In the map's own compact dtypes: a route's whole feature table is concatenated here.
-        self._set_features(
-            np.concatenate([self.loc, *locs]).astype(_small_uint(self.n_locations), copy=False),
-            np.concatenate([self.word, *words]).astype(_small_uint(self.n_words), copy=False),
-            np.concatenate([self.xy, *xys]) if xys else np.asarray(self.xy),
-            np.concatenate([old, np.full(n_new, mask_dt.type(1 << k), mask_dt)]),
-        )
+        loc_dt, word_dt = _small_uint(self.n_locations), _small_uint(self.n_words)
+        new = (np.concatenate(locs) if locs else np.zeros(0, loc_dt),
+               np.concatenate(words) if words else np.zeros(0, word_dt),
+               np.concatenate(xys) if xys else np.zeros((0, 2), np.uint16),
+               np.full(n_new, mask_dt.type(1 << k), mask_dt))
+        del locs, words, xys
+        if _key_word_bits(self.n_locations, self.n_words) is None:
+            # No packed key to search the table with (see sort_unique_features): sort it whole.
+            self._set_features(np.concatenate([self.loc, new[0]]).astype(loc_dt, copy=False),
+                               np.concatenate([self.word, new[1]]).astype(word_dt, copy=False),
+                               np.concatenate([self.xy, new[2]]), np.concatenate([old, new[3]]))
+            return self
+        # The table is sorted and unique already (bit insertion keeps that), so only the tour's own
+        # features are sorted; they are then merged in, which is linear in the table.
+        if n_new:
+            new = sort_unique_features(*new, n_locations=self.n_locations, n_words=self.n_words)
+        merged = merge_sorted_features((self.loc, self.word, self.xy, old), new, n_locations=self.n_locations,
+                                       n_words=self.n_words)
+        # Dropped before indexing, which is where the peak is: only the merged table stays.
+        del old, new
+        self._set_sorted(*merged)
         return self
 
     def _set_features(self, loc: np.ndarray, word: np.ndarray, xy: np.ndarray,
@@ -362,6 +389,49 @@ class CoocModel(Configurable):
                 "wloc": self.wloc, "wloc_ptr": self.wloc_ptr}
 
 
+def _key_word_bits(n_locations: int, n_words: int) -> int | None:
+    """Bits of the word field in the packed feature key, or None where the key exceeds 64 bits.
+
+    The key (:func:`_feature_keys`) is location, word, y and x side by side:
+    the location's bits, then these, then 16 + 16 for the position.
+    """
+    lb = max(int(n_locations - 1).bit_length(), 1)
+    wb = max(int(n_words - 1).bit_length(), 1)
+    return None if lb + wb + 32 > 64 else wb
+
+
+def _feature_keys(loc: np.ndarray, word: np.ndarray, xy: np.ndarray, word_bits: int) -> np.ndarray:
+    """Features packed into ``uint64`` keys whose order is that of (location, word, y, x).
+
+    Parameters
+    ----------
+    loc, word : ndarray of int, shape (n,)
+        Location row and word id of each feature.
+    xy : ndarray of uint16, shape (n, 2)
+        Quantised positions.
+    word_bits : int
+        From :func:`_key_word_bits` (not None).
+
+    Returns
+    -------
+    ndarray of uint64, shape (n,)
+    """
+    xy = np.asarray(xy, np.uint16).reshape(-1, 2)
+    # Shifted and OR-ed in place with one uint64 temporary: for a whole map's feature table
+    # (add_tour's search) each extra temporary is another 8 bytes per feature at the peak.
+    key = np.asarray(loc).astype(np.uint64)
+    key <<= np.uint64(word_bits + 32)
+    part = np.asarray(word).astype(np.uint64)
+    part <<= np.uint64(32)
+    key |= part
+    part[:] = xy[:, 1]
+    part <<= np.uint64(16)
+    key |= part
+    del part
+    key |= xy[:, 0]
+    return key
+
+
 def sort_unique_features(loc: np.ndarray, word: np.ndarray, xy: np.ndarray, mask: np.ndarray, *,
                          n_locations: int, n_words: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Features sorted by (location, word, y, x), equal ones merged by OR-ing their tour masks.
@@ -388,10 +458,9 @@ def sort_unique_features(loc: np.ndarray, word: np.ndarray, xy: np.ndarray, mask
     into one ``uint64`` and sorted once, which needs a third of the memory of
     a four-key ``lexsort`` on int64 copies; the order is the same.
     """
-    lb = max(int(n_locations - 1).bit_length(), 1)
-    wb = max(int(n_words - 1).bit_length(), 1)
+    wb = _key_word_bits(n_locations, n_words)
     xy = np.asarray(xy, np.uint16).reshape(-1, 2)
-    if lb + wb + 32 > 64:
+    if wb is None:
         order = np.lexsort((xy[:, 0], xy[:, 1], word, loc))
         loc, word, xy, mask = loc[order], word[order], xy[order], mask[order]
         new = np.ones(len(loc), bool)
@@ -399,10 +468,7 @@ def sort_unique_features(loc: np.ndarray, word: np.ndarray, xy: np.ndarray, mask
                    | (xy[1:, 0] != xy[:-1, 0]) | (xy[1:, 1] != xy[:-1, 1]))
         starts = np.flatnonzero(new)
         return loc[starts], word[starts], xy[starts], np.bitwise_or.reduceat(mask, starts)
-    key = np.asarray(loc).astype(np.uint64) << np.uint64(wb + 32)
-    key |= np.asarray(word).astype(np.uint64) << np.uint64(32)
-    key |= xy[:, 1].astype(np.uint64) << np.uint64(16)
-    key |= xy[:, 0]
+    key = _feature_keys(loc, word, xy, wb)
     order = np.argsort(key)
     key = key[order]
     new = np.ones(len(key), bool)
@@ -418,6 +484,67 @@ def sort_unique_features(loc: np.ndarray, word: np.ndarray, xy: np.ndarray, mask
     out_word = ((key >> np.uint64(32)) & np.uint64((1 << wb) - 1)).astype(_small_uint(n_words))
     out_loc = (key >> np.uint64(wb + 32)).astype(_small_uint(n_locations))
     return out_loc, out_word, out_xy, mask
+
+
+def merge_sorted_features(table: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                          new: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], *, n_locations: int,
+                          n_words: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two feature tables, each sorted and unique by (location, word, y, x), merged into one.
+
+    What :func:`sort_unique_features` gives for the two tables concatenated,
+    without sorting them again: the new features' places in the table are
+    found by binary search on the packed keys, a feature already in the table
+    takes the OR of both tour masks, the others are inserted.
+
+    Parameters
+    ----------
+    table, new : tuple of (loc, word, xy, mask)
+        As :func:`sort_unique_features` returns them.  ``table``'s mask is
+        updated in place (pass a copy you own); ``new`` is usually much smaller.
+    n_locations, n_words : int
+        As for :func:`sort_unique_features`; the packed key must fit in 64 bits
+        (:func:`_key_word_bits` not None).
+
+    Returns
+    -------
+    loc, word, xy, mask
+        In ``_small_uint`` dtypes for locations and words, uint16 positions and
+        ``table``'s mask dtype.
+    """
+    loc, word, xy, mask = table
+    wb = _key_word_bits(n_locations, n_words)
+    if wb is None:
+        raise TopolocError("coocmap: features too wide for a 64-bit key; use sort_unique_features")
+    new_key = _feature_keys(new[0], new[1], new[2], wb)
+    table_key = _feature_keys(loc, word, xy, wb)
+    at = np.searchsorted(table_key, new_key)
+    seen = np.zeros(len(new_key), bool)
+    inside = np.flatnonzero(at < len(table_key))
+    seen[inside] = table_key[at[inside]] == new_key[inside]
+    del table_key, new_key, inside
+    # New keys are unique, so the rows they hit are distinct and the fancy OR loses nothing.
+    mask[at[seen]] |= np.asarray(new[3])[seen].astype(mask.dtype, copy=False)
+    added = np.flatnonzero(~seen)
+    # The i-th inserted feature lands after the i features inserted before it.
+    dest = at[added] + np.arange(len(added))
+    from_table = np.ones(len(loc) + len(added), bool)
+    from_table[dest] = False
+
+    def merged(old: np.ndarray, extra: np.ndarray, dtype: np.dtype) -> np.ndarray:
+        # A 1-d boolean subscript of a 1-d array is filled without an index array of the table's size.
+        out = np.empty(len(from_table), dtype)
+        out[from_table] = old
+        out[dest] = extra[added]
+        return out
+
+    # Positions as one uint32 per feature, so that they too take the 1-d boolean path.
+    xy32 = merged(np.ascontiguousarray(xy, np.uint16).reshape(-1, 2).view(np.uint32).ravel(),
+                  np.ascontiguousarray(new[2], np.uint16).reshape(-1, 2).view(np.uint32).ravel(),
+                  np.dtype(np.uint32))
+    return (merged(np.asarray(loc), np.asarray(new[0]), _small_uint(n_locations)),
+            merged(np.asarray(word), np.asarray(new[1]), _small_uint(n_words)),
+            xy32.view(np.uint16).reshape(-1, 2),
+            merged(mask, np.asarray(new[3]), mask.dtype))
 
 
 def merge_models(parts: Sequence[CoocModel]) -> CoocModel:
