@@ -77,6 +77,7 @@ def _render(places: int, work: Path, add_every: int) -> Any:
 
 OPEN_AND_QUERY = """
 import json, statistics, sys, time
+import numpy as np
 from topoloc.datasets.traverse import load_traverse
 t0 = time.perf_counter()
 from topoloc.maps.map import Map
@@ -93,9 +94,27 @@ for f in frames:
     loc.step(f)
     feats.append(loc.ms_decode + loc.ms_features + loc.ms_quantise - before[0])
     match.append(loc.ms_matching - before[1])
-print(json.dumps({"open_s": open_s, "queries": n, "ms_features_median": statistics.median(feats),
-                  "ms_matching_median": statistics.median(match),
-                  "ms_matching_p95": sorted(match)[int(0.95 * (n - 1))]}))
+out = {"open_s": open_s, "queries": n, "ms_features_median": statistics.median(feats),
+       "ms_matching_median": statistics.median(match), "ms_matching_p95": sorted(match)[int(0.95 * (n - 1))]}
+rec = m.recognizer
+if hasattr(rec, "model_") and getattr(rec, "schedule", "") == "compiled":
+    # What bounds a Cooc-Map query (topoloc.coocmap.compiled): locations whose candidate count reaches the
+    # top_k-th best score (visited), dropped by the translation bounds, J built; and one thread's time.
+    from topoloc.coocmap.compiled import match_compiled
+    counts, one = [], []
+    for f in frames[:50]:
+        (w, xy, *_), = loc.describe(f)[0]
+        kw = dict(top_k=rec.top_k, interpolate=rec.interpolate, seed=rec.seed,
+                  spatial_tolerance=rec.spatial_tolerance)
+        res, _ = match_compiled(rec.model_, w, xy, **kw)
+        counts.append((res.locations_visited, res.translation_pruned, res.locations_built))
+        t1 = time.perf_counter()
+        match_compiled(rec.model_, w, xy, threads=1, **kw)
+        one.append(1e3 * (time.perf_counter() - t1))
+    c = np.median(np.asarray(counts, float), axis=0)
+    out.update(locations=rec.model_.n_locations, visited_median=c[0], translation_pruned_median=c[1],
+               built_median=c[2], ms_one_thread_median=statistics.median(one[1:]), top_k=rec.top_k)
+print(json.dumps(out))
 """
 
 
@@ -141,9 +160,7 @@ def run_route(route: Any, work: Path, *, words: int, max_features: int, shards: 
                          "worker_peak_mib": max(client.run(_peak).values()), "disk_bytes": _du(cache),
                          "load": os.getloadavg()[0]})
             print(json.dumps(rows[-1]), flush=True)
-    probe = subprocess.run([sys.executable, "-c", OPEN_AND_QUERY, str(tlm), str(route.query_dir), str(queries)],
-                           check=True, env=env, cwd=ROOT, capture_output=True, text=True)
-    local = json.loads(probe.stdout.strip().splitlines()[-1])
+    local = probe(tlm, route.query_dir, queries)
     truth = _places(route.query_dir)
     lines = [json.loads(x) for x in (out / "lines.jsonl").read_text().splitlines() if x.strip()]
     right = statistics.mean(abs(int(x["place"]) - truth[x["image"]]) <= 1 for x in lines)
@@ -155,6 +172,16 @@ def run_route(route: Any, work: Path, *, words: int, max_features: int, shards: 
             "per_image_cache_files": sum(1 for _ in store.rglob("*.tlf")),
             "store_bytes_per_image": _du(store) / max(1, route.n_map_images + route.n_add_images),
             "images_described": n_images, "local": local, "query_right_within_1": right}
+
+
+def probe(tlm: Path, query_dir: Path, queries: int) -> dict[str, Any]:
+    """Open the map in a fresh process and time ``queries`` localisations from it (:data:`OPEN_AND_QUERY`)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "src"),
+                                                          os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, "-c", OPEN_AND_QUERY, str(tlm), str(query_dir), str(queries)],
+                         check=True, env=env, cwd=ROOT, capture_output=True, text=True)
+    return {**json.loads(out.stdout.strip().splitlines()[-1]), "load": os.getloadavg()[0],
+            "date": datetime.now(UTC).isoformat(timespec="seconds")}
 
 
 def _places(folder: Path) -> dict[str, int]:
@@ -194,11 +221,26 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=200, help="queries timed on one thread from the map file")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--page-only", action="store_true", help="rewrite the pages from cluster.json, measure nothing")
+    ap.add_argument("--probe-only", action="store_true",
+                    help="time the localisation again from the maps a previous run left in --work, and rewrite "
+                         "the pages (the commands' rows are kept)")
     ap.add_argument("--keep", action="store_true",
                     help="keep the runs of other route lengths already in cluster.json (each keeps its own date)")
     args = ap.parse_args()
     if args.page_only:
         data = json.loads((args.out / "cluster.json").read_text())
+        write_pages(data, args.out)
+        return
+    if args.probe_only:
+        data = json.loads((args.out / "cluster.json").read_text())
+        for run in data["runs"]:
+            tlm = args.work / f"run_{run['places']}" / "route.tlm"
+            query = args.work / f"route_{run['places']}" / "query"
+            if not (tlm.is_file() and query.is_dir()):
+                raise SystemExit(f"--probe-only: no map {tlm} or queries {query} of the {run['places']:,}-place run")
+            run["local"] = probe(tlm, query, args.queries)
+            print(json.dumps(run["local"]), flush=True)
+        (args.out / "cluster.json").write_text(json.dumps(data, indent=2, default=float) + "\n")
         write_pages(data, args.out)
         return
     args.work.mkdir(parents=True, exist_ok=True)

@@ -28,10 +28,23 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from benchmarks.common import DATA, GP, RESULTS, VOCAB_FOR_GP, require_data
 from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
-from topoloc.coocmap.compiled import _one_location, _translation_bound, _triples, match_compiled
+from topoloc.coocmap.compiled import (
+    _PAIRWISE_MAX,
+    _column_bound,
+    _match_location,
+    _new_scratch,
+    _partner_bound,
+    _query_table,
+    _translation_bound,
+    _triple_capacity,
+    _triple_rows,
+    _triples,
+    match_compiled,
+)
 from topoloc.coocmap.matching import consistency_graphs, match_lazy, match_sequential
 from topoloc.datasets.traverse import load_traverse
 from topoloc.features import FeatureConfig
@@ -97,34 +110,43 @@ def agreement(method: CoocMap, items: list[Any]) -> dict[str, int]:
     return out
 
 
+@njit(cache=True)
+def _phases(L, thr, tb_prune, bounds_only, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, cap):
+    """Every location of the map in turn: its bounds from the translations only, or matched against ``thr``."""
+    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep = _new_scratch(len(qx), cap, gx, gy)
+    total = 0.0
+    for loc in range(L):
+        if bounds_only:
+            n, nt = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qptr, qf, qx, gx, loc, stamp, cand, cof,
+                             t_f, t_a, t_x)
+            if n:
+                _triple_rows(nt, t_f, t_a, t_x, xy, qy, gy, t_y, t_b)
+                total += _column_bound(n, nt, cand, t_f, t_x, U, P, hist, gx, tol + 1)
+                total += _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, tol + 1, _PAIRWISE_MAX)
+                total += _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, tol + 1)
+        else:
+            total += _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, 0, loc,
+                                     stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune,
+                                     _PAIRWISE_MAX)[0]
+            keep[:] = False
+    return total
+
+
 def phase_split(method: CoocMap, items: list[Any]) -> dict[str, float]:
-    """ms per query, over all locations: triples + translation bound, J, elimination (each location alone)."""
+    """ms per query, over all locations: triples + the bounds before J, J, elimination (each location alone)."""
     m = method.model_
     groups = m.group_masks(method.interpolate)
     acc = np.zeros(3)
     for qi, (w, xy) in enumerate(items):
-        words = np.asarray(w, np.int64)
-        xyq = m.quantise_xy(xy)
-        f_ids = np.flatnonzero((words >= 0) & (words < m.n_words))
-        by_word = f_ids[np.argsort(words[f_ids], kind="stable")]
-        qw, qf = words[by_word], by_word.astype(np.int64)
-        qx, qy = xyq[:, 0].astype(np.int64), xyq[:, 1].astype(np.int64)
-        keep = np.zeros(len(words), bool)
-        tol, gx, gy = method.spatial_tolerance, m.grid_x, m.grid_y
-        present, cof = np.zeros(len(words), bool), np.full(len(words), -1, np.int64)
+        qptr, qf, qx, qy = _query_table(m, np.asarray(w, np.int64), xy)
+        args = (m.loc_ptr, m.word, m.xy, groups, qptr, qf, qx, qy, int(method.spatial_tolerance), int(m.grid_x),
+                int(m.grid_y), _triple_capacity(m.loc_ptr, qptr))
         t0 = time.process_time()
-        for loc in range(m.n_locations):
-            n, cf, tf, _, tb = _triples(m.loc_ptr[loc], m.loc_ptr[loc + 1], m.word, m.xy, qw, qf, qx, qy, present,
-                                        cof, gx, gy)
-            if n:
-                _translation_bound(n, tf, tb, cof, gx, gy, tol + 1)
-            cof[cf] = -1
+        _phases(m.n_locations, 0.0, True, True, *args)
         t1 = time.process_time()
-        for loc in range(m.n_locations):  # up to the bound after J (never reached: threshold 1e9)
-            _one_location(loc, 1e9, m.loc_ptr, m.word, m.xy, groups, qw, qf, qx, qy, tol, gx, gy, 0, keep, False)
+        _phases(m.n_locations, 1e9, False, False, *args)  # up to the bound after J (never reached: 1e9)
         t2 = time.process_time()
-        for loc in range(m.n_locations):  # to completion
-            _one_location(loc, -1.0, m.loc_ptr, m.word, m.xy, groups, qw, qf, qx, qy, tol, gx, gy, 0, keep, False)
+        _phases(m.n_locations, -1.0, False, False, *args)  # to completion
         t3 = time.process_time()
         if qi:  # the first query compiles
             acc += [t1 - t0, t2 - t1, t3 - t2]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from topoloc.coocmap.compiled import _one_location, _prio, match_compiled
+from topoloc.coocmap.compiled import _one_location, _order_by_count, _prio, match_compiled
 from topoloc.coocmap.matching import consistency_graphs, match_lazy, match_sequential, tie_priority
 from topoloc.coocmap.model import CoocModel
 
@@ -83,23 +83,39 @@ def test_one_location_with_and_without_the_translation_bound() -> None:
     model, w, xy = _case(np.random.default_rng(5), n_loc=6)
     g = consistency_graphs(model, w, xy, seed=0, spatial_tolerance=1)
     ref = match_sequential(g)
-    words = np.asarray(w, np.int64)
-    order = np.argsort(words, kind="stable")
-    xyq = model.quantise_xy(xy)
-    qx, qy = xyq[:, 0].astype(np.int64), xyq[:, 1].astype(np.int64)
     for loc in range(6):
         for tb_prune in (True, False):
-            keep = np.zeros(len(words), bool)
-            score, exact, *_ = _one_location(loc, -1.0, model.loc_ptr, model.word, model.xy, model.group_masks(),
-                                             words[order], order.astype(np.int64), qx, qy, 1, model.grid_x,
-                                             model.grid_y, 0, keep, tb_prune)
-            assert exact and score == ref.scores[loc]
-            np.testing.assert_array_equal(np.flatnonzero(keep), ref.group(g, loc))
+            for pairwise_max in (0, 10**6):  # the translation histogram, and pair by pair
+                score, exact, *_, group = _one_location(model, loc, -1.0, w, xy, tol=1, tb_prune=tb_prune,
+                                                        pairwise_max=pairwise_max)
+                assert exact and score == ref.scores[loc]
+                np.testing.assert_array_equal(group, ref.group(g, loc))
         # A threshold above every bound drops the location with an upper bound on its score.
-        score, exact, *_ = _one_location(loc, 1e9, model.loc_ptr, model.word, model.xy, model.group_masks(),
-                                         words[order], order.astype(np.int64), qx, qy, 1, model.grid_x,
-                                         model.grid_y, 0, np.zeros(len(words), bool))
+        score, exact, *_ = _one_location(model, loc, 1e9, w, xy, tol=1)
         assert not exact and score >= ref.scores[loc]
+
+
+@pytest.mark.parametrize("tol", [0, 1, 2])
+def test_translation_bound_counts_the_same_both_ways(tol: int) -> None:
+    """Pair by pair and through the summed-area table, the same bound on every location."""
+    model, w, xy = _case(np.random.default_rng(11 + tol), n_loc=40, position_bits=6)
+    g = consistency_graphs(model, w, xy, seed=0, spatial_tolerance=tol)
+    ref = match_sequential(g)
+    bounds = []
+    for pairwise_max in (0, 10**6):
+        # thr above every score: each location reports its translation bound (dropped there, 1 in the last place)
+        out = [_one_location(model, loc, 1e9, w, xy, tol=tol, pairwise_max=pairwise_max) for loc in range(40)]
+        assert all(o[4] == 1 for o in out if o[0] > 0)
+        bounds.append([o[0] for o in out])
+    assert bounds[0] == bounds[1]
+    assert (np.asarray(bounds[0]) >= ref.scores).all()
+
+
+def test_order_by_count_is_a_stable_descending_sort() -> None:
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 7, 1000):
+        counts = rng.integers(0, 12, n).astype(np.int64)
+        np.testing.assert_array_equal(_order_by_count(counts), np.lexsort((np.arange(n), -counts)))
 
 
 @pytest.mark.parametrize("seed", range(4))

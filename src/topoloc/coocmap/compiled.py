@@ -9,21 +9,29 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   the size of ``J_i`` before any elimination, the paper's bound of Sec. II-D.
 * Locations are taken in decreasing ``n_i`` (lowest index among ties; the
   first :data:`SEED_FIRST` of them re-ordered by the bound below, so that a
-  good threshold comes early).  Each one's candidates come from a merge of
-  the query's words with the location's stored words (both sorted), so only
-  the locations that can still win are ever touched.  Matching stops when
-  the next ``n_i`` is below the ``top_k``-th best finished score: every
-  later location is bounded by it.
-* A *translation bound* before any ``J_i`` is built
-  (:func:`_translation_bound`): two consistent correspondences have
+  good threshold comes early).  Each one's candidates come from looking its
+  stored words up in a table of the query's words (one lookup per stored
+  feature), so only the locations that can still win are ever touched.
+  Matching stops when the next ``n_i`` is below the ``top_k``-th best
+  finished score: every later location is bounded by it.  With ``top_k``
+  above 1 that score is low and many locations pass it (17,502 of 92,109,
+  median, on the 100,000-place route of ``benchmarks/bench_cluster.py``),
+  so the per-location work below is what a query costs on a long route.
+* *Bounds before any ``J_i`` is built*, each cheaper than the next and
+  computed only where the one before does not drop the location
+  (:func:`_column_bound`, :func:`_translation_bound`,
+  :func:`_partner_bound`): two consistent correspondences have
   translations (query position - stored position) less than
   ``spatial_tolerance + 1`` squares apart, so a group needs its members'
-  translations near one another; counting triples in windows of the
-  translation histogram bounds the group size.  On near-duplicate views it
-  is within ~1.5x of the true score and drops almost every wrong location
-  (``benchmarks/bench_coocmap_speed.py``, real-image rows of
-  docs/results/coocmap_speed.md: J built for 2 of 2,200 locations, median);
-  across day and night it prunes little.
+  translations near one another.  Counting triples in windows of the
+  translation histogram bounds the group size, first with the columns
+  alone (a 1-D histogram: a few hundred operations), then in 2-D; then,
+  counting the distinct candidates each could be consistent with (a
+  relaxation of ``J``'s row sums without the spatial words).  On
+  near-duplicate views the 2-D bound is within ~1.5x of the true score and
+  drops almost every wrong location (``benchmarks/bench_coocmap_speed.py``,
+  real-image rows of docs/results/coocmap_speed.md: J built for 2 of 2,200
+  locations, median); across day and night it prunes little.
 * ``J_i`` is filled as a dense 0/1 matrix by the same translation-bucketed
   enumeration of (query feature, stored feature) pairs as
   :func:`~topoloc.coocmap.matching.consistency_graphs` (exact), skipping the
@@ -42,11 +50,14 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   identical to the reference's, and the best location and ranks
   ``1..top_k`` are exact.
 
-* Threads: the calling thread and ``threads - 1`` helpers claim locations one
-  at a time from a shared cursor; no thread ever waits for another (no batch
-  barrier), so on a machine whose cores are busy with other work the query
-  runs at the serial loop's pace instead of stalling behind a descheduled
-  thread (``benchmarks/bench_load.py``, docs/results/performance.md).
+* Threads: the calling thread and ``threads - 1`` helpers claim chunks of
+  locations from a shared cursor (:data:`FIRST_CHUNK` first, doubling up to
+  :data:`MAX_CHUNK`) and match each chunk in one compiled loop, so the
+  interpreter is entered once per chunk, not once per location; no thread
+  ever waits for another (no batch barrier), so on a machine whose cores
+  are busy with other work the query runs at the serial loop's pace instead
+  of stalling behind a descheduled thread (``benchmarks/bench_load.py``,
+  docs/results/performance.md).
 
 Nothing here is approximate; :func:`match_compiled` only computes less.
 """
@@ -101,89 +112,143 @@ def _candidate_counts(wloc_ptr: np.ndarray, wloc: np.ndarray, qwords: np.ndarray
     return n
 
 
+#: Translation bounds from at most this many triples compare them pair by pair; more fill a histogram.
+_PAIRWISE_MAX = 32
+
+
+@njit(cache=True)
+def _query_ptr(qword_sorted: np.ndarray, n_words: int) -> np.ndarray:
+    """``ptr`` (n_words + 1,): the query features of word ``w`` are ``qf_sorted[ptr[w]:ptr[w + 1]]``."""
+    ptr = np.zeros(n_words + 1, np.int64)
+    for w in qword_sorted:
+        ptr[w + 1] += 1
+    for w in range(n_words):
+        ptr[w + 1] += ptr[w]
+    return ptr
+
+
+@njit(cache=True)
+def _order_by_count(n_cand: np.ndarray) -> np.ndarray:
+    """Locations by decreasing candidate count, lowest index among ties (a counting sort, O(L))."""
+    top = 0
+    for c in n_cand:
+        top = max(top, c)
+    start = np.zeros(top + 2, np.int64)
+    for c in n_cand:
+        start[top - c + 1] += 1
+    for k in range(top + 1):
+        start[k + 1] += start[k]
+    order = np.empty(len(n_cand), np.int64)
+    for i in range(len(n_cand)):
+        k = top - n_cand[i]
+        order[start[k]] = i
+        start[k] += 1
+    return order
+
+
 @njit(cache=True, nogil=True)
-def _triples(s, e, word, xy, qword_sorted, qf_sorted, qx, qy, present, cand_of_f, gx, gy):
+def _new_scratch(F, cap, gx, gy):
+    """Work arrays of :func:`_match_location`, allocated once per chunk of locations (per thread).
+
+    ``(stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep)``: ``stamp`` (F,)
+    the tag of the location that last made each query feature a candidate;
+    ``cand`` (F,) the candidates in the order met; ``cof`` (F,) each
+    candidate's index; ``U`` (F,) translation-window counts; ``t_f``, ``t_a``,
+    ``t_b`` (cap,) the triples (query feature, stored feature, translation
+    bucket) and ``t_x``, ``t_y`` (cap,) the bucket's column and row; ``P``
+    the translation histogram; ``hist`` (F + 2,) the h-index histogram;
+    ``keep`` (F,) the final group of the last exact location.
+    """
+    return (np.full(F, -1, np.int64), np.empty(F, np.int64), np.empty(F, np.int64), np.empty(F, np.int64),
+            np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64),
+            np.empty(cap, np.int64),
+            np.empty((2 * gx + 1) * (2 * gy + 1), np.int64), np.empty(F + 2, np.int64), np.zeros(F, np.bool_))
+
+
+@njit(cache=True, nogil=True)
+def _triples(s, e, word, xy, qptr, qf_sorted, qx, gx, tag, stamp, cand, cof, t_f, t_a, t_x):
     """Candidates and (query feature, stored feature) triples of the location stored in ``s:e``.
 
-    Merges the query's words (sorted) with the location's (sorted).  Sets
-    ``cand_of_f[f]`` to the candidate index of each query feature (ascending
-    ``f``; the caller resets it) and returns ``(n, cand_feat, t_f, t_a, t_b)``,
-    ``t_b`` the translation bucket ``bx * 2 gy + by`` of each triple.
+    Each stored feature's word is looked up in the query's word table ``qptr``
+    (O(1) per stored feature, no merge).  A query feature becomes a candidate
+    the first time one of its words is met (``stamp[f] = tag``, ``tag``
+    unique per location); ``cand[:n]`` lists them in that order and
+    ``cof[f]`` is ``f``'s place in it.  Fills
+    ``t_f``, ``t_a`` and the column ``t_x`` of each triple's translation
+    bucket, all that :func:`_column_bound` needs (the rows: :func:`_triple_rows`),
+    and returns ``(n, nt)``.
     """
-    F = len(qx)
-    FQ = len(qword_sorted)
-    BYg = 2 * gy
-    # Candidates and triples: merge the query's sorted words with the location's.
-    nt = 0
-    p = s
-    q = 0
-    while p < e and q < FQ:
-        wa = word[p]
-        wq = qword_sorted[q]
-        if wa < wq:
-            p += 1
-        elif wa > wq:
-            q += 1
-        else:
-            p2 = p
-            while p2 < e and word[p2] == wa:
-                p2 += 1
-            q2 = q
-            while q2 < FQ and qword_sorted[q2] == wq:
-                q2 += 1
-            nt += (p2 - p) * (q2 - q)
-            for qq in range(q, q2):
-                present[qf_sorted[qq]] = True
-            p = p2
-            q = q2
     n = 0
-    for f in range(F):
-        if present[f]:
-            cand_of_f[f] = n
-            n += 1
-    if n == 0:
-        return 0, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cand_feat = np.empty(n, np.int64)
-    for f in range(F):
-        if present[f]:
-            cand_feat[cand_of_f[f]] = f
-            present[f] = False
-    t_f = np.empty(nt, np.int64)
-    t_a = np.empty(nt, np.int64)
-    t_b = np.empty(nt, np.int64)
-    k = 0
-    p = s
-    q = 0
-    while p < e and q < FQ:
-        wa = word[p]
-        wq = qword_sorted[q]
-        if wa < wq:
-            p += 1
-        elif wa > wq:
-            q += 1
-        else:
-            p2 = p
-            while p2 < e and word[p2] == wa:
-                p2 += 1
-            q2 = q
-            while q2 < FQ and qword_sorted[q2] == wq:
-                q2 += 1
-            for qq in range(q, q2):
-                f = qf_sorted[qq]
-                for pp in range(p, p2):
-                    t_f[k] = f
-                    t_a[k] = pp
-                    bx = ((qx[f] - np.int64(xy[pp, 0]) + NORM) * gx) >> NORM_BITS
-                    by = ((qy[f] - np.int64(xy[pp, 1]) + NORM) * gy) >> NORM_BITS
-                    t_b[k] = bx * BYg + by
-                    k += 1
-            p = p2
-            q = q2
-    return n, cand_feat, t_f, t_a, t_b
+    nt = 0
+    for p in range(s, e):
+        w = word[p]
+        q1 = qptr[w + 1]
+        for qq in range(qptr[w], q1):
+            f = qf_sorted[qq]
+            if stamp[f] != tag:
+                stamp[f] = tag
+                cand[n] = f
+                cof[f] = n
+                n += 1
+            t_f[nt] = f
+            t_a[nt] = p
+            t_x[nt] = ((qx[f] - np.int64(xy[p, 0]) + NORM) * gx) >> NORM_BITS
+            nt += 1
+    return n, nt
 
 
 @njit(cache=True, nogil=True)
-def _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r):
+def _triple_rows(nt, t_f, t_a, t_x, xy, qy, gy, t_y, t_b):
+    """The row ``t_y`` of each triple's translation bucket, and the bucket ``t_b = t_x * 2 gy + t_y``."""
+    BYg = 2 * gy
+    for t in range(nt):
+        by = ((qy[t_f[t]] - np.int64(xy[t_a[t], 1]) + NORM) * gy) >> NORM_BITS
+        t_y[t] = by
+        t_b[t] = t_x[t] * BYg + by
+
+
+@njit(cache=True, nogil=True)
+def _h_index(n, cand, U, hist):
+    """Largest ``k`` with at least ``k`` of the ``n`` candidates having ``U + 1 >= k`` partners' worth."""
+    for k in range(n + 1):
+        hist[k] = 0
+    for i in range(n):
+        hist[min(U[cand[i]], n)] += 1
+    atleast = 0
+    for k in range(n, 0, -1):
+        atleast += hist[k]
+        if atleast >= k:
+            return k
+    return 0
+
+
+@njit(cache=True, nogil=True)
+def _column_bound(n, nt, cand, t_f, t_x, U, P, hist, gx, r):
+    """:func:`_translation_bound` with the translations' columns alone: looser, and far cheaper.
+
+    Two triples whose buckets are at most ``r`` apart in both directions are
+    at most ``r`` apart in the column, so counting the triples in a window of
+    ``2r + 1`` columns (a 1-D histogram of ``2 gx`` columns) gives every
+    ``U(f)`` at least its value in :func:`_translation_bound`, and the
+    h-index an upper bound on the final group too.  It drops most wrong
+    locations before the 2-D windows are counted.
+    """
+    BX = 2 * gx
+    for k in range(BX + 1):
+        P[k] = 0
+    for t in range(nt):
+        P[t_x[t] + 1] += 1
+    for x in range(1, BX + 1):
+        P[x] += P[x - 1]
+    for i in range(n):
+        U[cand[i]] = 1
+    for t in range(nt):
+        U[t_f[t]] += P[min(t_x[t] + r + 1, BX)] - P[max(t_x[t] - r, 0)] - 1
+    return _h_index(n, cand, U, hist)
+
+
+@njit(cache=True, nogil=True)
+def _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, r, pairwise_max):
     """Upper bound on the final group of a location from its triples' translations alone.
 
     If candidates ``f`` and ``g`` are consistent through stored features ``a``
@@ -194,63 +259,141 @@ def _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r):
     triples: ``|K| - 1 <= U(f) = sum over f's triples of (triples in that
     window - 1)`` for every member ``f``, and ``|K| <= max k`` with at
     least ``k`` candidates of ``U + 1 >= k`` (an h-index, at most ``n``).
+    Window counts come from comparing the triples pair by pair when there are
+    at most ``pairwise_max`` (each pair once), else from a summed-area table
+    of the translation histogram; both give the same counts.
     """
-    BX = 2 * gx
-    BY = 2 * gy
-    P = np.zeros((BX + 1, BY + 1), np.int64)
-    for t in range(len(t_b)):
-        P[t_b[t] // BY + 1, t_b[t] % BY + 1] += 1
-    for x in range(1, BX + 1):
-        for y in range(1, BY + 1):
-            P[x, y] += P[x - 1, y] + P[x, y - 1] - P[x - 1, y - 1]
-    U = np.ones(n, np.int64)
-    for t in range(len(t_b)):
-        bx = t_b[t] // BY
-        by = t_b[t] % BY
-        x0 = max(bx - r, 0)
-        x1 = min(bx + r + 1, BX)
-        y0 = max(by - r, 0)
-        y1 = min(by + r + 1, BY)
-        U[cand_of_f[t_f[t]]] += P[x1, y1] - P[x0, y1] - P[x1, y0] + P[x0, y0] - 1
-    hist = np.zeros(n + 1, np.int64)
-    for c in range(n):
-        hist[min(U[c], n)] += 1
-    bound = 0
-    atleast = 0
-    for k in range(n, 0, -1):
-        atleast += hist[k]
-        if atleast >= k:
-            bound = k
-            break
-    return bound
+    for i in range(n):
+        U[cand[i]] = 1
+    if nt <= pairwise_max:
+        for t in range(nt):
+            bx = t_x[t]
+            by = t_y[t]
+            ft = t_f[t]
+            for t2 in range(t + 1, nt):
+                if abs(t_x[t2] - bx) <= r and abs(t_y[t2] - by) <= r:
+                    U[ft] += 1
+                    U[t_f[t2]] += 1
+    else:
+        BX = 2 * gx
+        BY = 2 * gy
+        W = BY + 1
+        for k in range((BX + 1) * W):
+            P[k] = 0
+        for t in range(nt):
+            P[(t_x[t] + 1) * W + t_y[t] + 1] += 1
+        for x in range(1, BX + 1):
+            for y in range(1, BY + 1):
+                P[x * W + y] += P[(x - 1) * W + y] + P[x * W + y - 1] - P[(x - 1) * W + y - 1]
+        for t in range(nt):
+            x0 = max(t_x[t] - r, 0)
+            x1 = min(t_x[t] + r + 1, BX)
+            y0 = max(t_y[t] - r, 0)
+            y1 = min(t_y[t] + r + 1, BY)
+            U[t_f[t]] += P[x1 * W + y1] - P[x0 * W + y1] - P[x1 * W + y0] + P[x0 * W + y0] - 1
+    return _h_index(n, cand, U, hist)
 
 
 @njit(cache=True, nogil=True)
-def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, seed, keep,
-                  tb_prune=True):
+def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, r):
+    """Upper bound on the final group from the partners each candidate can have, before ``J`` is built.
+
+    ``J[f, g] = 1`` needs triples ``(f, a)`` and ``(g, b)`` with ``f != g``,
+    ``a != b``, ``a`` and ``b`` in a common group (tour or virtual image) and
+    translations at most ``r`` buckets apart in both directions
+    (:func:`_translation_bound`).  Counting, for each candidate, the
+    *distinct* candidates that have such a triple (rather than the triples,
+    as :func:`_translation_bound` does) gives at least its row sum of ``J``,
+    so the h-index of ``1 +`` those counts bounds the group as the h-index of
+    ``J``'s row sums does.  ``cof`` maps a query feature to its place in
+    ``cand``.  The triples are ordered by column first (a counting sort), so
+    each is compared only with those at most ``r`` columns on.
+    """
+    BX = 2 * gx
+    for k in range(BX + 1):
+        P[k] = 0
+    for t in range(nt):
+        P[t_x[t] + 1] += 1
+    for x in range(BX):
+        P[x + 1] += P[x]
+    # Gathered in column order into contiguous arrays: the loop below reads nothing indirectly.
+    ox = np.empty(nt, np.int64)
+    oy = np.empty(nt, np.int64)
+    oc = np.empty(nt, np.int64)
+    oa = np.empty(nt, np.int64)
+    og = np.empty(nt, groups.dtype)
+    for t in range(nt):
+        d = P[t_x[t]]
+        P[t_x[t]] += 1
+        ox[d] = t_x[t]
+        oy[d] = t_y[t]
+        oc[d] = cof[t_f[t]]
+        oa[d] = t_a[t]
+        og[d] = groups[t_a[t]]
+    seen = np.zeros(n * n, np.uint8)
+    deg = np.ones(n, np.int64)
+    for u in range(nt):
+        ct = oc[u]
+        at = oa[u]
+        gt = og[u]
+        xt = ox[u]
+        yt = oy[u]
+        for u2 in range(u + 1, nt):
+            if ox[u2] - xt > r:
+                break
+            if abs(oy[u2] - yt) > r:
+                continue
+            c2 = oc[u2]
+            if c2 == ct or oa[u2] == at or (og[u2] & gt) == 0 or seen[ct * n + c2]:
+                continue
+            seen[ct * n + c2] = 1
+            seen[c2 * n + ct] = 1
+            deg[ct] += 1
+            deg[c2] += 1
+    for i in range(n):
+        U[cand[i]] = deg[i]
+    return _h_index(n, cand, U, hist)
+
+
+@njit(cache=True, nogil=True)
+def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed, tag,
+                    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune, pairwise_max):
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
 
     Returns ``(score, exact, elimination steps, pair tests, dropped by the
     translation bound)``; when exact, ``keep`` (bool, F) marks the query
-    features of the final group.  ``tb_prune=False`` skips the translation
-    bound (for profiling).
+    features of the final group (the caller clears it).  The work arrays
+    (``stamp`` .. ``hist``) are those of :func:`_new_scratch`, ``t_*`` large
+    enough for the location's triples; ``tag`` differs between the calls that
+    share them.  ``tb_prune=False`` skips the translation bound (for profiling).
     """
-    F = len(qx)
     r = tol + 1
     NB = (2 * gx) * (2 * gy)
     BYg = 2 * gy
     lim = (tol + 1) * NORM
-    present = np.zeros(F, np.bool_)
-    cand_of_f = np.full(F, -1, np.int64)
-    n, cand_feat, t_f, t_a, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
-                                           qx, qy, present, cand_of_f, gx, gy)
+    n, nt = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qptr, qf_sorted, qx, gx, tag, stamp, cand, cof,
+                     t_f, t_a, t_x)
     if n == 0:
         return 0.0, True, 0, 0, 0
-    nt = len(t_f)
-    # Bound from the translations alone (module docstring), before any J is built.
-    tb = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, r)
+    # Bounds from the translations alone (module docstring), before any J is built: the
+    # columns' first, which is cheap and drops most wrong locations.
+    if tb_prune:
+        cb = _column_bound(n, nt, cand, t_f, t_x, U, P, hist, gx, r)
+        if cb < thr:
+            return float(cb), False, 0, 0, 1
+    _triple_rows(nt, t_f, t_a, t_x, xy, qy, gy, t_y, t_b)
+    tb = _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, r, pairwise_max)
     if tb_prune and tb < thr:
         return float(tb), False, 0, 0, 1
+    if tb_prune:
+        pb = _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, r)
+        if pb < thr:
+            return float(pb), False, 0, 0, 1
+    # Candidate ids follow ascending query feature index, as in consistency_graphs:
+    # the elimination's first-minimum rule depends on that order.
+    cand_feat = np.sort(cand[:n])
+    for i in range(n):
+        cof[cand_feat[i]] = i
     # Counting sort of the triples by translation bucket.
     bcount = np.zeros(NB + 1, np.int64)
     for i in range(nt):
@@ -273,7 +416,7 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
         f = t_f[i]
         a = t_a[i]
         sf[d] = f
-        sc[d] = cand_of_f[f]
+        sc[d] = cof[f]
         sa[d] = a
         sx[d] = np.int64(xy[a, 0])
         sy[d] = np.int64(xy[a, 1])
@@ -406,6 +549,125 @@ def _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, 
     return float(size), True, steps, tests, 0
 
 
+
+@njit(cache=True, nogil=True)
+def _match_chunk(order, p0, p1, seed_first, n_cand, top, n_fin, top_k, loc_ptr, word, xy, groups, qptr, qf_sorted,
+                 qx, qy, tol, gx, gy, seed, cap, out_score, out_exact, out_stats, best_keep):
+    """Match the locations ``order[p0:p1]`` in turn (see :func:`_match_locations`), in one compiled loop.
+
+    ``top`` (top_k,), ascending: the ``top_k`` best finished scores known when
+    the chunk was claimed, ``-1`` where fewer than ``top_k`` (``n_fin``) had
+    finished; updated with the chunk's own, so the threshold rises within the
+    chunk.  Stops before a position ``>= seed_first`` whose candidate count is
+    below the threshold (every later count is at most that).  Writes each
+    position's ``(score, exact, (steps, pair tests, dropped by the translation
+    bound))`` at ``[p - p0]`` of the outputs and the best exact location's
+    group to ``best_keep``.  Returns ``(end position, stopped, n_fin, best
+    score, best location)``.
+    """
+    F = len(qx)
+    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep = _new_scratch(F, cap, gx, gy)
+    best_score = -1.0
+    best_loc = -1
+    stopped = False
+    p = p0
+    while p < p1:
+        loc = order[p]
+        thr = top[0] if n_fin >= top_k else -1.0
+        if p >= seed_first and n_cand[loc] < thr:
+            stopped = True
+            break
+        if n_cand[loc] < thr:
+            res = (float(n_cand[loc]), False, 0, 0, 0)
+        else:
+            res = _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed,
+                                  p, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, True,
+                                  _PAIRWISE_MAX)
+        k = p - p0
+        out_score[k] = res[0]
+        out_exact[k] = res[1]
+        out_stats[k, 0] = res[2]
+        out_stats[k, 1] = res[3]
+        out_stats[k, 2] = res[4]
+        if res[1]:
+            size = res[0]
+            if n_fin < top_k:
+                top[0] = size
+            elif size > top[0]:
+                top[0] = size
+            n_fin += 1
+            top.sort()
+            if size > best_score or (size == best_score and loc < best_loc):
+                best_score = size
+                best_loc = loc
+                best_keep[:] = keep
+            keep[:] = False
+        p += 1
+    return p, stopped, n_fin, best_score, best_loc
+
+
+@njit(cache=True, nogil=True)
+def _head_bounds(order, S, loc_ptr, word, xy, qptr, qf_sorted, qx, qy, tol, gx, gy, cap):
+    """Translation bounds of the locations ``order[:S]`` (0 where a location has no candidate)."""
+    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, _ = _new_scratch(len(qx), cap, gx, gy)
+    head = np.zeros(S, np.int64)
+    for i in range(S):
+        loc = order[i]
+        n, nt = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qptr, qf_sorted, qx, gx, i, stamp, cand, cof, t_f,
+                         t_a, t_x)
+        if n:
+            _triple_rows(nt, t_f, t_a, t_x, xy, qy, gy, t_y, t_b)
+            head[i] = _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, tol + 1, _PAIRWISE_MAX)
+    return head
+
+
+def _triple_capacity(loc_ptr: np.ndarray, qptr: np.ndarray) -> int:
+    """Most triples any location can have with this query: its stored features times the most query
+    features of one word."""
+    longest = int(np.diff(loc_ptr).max()) if len(loc_ptr) > 1 else 0
+    return max(longest * int(np.diff(qptr).max(initial=0)), 1)
+
+
+def _one_location(model: CoocModel, loc: int, thr: float, words: np.ndarray, xy: np.ndarray, *, tol: int = 0,
+                  seed: int = 0, interpolate: bool | None = None, tb_prune: bool = True,
+                  pairwise_max: int = _PAIRWISE_MAX) -> tuple[float, bool, int, int, int, np.ndarray]:
+    """One location's :func:`_match_location`, for tests and profiling: its result and the group's query features.
+
+    ``xy`` as :func:`match_compiled` takes it; ``pairwise_max`` picks how the
+    translation bound counts (see :func:`_translation_bound`).
+    """
+    qptr, qf, qx, qy = _query_table(model, words, xy)
+    F = len(qx)
+    cap = _triple_capacity(model.loc_ptr, qptr)
+    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep = _new_scratch(F, cap, int(model.grid_x),
+                                                                                    int(model.grid_y))
+    res = _match_location(int(loc), float(thr), model.loc_ptr, model.word, model.xy, model.group_masks(interpolate),
+                          qptr, qf, qx, qy, int(tol), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
+                          0, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, bool(tb_prune),
+                          int(pairwise_max))
+    return (*res, np.flatnonzero(keep))
+
+
+def _query_table(model: CoocModel, words: np.ndarray,
+                 xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(qptr, qf_sorted, qx, qy)``: the query's features by word and its quantised positions.
+
+    Out-of-vocabulary features are left out of the table, so they never become candidates.
+    """
+    words = np.asarray(words, np.int64).ravel()
+    xyq = model.quantise_xy(xy)
+    f_ids = np.flatnonzero((words >= 0) & (words < model.n_words))
+    by_word = f_ids[np.argsort(words[f_ids], kind="stable")]
+    qptr = _query_ptr(words[by_word], int(model.n_words))
+    return qptr, by_word.astype(np.int64), xyq[:, 0].astype(np.int64), xyq[:, 1].astype(np.int64)
+
+
+#: Locations in a thread's first claim; each later claim takes twice as many, up to :data:`MAX_CHUNK`.
+FIRST_CHUNK = 8
+#: Most locations claimed at once: a helper the operating system stops running holds at most this many.
+MAX_CHUNK = 512
+
+
 class _Shared:
     """One query's location loop, shared by the calling thread and the helpers (see :func:`_match_locations`).
 
@@ -423,60 +685,69 @@ class _Shared:
         self.F = F
         L = len(order)
         self.next = 0  # the next position of ``order`` nobody has claimed
+        self.chunk = FIRST_CHUNK
         self.stopped = False
-        self.claimed_by_helper = np.zeros(L, bool)
-        self.done = np.zeros(L, bool)
-        self.top = np.full(max(top_k, 1), -1.0)  # the top_k best finished scores, ascending
+        self.visited = 0  # locations recorded: every one whose candidate count reached the threshold
+        self.helper_chunks: list[tuple[int, int]] = []  # claimed by a helper: (p0, p1)
+        self.done: set[int] = set()  # p0 of every chunk recorded
+        self.best_fin = np.zeros(0)  # the top_k best finished scores, ascending
+        self.top = np.full(max(top_k, 1), -1.0)  # the same, padded in front with -1 to top_k
         self.n_fin = 0
         self.best_score = -1.0
         self.best_loc = -1
         self.best_keep = np.zeros(F, bool)
-        self.results: dict[int, tuple[float, bool, int, int, int]] = {}
+        self.scores = n_cand.astype(np.float64)[order]  # by position; unmatched ones keep n_i
+        self.exact = np.zeros(L, bool)
+        self.stats = np.zeros((L, 3), np.int64)
 
     def threshold(self) -> float:
         return float(self.top[0]) if self.n_fin >= self.top_k else -1.0
 
-    def claim(self, helper: bool) -> tuple[int, float] | None:
-        """The next position to match and the threshold to match it against, or None when matching is over."""
+    def claim(self, helper: bool) -> tuple[int, int, np.ndarray, int] | None:
+        """The next chunk of positions to match, with the top scores to match it against, or None when over."""
         with self.lock:
             if self.stopped or self.next >= len(self.order):
                 self.stopped = True
                 return None
-            thr = self.threshold()
-            if self.next >= self.seed_first and self.n_cand[self.order[self.next]] < thr:
+            if self.next >= self.seed_first and self.n_cand[self.order[self.next]] < self.threshold():
                 self.stopped = True  # every later location has at most this many candidates
                 return None
-            pos = self.next
-            self.next += 1
-            self.claimed_by_helper[pos] = helper
-            return pos, thr
+            p0 = self.next
+            p1 = min(p0 + self.chunk, len(self.order))
+            self.next = p1
+            self.chunk = min(2 * self.chunk, MAX_CHUNK)
+            if helper:
+                self.helper_chunks.append((p0, p1))
+            return p0, p1, self.top.copy(), self.n_fin
 
-    def run(self, pos: int, thr: float) -> None:
-        """Match the location at ``pos`` (outside the lock) and record it, unless it was recorded meanwhile."""
-        loc = int(self.order[pos])
+    def run(self, p0: int, p1: int, top: np.ndarray, n_fin: int) -> None:
+        """Match the chunk (outside the lock) and record it, unless it was recorded meanwhile."""
+        loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap = self.kernel_args
+        m = p1 - p0
+        score, exact, stats = np.empty(m), np.zeros(m, bool), np.zeros((m, 3), np.int64)
         keep = np.zeros(self.F, np.bool_)
-        if self.n_cand[loc] < thr:
-            res = (float(self.n_cand[loc]), False, 0, 0, 0)
-        else:
-            loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, seed = self.kernel_args
-            res = _one_location(loc, thr, loc_ptr, word, xy, groups, qword_sorted, qf_sorted, qx, qy, tol, gx, gy,
-                                seed, keep)
+        end, stopped, _, best_score, best_loc = _match_chunk(
+            self.order, p0, p1, self.seed_first, self.n_cand, top, n_fin, self.top_k, loc_ptr, word, xy, groups,
+            qptr, qf, qx, qy, tol, gx, gy, seed, cap, score, exact, stats, keep)
+        k = end - p0
         with self.lock:
-            if self.done[pos]:
-                return  # the other thread recorded it first: same exact score, or another bound below T
-            self.done[pos] = True
-            self.results[loc] = res
-            if not res[1]:
-                return
-            size = res[0]
-            if size > self.best_score or (size == self.best_score and loc < self.best_loc):
-                self.best_score, self.best_loc, self.best_keep = size, loc, keep
-            if self.n_fin < self.top_k:
-                self.top[0] = size
-                self.n_fin += 1
-            elif size > self.top[0]:
-                self.top[0] = size
-            self.top.sort()
+            if p0 in self.done:
+                return  # the other thread recorded it first: same exact scores, or other bounds below T
+            self.done.add(p0)
+            self.visited += k
+            self.scores[p0:end] = score[:k]
+            self.exact[p0:end] = exact[:k]
+            self.stats[p0:end] = stats[:k]
+            self.stopped |= stopped
+            fin = score[:k][exact[:k]]
+            if len(fin):
+                self.best_fin = np.sort(np.concatenate([self.best_fin, fin]))[-max(self.top_k, 1):]
+                self.n_fin += len(fin)
+                self.top[:] = -1.0
+                self.top[len(self.top) - len(self.best_fin):] = self.best_fin
+            if best_loc >= 0 and (best_score > self.best_score
+                                  or (best_score == self.best_score and best_loc < self.best_loc)):
+                self.best_score, self.best_loc, self.best_keep = best_score, int(best_loc), keep
 
 
 def _helper(shared: _Shared) -> None:
@@ -512,34 +783,29 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
 
     The first ``seed_first`` locations of ``order`` (by candidate count) are
     re-ordered by their translation bound, highest first, so that a good
-    threshold comes early.  Locations are then claimed one at a time in that
-    order, by the calling thread and by ``threads - 1`` helper threads; each is
-    matched against the threshold known when it is claimed (the ``top_k``-th
-    best finished score: only an upper bound below it drops a location, so
-    which thread matched what, and when, never changes ``S``; see
-    :func:`match_compiled`).  The calling thread never waits for a helper:
-    when nothing is left to claim, it matches itself any location a helper
-    holds but has not finished (whichever records it first counts), so a
-    helper that the operating system does not run costs at most one
-    location's work twice, and a busy machine degrades to the serial loop
-    rather than stalling on a barrier.  ``stats`` (int64, 5): elimination
-    steps, locations whose ``J`` was built, pair tests, locations finished,
-    locations dropped by the translation bound.  ``best_keep`` (bool, F):
-    query features of the final group of the best location.  Returns the best
-    location (-1 if none).
+    threshold comes early.  Locations are then claimed in chunks, in that
+    order (:data:`FIRST_CHUNK` locations first, twice as many each claim, at
+    most :data:`MAX_CHUNK`), by the calling thread and by ``threads - 1``
+    helper threads; a chunk is matched in one compiled loop
+    (:func:`_match_chunk`) against the threshold known when it is claimed,
+    raised by its own finished locations (the ``top_k``-th best finished
+    score: only an upper bound below it drops a location, so which thread
+    matched what, and when, never changes ``S``; see :func:`match_compiled`).
+    The calling thread never waits for a helper: when nothing is left to
+    claim, it matches itself any chunk a helper holds but has not recorded
+    (whichever records it first counts), so a helper that the operating
+    system does not run costs at most one chunk's work twice, and a busy
+    machine degrades to the serial loop rather than stalling on a barrier.
+    ``stats`` (int64, 6): elimination steps, locations whose ``J`` was built,
+    pair tests, locations finished, locations dropped by the translation
+    bounds, locations visited (candidate count at least the threshold).
+    ``best_keep`` (bool, F): query features of the final group of the best
+    location.  Returns the best location (-1 if none).
     """
     L = len(order)
-    loc_ptr, word, xy, _, qword_sorted, qf_sorted, qx, qy, tol, gx, gy, _ = kernel_args
-    present = np.zeros(F, np.bool_)
-    cand_of_f = np.full(F, -1, np.int64)
+    loc_ptr, word, xy, _, qptr, qf, qx, qy, tol, gx, gy, _, cap = kernel_args
     S = min(seed_first, L)
-    head = np.zeros(S, np.int64)
-    for oi in range(S):
-        loc = order[oi]
-        n, cand_feat, t_f, _, t_b = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qword_sorted, qf_sorted,
-                                             qx, qy, present, cand_of_f, gx, gy)
-        head[oi] = _translation_bound(n, t_f, t_b, cand_of_f, gx, gy, tol + 1) if n else 0
-        cand_of_f[cand_feat] = -1
+    head = _head_bounds(order, S, loc_ptr, word, xy, qptr, qf, qx, qy, tol, gx, gy, cap)
     order = order.copy()
     order[:S] = order[:S][np.argsort(-head, kind="mergesort")]
     shared = _Shared(order, n_cand, kernel_args, top_k, S, F)
@@ -549,23 +815,25 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
             pool.submit(_helper, shared)
     while (job := shared.claim(helper=False)) is not None:
         shared.run(*job)
-    # Locations a helper claimed but has not recorded: matched here rather than waited for.
-    for pos in np.flatnonzero(shared.claimed_by_helper[:shared.next] & ~shared.done[:shared.next]):
-        with shared.lock:
-            thr = shared.threshold()
-        shared.run(int(pos), thr)
+    # Chunks a helper claimed but has not recorded: matched here rather than waited for.
     with shared.lock:
-        results = dict(shared.results)
+        pending = [c for c in shared.helper_chunks if c[0] not in shared.done]
+    for p0, p1 in pending:
+        with shared.lock:
+            top, n_fin = shared.top.copy(), shared.n_fin
+        shared.run(p0, p1, top, n_fin)
+    with shared.lock:
+        scores[order] = shared.scores
+        exact[order] = shared.exact
+        st = shared.stats
         best_loc = shared.best_loc
         best_keep[:] = shared.best_keep
-    for loc, (score, ex, steps, tests, tb) in results.items():
-        scores[loc] = score
-        exact[loc] = ex
-        stats[0] += steps
-        stats[1] += 1 if tests > 0 or ex else 0
-        stats[2] += tests
-        stats[3] += 1 if ex else 0
-        stats[4] += tb
+    stats[0] += int(st[:, 0].sum())
+    stats[1] += int(np.count_nonzero((st[:, 1] > 0) | shared.exact))
+    stats[2] += int(st[:, 1].sum())
+    stats[3] += int(np.count_nonzero(shared.exact))
+    stats[4] += int(st[:, 2].sum())
+    stats[5] += shared.visited
     return best_loc
 
 
@@ -596,25 +864,19 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     t0 = time.perf_counter()
     L = model.n_locations
     words = np.asarray(words, np.int64).ravel()
-    xyq = model.quantise_xy(xy)
-    ok = (words >= 0) & (words < model.n_words)
-    f_ids = np.flatnonzero(ok)
+    f_ids = np.flatnonzero((words >= 0) & (words < model.n_words))
     n_cand = _candidate_counts(model.wloc_ptr, model.wloc, words[f_ids], L)
-    order = np.lexsort((np.arange(L), -n_cand))
-    by_word = f_ids[np.argsort(words[f_ids], kind="stable")]
+    order = _order_by_count(n_cand)
     scores = n_cand.astype(np.float32)
     exact = np.zeros(L, bool)
-    stats = np.zeros(5, np.int64)
+    stats = np.zeros(6, np.int64)
     keep = np.zeros(len(words), bool)
-    groups = model.group_masks(interpolate)
-    qx = xyq[:, 0].astype(np.int64)
-    qy = xyq[:, 1].astype(np.int64)
-    # Candidate ids follow ascending query feature index, as in consistency_graphs;
-    # out-of-vocabulary features never become candidates (absent from by_word).
+    qptr, qf, qx, qy = _query_table(model, words, xy)
     # In a Dask worker task the worker's threads already use the cores (topoloc.cluster.in_worker_task).
     n_threads = 1 if not parallel or in_worker_task() else n_workers(-1 if threads is None else threads)
-    kernel_args = (model.loc_ptr, model.word, model.xy, groups, words[by_word], by_word.astype(np.int64), qx, qy,
-                   int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF)
+    kernel_args = (model.loc_ptr, model.word, model.xy, model.group_masks(interpolate), qptr, qf, qx, qy,
+                   int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
+                   _triple_capacity(model.loc_ptr, qptr))
     _match_locations(order, n_cand, kernel_args, int(top_k), SEED_FIRST, n_threads, len(words), scores, exact,
                      stats, keep)
     # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact
@@ -630,4 +892,5 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     res.locations_built = int(stats[1])  # type: ignore[attr-defined]
     res.pair_tests = int(stats[2])  # type: ignore[attr-defined]
     res.translation_pruned = int(stats[4])  # type: ignore[attr-defined]
+    res.locations_visited = int(stats[5])  # type: ignore[attr-defined]
     return res, np.flatnonzero(keep)
