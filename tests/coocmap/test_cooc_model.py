@@ -10,7 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from topoloc.coocmap.inverted import inverted_files
 from topoloc.coocmap.model import (
+    INDEX_ARRAYS,
     CoocModel,
     Observation,
     _mask_dtype,
@@ -138,6 +140,9 @@ def test_state_round_trip() -> None:
     for loc in range(3):
         np.testing.assert_array_equal(back.pair_keys(loc), m.pair_keys(loc))
     np.testing.assert_array_equal(back.wloc, m.wloc)
+    # The inverted files are read from the file, not rebuilt: those of a file written before the
+    # counting sort (argsort and bincount) are the ones it builds.
+    _assert_index_is_the_reference(back)
     assert not hasattr(CoocModel, "save") and not hasattr(CoocModel, "load")
 
 
@@ -185,8 +190,9 @@ def test_merge_peak_is_a_small_multiple_of_the_model() -> None:
     parts = [_model(rng, 400) for _ in range(4)]
     out: list[CoocModel] = []
     peak = _peak(lambda: out.append(merge_models(parts)))
-    # The merged arrays and their inverted files, plus one temporary at a time (was 5.8x).
-    assert peak < 2.5 * out[0].nbytes
+    # The merged arrays and their inverted files and nothing else: the counting sort of _index fills
+    # them directly (1.0x; 1.75x with argsort and bincount, 5.8x with int64 copies of the table).
+    assert peak < 1.2 * out[0].nbytes
 
 
 def test_add_tour_peak_is_a_small_multiple_of_the_model() -> None:
@@ -195,8 +201,33 @@ def test_add_tour_peak_is_a_small_multiple_of_the_model() -> None:
     obs = [(i, rng.integers(0, 2000, 60), rng.integers(0, 65535, (60, 2)).astype(np.uint16)) for i in range(1500)]
     peak = _peak(lambda: m.add_tour(obs, name="b"))
     # The merged table and its inverted files: the tour is merged into the sorted table (was 2.7x when
-    # the whole table was sorted again, 7.5x with int64 copies and a four-key lexsort).
+    # the whole table was sorted again, 7.5x with int64 copies and a four-key lexsort).  A tour as large
+    # as the table doubles it, and the peak (1.75x) is merge_sorted_features' keys of both, not _index.
     assert peak < 2.0 * m.nbytes
+
+
+def test_add_tour_to_a_map_of_several_tours_peaks_at_the_model() -> None:
+    # `map add` to a map of many tours: the tour is a fraction of the table, and with argsort and
+    # bincount the peak was _index's int64 copies of the table (1.74x); the counting sort fills the
+    # inverted files directly and the peak is the new model itself (1.01x).
+    rng = np.random.default_rng(3)
+    m = _model(rng, 1500)
+    for t in range(5):
+        m.add_tour([(i, rng.integers(0, 2000, 30), rng.integers(0, 65535, (30, 2)).astype(np.uint16))
+                    for i in range(1500)], name=f"t{t}")
+    obs = [(i, rng.integers(0, 2000, 30), rng.integers(0, 65535, (30, 2)).astype(np.uint16)) for i in range(1500)]
+    peak = _peak(lambda: m.add_tour(obs, name="b"))
+    assert peak < 1.2 * m.nbytes
+
+
+def test_index_allocates_only_the_inverted_files() -> None:
+    # No temporary of the table's length besides the outputs: argsort's int64 order, its int32 copy,
+    # the gathered locations and words and bincount's int64 copies made the peak 1.23x the model and
+    # 2.57x these arrays; now it is them plus the kernel's two per-word cursors (2 x 16 KB).
+    m = _model(np.random.default_rng(4), 3000)
+    peak = _peak(m._index)
+    index_bytes = sum(getattr(m, k).nbytes for k in INDEX_ARRAYS)
+    assert peak < index_bytes + (64 << 10)
 
 
 @pytest.mark.parametrize("n_words", [2000, 2**31])  # one packed uint64 key; too wide to pack: lexsort
@@ -324,3 +355,78 @@ def test_merge_sorted_features_equals_sorting_the_concatenation(n_table: int, n_
     for g, w in zip(got, want, strict=True):
         assert g.dtype == w.dtype and g.shape == w.shape
         np.testing.assert_array_equal(g, w)
+
+
+# -- the inverted files: a counting sort gives what argsort and bincount gave, bit for bit ----------
+
+
+def _index_by_argsort(loc: np.ndarray, word: np.ndarray, n_locations: int, n_words: int) -> dict[str, np.ndarray]:
+    """The reference: CoocModel._index as it was, a stable argsort of the words and bincounts."""
+    loc_ptr = np.zeros(n_locations + 1, np.int64)
+    np.cumsum(np.bincount(loc, minlength=n_locations), out=loc_ptr[1:])
+    by_word = np.argsort(word, kind="stable").astype(np.int32)
+    word_ptr = np.zeros(n_words + 1, np.int64)
+    np.cumsum(np.bincount(word, minlength=n_words), out=word_ptr[1:])
+    loc_w, word_w = loc[by_word], word[by_word]
+    keep = np.ones(len(loc_w), bool)
+    keep[1:] = (loc_w[1:] != loc_w[:-1]) | (word_w[1:] != word_w[:-1])
+    wloc_ptr = np.zeros(n_words + 1, np.int64)
+    np.cumsum(np.bincount(word_w[keep], minlength=n_words), out=wloc_ptr[1:])
+    return {"loc_ptr": loc_ptr, "by_word": by_word, "word_ptr": word_ptr, "wloc": loc_w[keep].astype(np.int32),
+            "wloc_ptr": wloc_ptr}
+
+
+def _assert_index_is_the_reference(m: CoocModel) -> None:
+    want = _index_by_argsort(m.loc, m.word, m.n_locations, m.n_words)
+    assert set(want) == set(INDEX_ARRAYS)
+    for key, a in want.items():
+        b = getattr(m, key)
+        assert b.dtype == a.dtype and b.shape == a.shape, key
+        np.testing.assert_array_equal(b, a, err_msg=key)
+
+
+# Locations and words on both sides of 2^16 (uint16 or int32 arrays), few of them used (empty
+# locations and words), few positions (the same word several times at a location), and no feature.
+@pytest.mark.parametrize(("n_loc", "n_words", "n"), [(40, 30, 3000), (40, 30, 0), (70_000, 20, 2000),
+                                                     (30, 70_000, 2000), (1, 1, 50), (5, 2000, 1)])
+def test_index_equals_argsort_construction(n_loc: int, n_words: int, n: int) -> None:
+    rng = np.random.default_rng(n_loc + n_words + n)
+    m = CoocModel(n_locations=n_loc, n_words=n_words)
+    m.tour_names, m.tour_hours = ["a", "b"], [None, None]
+    used_loc = rng.choice(n_loc, max(n_loc // 2, 1), replace=False)
+    used_word = rng.choice(n_words, max(n_words // 3, 1), replace=False)
+    xy = (rng.integers(0, 3, (n, 2)) * 9000).astype(np.uint16)
+    m._set_features(rng.choice(used_loc, n), rng.choice(used_word, n), xy, rng.integers(1, 4, n).astype(np.uint8))
+    assert m.loc.dtype == (np.int32 if n_loc > 65536 else np.uint16)
+    assert m.word.dtype == (np.int32 if n_words > 65536 else np.uint16)
+    _assert_index_is_the_reference(m)
+    # add_tour and merge_models index through the same kernel.
+    m.add_tour([(int(used_loc[0]), np.repeat(used_word[:1], 3), np.zeros((3, 2), np.uint16))], name="c")
+    _assert_index_is_the_reference(m)
+    _assert_index_is_the_reference(merge_models([m, m]))
+
+
+@pytest.mark.parametrize(("n_loc", "per"), [(20_000, 170), (100_000, 40)])
+def test_index_equals_argsort_construction_at_map_scale(n_loc: int, per: int) -> None:
+    # The shapes of a map of 20,000 places (uint16 locations) and of 100,000 (int32), 2,000 words;
+    # the table is sorted by location and word as the model keeps it.
+    rng = np.random.default_rng(n_loc)
+    m = CoocModel(n_locations=n_loc, n_words=2000)
+    m.loc = np.repeat(np.arange(n_loc), per).astype(m.loc.dtype)
+    assert m.loc.dtype == (np.uint16 if n_loc <= 65536 else np.int32)
+    m.word = np.sort(rng.integers(0, 2000, (n_loc, per)), axis=1).astype(np.uint16).ravel()
+    m._index()
+    _assert_index_is_the_reference(m)
+
+
+def test_inverted_files_need_no_order_and_refuse_ids_outside_the_model() -> None:
+    # The kernel's definition does not rest on the table's order: any order gives the reference's arrays.
+    rng = np.random.default_rng(5)
+    loc, word = rng.integers(0, 9, 500).astype(np.int32), rng.integers(0, 7, 500).astype(np.uint16)
+    got = inverted_files(loc, word, 9, 7)
+    for (key, want), g in zip(_index_by_argsort(loc, word, 9, 7).items(), got, strict=True):
+        assert g.dtype == want.dtype, key
+        np.testing.assert_array_equal(g, want, err_msg=key)
+    for bad_loc, bad_word in ((9, 0), (-1, 0), (0, 7)):
+        with pytest.raises(ValueError, match="outside the model"):
+            inverted_files(np.r_[loc, bad_loc].astype(np.int32), np.r_[word, bad_word].astype(np.int32), 9, 7)

@@ -3,6 +3,8 @@
 * :mod:`~topoloc.coocmap.spatial` -- spatial words of feature pairs (Sec. II-A);
 * :mod:`~topoloc.coocmap.model` -- location models M_i, tours and
   interpolation (Sec. II-B, II-E), persistence;
+* :mod:`~topoloc.coocmap.inverted` -- the model's inverted files (Sec. II-C),
+  a counting sort compiled with numba (imported when a model is indexed);
 * :mod:`~topoloc.coocmap.matching` -- candidate correspondences, J_i,
   elimination, simultaneous matching (Sec. II-C, II-D).
 * :mod:`~topoloc.coocmap.compiled` -- the same matching compiled with numba,

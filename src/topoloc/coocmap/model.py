@@ -269,25 +269,25 @@ class CoocModel(Configurable):
         self._index()
 
     def _index(self) -> None:
-        # Built from the compact arrays, one temporary at a time: at 100,000 places the feature
-        # table has tens of millions of rows and int64 copies of it would dominate the memory of
-        # `map build` and `map add` (benchmarks/bench_cluster.py).
-        self.loc_ptr = np.zeros(self.n_locations + 1, np.int64)
-        np.cumsum(np.bincount(self.loc, minlength=self.n_locations), out=self.loc_ptr[1:])
-        # Inverted file word -> features, by location within a word (stable sort).
-        self.by_word = np.argsort(self.word, kind="stable").astype(np.int32)
-        self.word_ptr = np.zeros(self.n_words + 1, np.int64)
-        np.cumsum(np.bincount(self.word, minlength=self.n_words), out=self.word_ptr[1:])
-        # Inverted file word -> locations (Sec. II-C), unique per word: within a word the
-        # features are in location order, so a repeated location is the one just before.
-        loc_w = self.loc[self.by_word]
-        word_w = self.word[self.by_word]
-        keep = np.ones(len(loc_w), bool)
-        keep[1:] = (loc_w[1:] != loc_w[:-1]) | (word_w[1:] != word_w[:-1])
-        self.wloc = loc_w[keep].astype(np.int32)
-        del loc_w
-        self.wloc_ptr = np.zeros(self.n_words + 1, np.int64)
-        np.cumsum(np.bincount(word_w[keep], minlength=self.n_words), out=self.wloc_ptr[1:])
+        """Build the inverted files (:data:`INDEX_ARRAYS`) from the sorted feature table.
+
+        Notes
+        -----
+        A counting sort (:func:`topoloc.coocmap.inverted.inverted_files`)
+        writes the int32 outputs directly: at 100,000 places the table has
+        tens of millions of rows, and the ``argsort`` and ``bincount`` this
+        replaces each made an int64 copy of it, the peak of ``map add`` and of
+        merging shard models (benchmarks/bench_cluster.py).  The arrays are
+        those construction gave, value for value and dtype for dtype
+        (tests/coocmap/test_cooc_model.py keeps it as the reference), so map
+        files written before still hold the index this model builds.
+        """
+        # Imported here: numba's import is not needed to import the model or load a map file,
+        # whose inverted files are stored in it.
+        from topoloc.coocmap.inverted import inverted_files
+
+        (self.loc_ptr, self.by_word, self.word_ptr, self.wloc,
+         self.wloc_ptr) = inverted_files(self.loc, self.word, self.n_locations, self.n_words)
         self._groups: dict[bool, np.ndarray] = {}
 
     def quantise_xy(self, xy: np.ndarray) -> np.ndarray:
