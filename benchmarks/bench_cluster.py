@@ -218,7 +218,7 @@ def main() -> None:
     ap.add_argument("--words", type=int, default=2000)
     ap.add_argument("--max-features", type=int, default=300)
     ap.add_argument("--add-every", type=int, default=4, help="one segment in N has a tour to add")
-    ap.add_argument("--queries", type=int, default=200, help="queries timed on one thread from the map file")
+    ap.add_argument("--queries", type=int, default=200, help="queries timed one frame at a time from the map file")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--page-only", action="store_true", help="rewrite the pages from cluster.json, measure nothing")
     ap.add_argument("--probe-only", action="store_true",
@@ -302,6 +302,24 @@ def _growth_sentence(runs: list[dict[str, Any]], peaks: list[tuple[int, float, f
             f"{WORKER_BOUND_MIB:,} MiB for a worker.\n")
 
 
+def _query_sentence(runs: list[dict[str, Any]]) -> str:
+    """What bounds a Cooc-Map query on each route: the probe's counters (medians over its first 50 queries)."""
+    rows = [(r["places"], r["local"]) for r in runs if "visited_median" in r["local"]]
+    if not rows:
+        return ""
+    parts = "; ".join(
+        f"{p:,} places: {lo['visited_median']:,.0f} of {lo['locations']:,} locations visited, "
+        f"{lo['translation_pruned_median']:,.0f} of them dropped by the bounds before J, J built for "
+        f"{lo['built_median']:,.0f}, {lo['ms_one_thread_median']:.1f} ms on one thread "
+        f"(probe {lo.get('date', '?')}, load {lo.get('load', float('nan')):.2f})" for p, lo in rows)
+    return ("\n**What a Cooc-Map query costs** (`topoloc.coocmap.compiled`; medians over the first 50 queries): "
+            f"a location is visited when its candidate count reaches the top_k-th best exact score (top_k = "
+            f"{rows[-1][1]['top_k']}, the default), and the bounds before J then drop most of them. {parts}. "
+            "The time grows with the locations visited, and those with the route: with 2,000 words a word's "
+            "inverted list holds several per cent of the route's locations. The ms per query in the table are "
+            "the localiser's, with the matcher's default threads (one per core).\n")
+
+
 def write_pages(data: dict[str, Any], out: Path) -> None:
     """docs/results/cluster.md (measured) and docs/cluster_scaling.md (the extrapolation)."""
     meta, runs = data["meta"], data["runs"]
@@ -349,9 +367,10 @@ def write_pages(data: dict[str, Any], out: Path) -> None:
                  "images or one shard. `vocab train`'s client peak grows with the route until its descriptor "
                  "sample reaches the cap (`Vocabulary.max_descriptors`, 500,000 by default: 244 MiB of float32 "
                  "SIFT descriptors, k-means working on that), then stays. ms per query are measured in one "
-                 "process on one thread from the map "
+                 "process, one frame at a time, from the map "
                  "file (after one warm-up query), matching excluding feature extraction.\n")
     lines.append(_growth_sentence(runs, peaks))
+    lines.append(_query_sentence(runs))
     gen = runs[-1]["generation_s"] * TARGET_PLACES / runs[-1]["places"]
     one = sum(e["hours"] for e in ext if e["machines"] == 1)
     lines.append(f"\n**The {TARGET_PLACES:,}-place run on this machine**, estimated from the rates of the "

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from topoloc.coocmap.compiled import _one_location, _order_by_count, _prio, match_compiled
-from topoloc.coocmap.matching import consistency_graphs, match_lazy, match_sequential, tie_priority
+from topoloc.coocmap.matching import candidate_counts, consistency_graphs, match_lazy, match_sequential, tie_priority
 from topoloc.coocmap.model import CoocModel
 
 
@@ -56,6 +56,11 @@ def test_compiled_prunes_and_counts() -> None:
     assert res.best == full.best and res.steps < full.steps
     assert res.locations_built <= full.locations_built  # type: ignore[attr-defined]
     assert not res.exact.all()
+    # Visited: every location whose candidate count reached the threshold; with top_k = L, all with a candidate.
+    n_i = candidate_counts(model, w)
+    assert full.locations_visited == model.n_locations  # type: ignore[attr-defined]
+    assert res.locations_built <= res.locations_visited <= full.locations_visited  # type: ignore[attr-defined]
+    assert res.locations_visited >= int((n_i >= res.scores[res.best]).sum())  # type: ignore[attr-defined]
 
 
 def test_tie_priority_is_the_same_hash() -> None:

@@ -683,7 +683,6 @@ class _Shared:
         self.top_k = top_k
         self.seed_first = seed_first
         self.F = F
-        L = len(order)
         self.next = 0  # the next position of ``order`` nobody has claimed
         self.chunk = FIRST_CHUNK
         self.stopped = False
@@ -696,9 +695,8 @@ class _Shared:
         self.best_score = -1.0
         self.best_loc = -1
         self.best_keep = np.zeros(F, bool)
-        self.scores = n_cand.astype(np.float64)[order]  # by position; unmatched ones keep n_i
-        self.exact = np.zeros(L, bool)
-        self.stats = np.zeros((L, 3), np.int64)
+        # (p0, end, scores, exact, stats) of every chunk recorded: O(locations visited), not O(L).
+        self.records: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def threshold(self) -> float:
         return float(self.top[0]) if self.n_fin >= self.top_k else -1.0
@@ -735,9 +733,7 @@ class _Shared:
                 return  # the other thread recorded it first: same exact scores, or other bounds below T
             self.done.add(p0)
             self.visited += k
-            self.scores[p0:end] = score[:k]
-            self.exact[p0:end] = exact[:k]
-            self.stats[p0:end] = stats[:k]
+            self.records.append((p0, end, score[:k], exact[:k], stats[:k]))
             self.stopped |= stopped
             fin = score[:k][exact[:k]]
             if len(fin):
@@ -823,16 +819,18 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
             top, n_fin = shared.top.copy(), shared.n_fin
         shared.run(p0, p1, top, n_fin)
     with shared.lock:
-        scores[order] = shared.scores
-        exact[order] = shared.exact
-        st = shared.stats
+        records = list(shared.records)
         best_loc = shared.best_loc
         best_keep[:] = shared.best_keep
-    stats[0] += int(st[:, 0].sum())
-    stats[1] += int(np.count_nonzero((st[:, 1] > 0) | shared.exact))
-    stats[2] += int(st[:, 1].sum())
-    stats[3] += int(np.count_nonzero(shared.exact))
-    stats[4] += int(st[:, 2].sum())
+    for p0, end, sc, ex, st in records:
+        locs = order[p0:end]
+        scores[locs] = sc
+        exact[locs] = ex
+        stats[0] += int(st[:, 0].sum())
+        stats[1] += int(np.count_nonzero((st[:, 1] > 0) | ex))
+        stats[2] += int(st[:, 1].sum())
+        stats[3] += int(np.count_nonzero(ex))
+        stats[4] += int(st[:, 2].sum())
     stats[5] += shared.visited
     return best_loc
 

@@ -331,14 +331,17 @@ class CoocModel(Configurable):
 
         Returns
         -------
-        ndarray of uint64, shape (N,)
+        ndarray, shape (N,)
+            In the dtype of the tour masks (uint8 up to 8 tours): a copy of
+            the table's length, so kept as narrow as the masks themselves.
         """
         interp = self.interpolate if interpolate is None else bool(interpolate)
         if interp not in self._groups:
-            m = self.tours.astype(np.uint64)
+            m = np.asarray(self.tours)
             if interp and self.n_tours >= 2:
-                keep = np.uint64((1 << (self.n_tours - 1)) - 1)
-                m = (m | (m >> np.uint64(1))) & keep
+                one = m.dtype.type(1)
+                keep = m.dtype.type((1 << (self.n_tours - 1)) - 1)
+                m = (m | (m >> one)) & keep
             self._groups[interp] = m
         return self._groups[interp]
 
