@@ -32,3 +32,14 @@ def test_growth_sentence_says_when_a_bound_is_broken(cluster: ModuleType) -> Non
     runs = [_run(5_000, 200.0, 400.0, 14.0), _run(100_000, 2_500.0, 600.0, 280.0)]
     text = cluster._growth_sentence(runs, [(5_000, 200.0, 400.0), (100_000, 2_500.0, 600.0)])
     assert "Every peak is **not** within 2,048 MiB" in text
+
+
+def test_query_sentence_reports_the_probe_counters(cluster: ModuleType) -> None:
+    local = {"locations": 92_109, "visited_median": 18_220.5, "translation_pruned_median": 17_720.0,
+             "built_median": 485.5, "ms_one_thread_median": 46.6, "top_k": 10, "date": "2026-11-26", "load": 1.2}
+    text = cluster._query_sentence([{"places": 100_000, "local": local}])
+    assert "100,000 places: 18,220 of 92,109 locations visited, 17,720 of them dropped by the bounds before J, " \
+           "J built for 486, 46.6 ms on one thread" in text
+    assert "top_k = 10" in text
+    # Runs probed before the counters existed say nothing.
+    assert cluster._query_sentence([{"places": 5_000, "local": {"ms_matching_median": 3.0}}]) == ""

@@ -123,11 +123,14 @@ def test_order_by_count_is_a_stable_descending_sort() -> None:
         np.testing.assert_array_equal(_order_by_count(counts), np.lexsort((np.arange(n), -counts)))
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_parallel_batches_give_the_same_scores(seed: int) -> None:
-    """Threads change which locations get finished and when, never what S says (bit for bit)."""
+@pytest.mark.parametrize(("seed", "n_loc"), [(0, 80), (1, 80), (2, 80), (3, 80), (4, 700), (5, 1300)])
+def test_parallel_batches_give_the_same_scores(seed: int, n_loc: int) -> None:
+    """Threads change which locations get finished and when, never what S says (bit for bit).
+
+    700 and 1,300 locations: claims of several locations at once (chunks of up to 1/64 of the map).
+    """
     rng = np.random.default_rng(100 + seed)
-    model, w, xy = _case(rng, n_loc=80, position_bits=6)
+    model, w, xy = _case(rng, n_loc=n_loc, position_bits=6)
     ref = match_sequential(consistency_graphs(model, w, xy, seed=seed, spatial_tolerance=1))
     for k in (1, 5):
         serial, g1 = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=1, parallel=False)
@@ -144,20 +147,23 @@ def test_parallel_batches_give_the_same_scores(seed: int) -> None:
         assert (serial.scores >= ref.scores).all()
 
 
-def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A helper that holds a location and is never run again: the query finishes without it, same S."""
+@pytest.mark.parametrize("n_loc", [60, 1300])
+def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyPatch, n_loc: int) -> None:
+    """A helper that holds a chunk of locations and is never run again: the query finishes without it, same S."""
     import threading
     import time
 
     from topoloc.coocmap import compiled
 
     rng = np.random.default_rng(7)
-    model, w, xy = _case(rng, n_loc=60, position_bits=6)
+    model, w, xy = _case(rng, n_loc=n_loc, position_bits=6)
     serial, g1 = match_compiled(model, w, xy, top_k=3, spatial_tolerance=1, parallel=False)
     claimed, release = threading.Event(), threading.Event()
+    held: list[tuple[int, int, np.ndarray, int] | None] = []
 
     def stuck_helper(shared: compiled._Shared) -> None:  # claims the first free location, then sleeps
         job = shared.claim(helper=True)
+        held.append(job)
         claimed.set()
         release.wait(30)
         if job is not None:
@@ -165,7 +171,7 @@ def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyP
 
     claim = compiled._Shared.claim
 
-    def helper_first(shared: compiled._Shared, helper: bool) -> tuple[int, float] | None:
+    def helper_first(shared: compiled._Shared, helper: bool) -> tuple[int, int, np.ndarray, int] | None:
         if not helper:
             claimed.wait(10)  # the helper holds a location before the calling thread starts
         return claim(shared, helper)
@@ -176,6 +182,8 @@ def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyP
     try:
         par, g2 = match_compiled(model, w, xy, top_k=3, spatial_tolerance=1, threads=2)
         assert claimed.is_set() and not release.is_set()  # it returned while the helper still held its location
+        job = held[0]
+        assert job is not None and job[1] - job[0] == (1 if n_loc < 128 else compiled.FIRST_CHUNK)
     finally:
         release.set()
     assert time.perf_counter() - t0 < 10

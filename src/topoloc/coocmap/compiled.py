@@ -52,7 +52,7 @@ finishes), with the loops that cannot be vectorised compiled by numba:
 
 * Threads: the calling thread and ``threads - 1`` helpers claim chunks of
   locations from a shared cursor (:data:`FIRST_CHUNK` first, doubling up to
-  :data:`MAX_CHUNK`) and match each chunk in one compiled loop, so the
+  :data:`MAX_CHUNK` and a small share of the map) and match each chunk in one compiled loop, so the
   interpreter is entered once per chunk, not once per location; no thread
   ever waits for another (no batch barrier), so on a machine whose cores
   are busy with other work the query runs at the serial loop's pace instead
@@ -664,8 +664,10 @@ def _query_table(model: CoocModel, words: np.ndarray,
 
 #: Locations in a thread's first claim; each later claim takes twice as many, up to :data:`MAX_CHUNK`.
 FIRST_CHUNK = 8
-#: Most locations claimed at once: a helper the operating system stops running holds at most this many.
+#: Most locations claimed at once, and at most 1 / :data:`CHUNK_SHARE` of the map's: a helper that the
+#: operating system stops running holds no more, so the calling thread repeats at most that much work.
 MAX_CHUNK = 512
+CHUNK_SHARE = 64
 
 
 class _Shared:
@@ -684,7 +686,8 @@ class _Shared:
         self.seed_first = seed_first
         self.F = F
         self.next = 0  # the next position of ``order`` nobody has claimed
-        self.chunk = FIRST_CHUNK
+        self.max_chunk = max(1, min(MAX_CHUNK, len(order) // CHUNK_SHARE))
+        self.chunk = min(FIRST_CHUNK, self.max_chunk)
         self.stopped = False
         self.visited = 0  # locations recorded: every one whose candidate count reached the threshold
         self.helper_chunks: list[tuple[int, int]] = []  # claimed by a helper: (p0, p1)
@@ -713,7 +716,7 @@ class _Shared:
             p0 = self.next
             p1 = min(p0 + self.chunk, len(self.order))
             self.next = p1
-            self.chunk = min(2 * self.chunk, MAX_CHUNK)
+            self.chunk = min(2 * self.chunk, self.max_chunk)
             if helper:
                 self.helper_chunks.append((p0, p1))
             return p0, p1, self.top.copy(), self.n_fin
@@ -781,7 +784,7 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     re-ordered by their translation bound, highest first, so that a good
     threshold comes early.  Locations are then claimed in chunks, in that
     order (:data:`FIRST_CHUNK` locations first, twice as many each claim, at
-    most :data:`MAX_CHUNK`), by the calling thread and by ``threads - 1``
+    most :data:`MAX_CHUNK` and 1 / :data:`CHUNK_SHARE` of the locations), by the calling thread and by ``threads - 1``
     helper threads; a chunk is matched in one compiled loop
     (:func:`_match_chunk`) against the threshold known when it is claimed,
     raised by its own finished locations (the ``top_k``-th best finished
