@@ -9,14 +9,16 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   the size of ``J_i`` before any elimination, the paper's bound of Sec. II-D.
 * Locations are taken in decreasing ``n_i`` (lowest index among ties; the
   first :data:`SEED_FIRST` of them re-ordered by the bound below, so that a
-  good threshold comes early).  Each one's candidates come from looking its
+  good threshold comes early), the first :data:`HEAD` of them; then the
+  rest whose ``n_i`` reaches the threshold, in location order (the map's
+  arrays read forwards).  Each one's candidates come from looking its
   stored words up in a table of the query's words (one lookup per stored
-  feature), so only the locations that can still win are ever touched.
-  Matching stops when the next ``n_i`` is below the ``top_k``-th best
-  finished score: every later location is bounded by it.  With ``top_k``
-  above 1 that score is low and many locations pass it (17,502 of 92,109,
-  median, on the 100,000-place route of ``benchmarks/bench_cluster.py``),
-  so the per-location work below is what a query costs on a long route.
+  feature), so only the locations that can still win are ever touched.  A
+  location whose ``n_i`` is below the ``top_k``-th best finished score is
+  never matched: it is bounded by it.  With ``top_k`` above 1 that score
+  is low and many locations pass it (the counters of
+  docs/results/cluster.md: about a fifth of a 100,000-place route), so the
+  per-location work below is what a query costs on a long route.
 * *Bounds before any ``J_i`` is built*, each cheaper than the next and
   computed only where the one before does not drop the location
   (:func:`_column_bound`, :func:`_translation_bound`,
@@ -551,35 +553,40 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
 
 
 @njit(cache=True, nogil=True)
-def _match_chunk(order, p0, p1, seed_first, n_cand, top, n_fin, top_k, loc_ptr, word, xy, groups, qptr, qf_sorted,
-                 qx, qy, tol, gx, gy, seed, cap, out_score, out_exact, out_stats, best_keep):
+def _match_chunk(order, p0, p1, seed_first, head, n_cand, top, n_fin, top_k, loc_ptr, word, xy, groups, qptr,
+                 qf_sorted, qx, qy, tol, gx, gy, seed, cap, out_score, out_exact, out_stats, best_keep):
     """Match the locations ``order[p0:p1]`` in turn (see :func:`_match_locations`), in one compiled loop.
 
     ``top`` (top_k,), ascending: the ``top_k`` best finished scores known when
     the chunk was claimed, ``-1`` where fewer than ``top_k`` (``n_fin``) had
     finished; updated with the chunk's own, so the threshold rises within the
-    chunk.  Stops before a position ``>= seed_first`` whose candidate count is
-    below the threshold (every later count is at most that).  Writes each
-    position's ``(score, exact, (steps, pair tests, dropped by the translation
-    bound))`` at ``[p - p0]`` of the outputs and the best exact location's
-    group to ``best_keep``.  Returns ``(end position, stopped, n_fin, best
-    score, best location)``.
+    chunk.  Positions below ``head`` are in decreasing candidate count: the
+    chunk stops before one ``>= seed_first`` whose count is below the
+    threshold (every later count is at most that).  Positions from ``head`` on
+    are in location order: one whose count is below the threshold is skipped
+    (reported with its count, not exact).  Writes each position's ``(score,
+    exact, (steps, pair tests, dropped by the bounds before J))`` at
+    ``[p - p0]`` of the outputs and the best exact location's group to
+    ``best_keep``.  Returns ``(end position, stopped, n_fin, best score, best
+    location, locations visited)``.
     """
     F = len(qx)
     stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep = _new_scratch(F, cap, gx, gy)
     best_score = -1.0
     best_loc = -1
     stopped = False
+    visited = 0
     p = p0
     while p < p1:
         loc = order[p]
         thr = top[0] if n_fin >= top_k else -1.0
-        if p >= seed_first and n_cand[loc] < thr:
+        if seed_first <= p < head and n_cand[loc] < thr:
             stopped = True
             break
         if n_cand[loc] < thr:
             res = (float(n_cand[loc]), False, 0, 0, 0)
         else:
+            visited += 1
             res = _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed,
                                   p, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, True,
                                   _PAIRWISE_MAX)
@@ -603,7 +610,7 @@ def _match_chunk(order, p0, p1, seed_first, n_cand, top, n_fin, top_k, loc_ptr, 
                 best_keep[:] = keep
             keep[:] = False
         p += 1
-    return p, stopped, n_fin, best_score, best_loc
+    return p, stopped, n_fin, best_score, best_loc, visited
 
 
 @njit(cache=True, nogil=True)
@@ -668,6 +675,10 @@ FIRST_CHUNK = 8
 #: operating system stops running holds no more, so the calling thread repeats at most that much work.
 MAX_CHUNK = 512
 CHUNK_SHARE = 64
+#: Locations matched in decreasing candidate count before the rest are taken in location order
+#: (see :func:`_match_locations`): enough to find the ``top_k`` best of a route for the threshold; what
+#: it is changes the time, never ``S``.
+HEAD = 1024
 
 
 class _Shared:
@@ -679,17 +690,19 @@ class _Shared:
     def __init__(self, order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[Any, ...], top_k: int,
                  seed_first: int, F: int) -> None:
         self.lock = threading.Lock()
-        self.order = order
+        self.order = order  # by decreasing count; from ``head`` on, replaced by the tail in location order
         self.n_cand = n_cand
         self.kernel_args = kernel_args
         self.top_k = top_k
         self.seed_first = seed_first
+        self.head = min(max(HEAD, seed_first), len(order))
+        self.tail_built = self.head >= len(order)
         self.F = F
         self.next = 0  # the next position of ``order`` nobody has claimed
         self.max_chunk = max(1, min(MAX_CHUNK, len(order) // CHUNK_SHARE))
         self.chunk = min(FIRST_CHUNK, self.max_chunk)
         self.stopped = False
-        self.visited = 0  # locations recorded: every one whose candidate count reached the threshold
+        self.visited = 0  # locations matched or bounded: every one whose candidate count reached the threshold
         self.helper_chunks: list[tuple[int, int]] = []  # claimed by a helper: (p0, p1)
         self.done: set[int] = set()  # p0 of every chunk recorded
         self.best_fin = np.zeros(0)  # the top_k best finished scores, ascending
@@ -710,11 +723,22 @@ class _Shared:
             if self.stopped or self.next >= len(self.order):
                 self.stopped = True
                 return None
-            if self.next >= self.seed_first and self.n_cand[self.order[self.next]] < self.threshold():
+            thr = self.threshold()
+            if self.seed_first <= self.next < self.head and self.n_cand[self.order[self.next]] < thr:
                 self.stopped = True  # every later location has at most this many candidates
                 return None
+            if self.next == self.head and not self.tail_built:
+                # The rest in location order (memory order: the map's arrays are read forwards), only those
+                # whose count reaches the threshold now; the threshold only rises, so none is missed.
+                rest = self.order[self.head:]
+                tail = np.sort(rest[self.n_cand[rest] >= thr])
+                self.order = np.concatenate([self.order[:self.head], tail])
+                self.tail_built = True
+                if self.next >= len(self.order):
+                    self.stopped = True
+                    return None
             p0 = self.next
-            p1 = min(p0 + self.chunk, len(self.order))
+            p1 = min(p0 + self.chunk, self.head if p0 < self.head else len(self.order))
             self.next = p1
             self.chunk = min(2 * self.chunk, self.max_chunk)
             if helper:
@@ -727,15 +751,16 @@ class _Shared:
         m = p1 - p0
         score, exact, stats = np.empty(m), np.zeros(m, bool), np.zeros((m, 3), np.int64)
         keep = np.zeros(self.F, np.bool_)
-        end, stopped, _, best_score, best_loc = _match_chunk(
-            self.order, p0, p1, self.seed_first, self.n_cand, top, n_fin, self.top_k, loc_ptr, word, xy, groups,
-            qptr, qf, qx, qy, tol, gx, gy, seed, cap, score, exact, stats, keep)
+        order = self.order  # read once: the tail replaces it beyond ``head`` (never this chunk's positions)
+        end, stopped, _, best_score, best_loc, visited = _match_chunk(
+            order, p0, p1, self.seed_first, self.head, self.n_cand, top, n_fin, self.top_k, loc_ptr, word, xy,
+            groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, score, exact, stats, keep)
         k = end - p0
         with self.lock:
             if p0 in self.done:
                 return  # the other thread recorded it first: same exact scores, or other bounds below T
             self.done.add(p0)
-            self.visited += k
+            self.visited += visited
             self.records.append((p0, end, score[:k], exact[:k], stats[:k]))
             self.stopped |= stopped
             fin = score[:k][exact[:k]]
@@ -782,19 +807,25 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
 
     The first ``seed_first`` locations of ``order`` (by candidate count) are
     re-ordered by their translation bound, highest first, so that a good
-    threshold comes early.  Locations are then claimed in chunks, in that
-    order (:data:`FIRST_CHUNK` locations first, twice as many each claim, at
-    most :data:`MAX_CHUNK` and 1 / :data:`CHUNK_SHARE` of the locations), by the calling thread and by ``threads - 1``
-    helper threads; a chunk is matched in one compiled loop
-    (:func:`_match_chunk`) against the threshold known when it is claimed,
-    raised by its own finished locations (the ``top_k``-th best finished
-    score: only an upper bound below it drops a location, so which thread
-    matched what, and when, never changes ``S``; see :func:`match_compiled`).
-    The calling thread never waits for a helper: when nothing is left to
-    claim, it matches itself any chunk a helper holds but has not recorded
-    (whichever records it first counts), so a helper that the operating
-    system does not run costs at most one chunk's work twice, and a busy
-    machine degrades to the serial loop rather than stalling on a barrier.
+    threshold comes early.  The first :data:`HEAD` locations are then matched
+    in that order, and the rest in location order (memory order: the map's
+    arrays are read forwards, which on a long route costs less than reading
+    them in count order), only those whose count reaches the threshold when
+    the head is done (it only rises later, so none that can reach the
+    ``top_k``-th best score is left out).  Locations are claimed in chunks
+    (:data:`FIRST_CHUNK` locations first, twice as many each claim, at most
+    :data:`MAX_CHUNK` and 1 / :data:`CHUNK_SHARE` of the locations), by the
+    calling thread and by ``threads - 1`` helper threads; a chunk is matched
+    in one compiled loop (:func:`_match_chunk`) against the threshold known
+    when it is claimed, raised by its own finished locations (the
+    ``top_k``-th best finished score: only an upper bound below it drops a
+    location, so which thread matched what, and when, never changes ``S``;
+    see :func:`match_compiled`).  The calling thread never waits for a
+    helper: when nothing is left to claim, it matches itself any chunk a
+    helper holds but has not recorded (whichever records it first counts),
+    so a helper that the operating system does not run costs at most one
+    chunk's work twice, and a busy machine degrades to the serial loop
+    rather than stalling on a barrier.
     ``stats`` (int64, 6): elimination steps, locations whose ``J`` was built,
     pair tests, locations finished, locations dropped by the translation
     bounds, locations visited (candidate count at least the threshold).
@@ -826,7 +857,7 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
         best_loc = shared.best_loc
         best_keep[:] = shared.best_keep
     for p0, end, sc, ex, st in records:
-        locs = order[p0:end]
+        locs = shared.order[p0:end]
         scores[locs] = sc
         exact[locs] = ex
         stats[0] += int(st[:, 0].sum())
