@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import faiss
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
-from topoloc.landmarks.model import LandmarkModel
+from topoloc.landmarks import model as landmark_model
+from topoloc.landmarks.model import LandmarkModel, landmark_index, resolve_index
 from topoloc.landmarks.similarity import node_prior, node_similarity
 from topoloc.landmarks.tracking import Tracks
 
@@ -244,3 +246,45 @@ def test_landmarks_updated_in_chunks_as_in_one_pass() -> None:
     m._update_landmarks(np.arange(m.n_landmarks_), chunk=7)
     for before, after in zip(one_pass, [m.mean_, m.radius_, m.length_, m.p_desc_], strict=True):
         np.testing.assert_array_equal(before, after)
+
+
+def test_auto_index_is_flat_up_to_the_switch_and_hnsw_above(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert resolve_index("auto", landmark_model.AUTO_FLAT_MAX_LANDMARKS) == "flat"
+    assert resolve_index("auto", landmark_model.AUTO_FLAT_MAX_LANDMARKS + 1) == "hnsw"
+    assert resolve_index("flat", 10**9) == "flat" and resolve_index("hnsw", 1) == "hnsw"  # named kinds stay
+    with pytest.raises(TopolocError, match="index"):
+        resolve_index("ivf", 10)
+    with pytest.raises(TopolocError, match="index kind"):
+        landmark_index("auto", np.zeros((2, 128), np.float32), 8)  # "auto" is resolved before an index is made
+    # The switch is read when the model is built: a tiny map, with the switch moved to either side of its size.
+    feats, tracks = _two_node_map()  # 3 landmarks
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", 3)
+    at = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
+    assert at.index == "auto" and at.index_kind_ == "flat" and isinstance(at.index_, faiss.IndexFlatL2)
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", 2)
+    above = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
+    assert above.index_kind_ == "hnsw" and isinstance(above.index_, faiss.IndexHNSWFlat)
+    assert above.index_.ntotal == 3
+    # A named kind ignores the switch.
+    assert LandmarkModel(top_k=2, n_background=100, index="flat").build(feats, tracks).index_kind_ == "flat"
+    # The approximate index finds the same matches on a map this small.
+    np.testing.assert_array_equal(above.match(feats[1]), at.match(feats[1]))
+
+
+def test_index_parameter_accepts_auto_and_refuses_others() -> None:
+    assert LandmarkModel().index == "auto"  # the default
+    for kind in ("auto", "flat", "hnsw"):
+        LandmarkModel(index=kind)
+    with pytest.raises(TopolocError, match="index must be one of 'auto', 'flat', 'hnsw'"):
+        LandmarkModel(index="ivf")
+
+
+def test_splitting_past_the_switch_moves_auto_to_hnsw(monkeypatch: pytest.MonkeyPatch) -> None:
+    feats, tracks = _long_track_map(8)
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", 3)  # the map's 3 landmarks: flat when built
+    m = LandmarkModel(top_k=2, n_background=100).build(feats, tracks)
+    assert m.index_kind_ == "flat"
+    done = m.optimise(np.inf, max_splits=2)
+    # The index is rebuilt for the split map, which "auto" now puts above the switch.
+    assert len(done) == 2 and m.n_landmarks_ == 5
+    assert m.index_kind_ == "hnsw" and isinstance(m.index_, faiss.IndexHNSWFlat) and m.index_.ntotal == 5

@@ -229,6 +229,26 @@ def test_a_map_saved_with_model_path_still_loads(method: str, tiny_route: dict[s
     np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))
 
 
+@pytest.mark.parametrize(("index", "kind"), [("auto", "hnsw"), ("auto", "flat"), ("flat", "flat"), ("hnsw", "hnsw")])
+def test_a_saved_landmark_map_keeps_the_index_it_was_built_with(
+        index: str, kind: str, tiny_route: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from topoloc.landmarks import model as landmark_model
+
+    kw: dict[str, Any] = {"method": "landmarks", "tours": [tiny_route["map"]], "params": {"index": index},
+                          "cache_dir": tiny_route["map"].root.parent / "cache"}
+    n = Map.build(**{**kw, "params": {"index": "flat"}}).recognizer.model_.n_landmarks_
+    # "auto" decides at build time: the switch just below or at this tiny map's size, then moved across it.
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", n - 1 if kind == "hnsw" else n)
+    m = Map.build(**kw)
+    assert m.recognizer.model_.index_kind_ == kind
+    path = m.save(tmp_path / "lm.tlm")
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", n if kind == "hnsw" else n - 1)
+    back = Map.load(path)
+    assert back.recognizer.get_params()["index"] == index and back.recognizer.model_.index_kind_ == kind
+    assert back.recognizer.model_.index_.ntotal == n
+    np.testing.assert_array_equal(back.similarity(tiny_route["query"]), m.similarity(tiny_route["query"]))
+
+
 def test_update_saves_when_the_block_ends_and_only_then(tiny_route: dict[str, Any], tmp_path: Path) -> None:
     path = _build(tiny_route, "bow").save(tmp_path / "m.tlm")
     before = path.read_bytes()

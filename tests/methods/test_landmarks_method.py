@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import copy
+
+import faiss
 import numpy as np
 import pytest
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import NotFittedError, TopolocError
 from topoloc.features import FeatureSet
+from topoloc.landmarks import model as landmark_model
 from topoloc.methods.base import parse_param
 from topoloc.methods.landmark_map import LandmarkMap
 from topoloc.resources import InMemoryResources
@@ -116,3 +120,60 @@ def test_not_fitted_and_params() -> None:
     with pytest.raises(TopolocError):
         res, tr = _resources()
         LandmarkMap(match_threshold=0.0).fit([tr["map"]], resources=res)
+
+
+def test_auto_index_follows_the_switch(monkeypatch: pytest.MonkeyPatch) -> None:
+    res, tr = _resources()
+    assert LandmarkMap().index == "auto" and parse_param(LandmarkMap, "index", "auto") == "auto"
+    # `topoloc methods landmarks` shows the docstring: it must state the switch the code uses.
+    assert f"({landmark_model.AUTO_FLAT_MAX_LANDMARKS:,}) landmarks" in (LandmarkMap.__doc__ or "")
+    exact = LandmarkMap(index="flat").fit([tr["map"]], resources=res)
+    n = exact.model_.n_landmarks_
+    # A switch moved to the map's size (instead of building a map of tens of thousands of landmarks).
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", n)
+    below = LandmarkMap().fit([tr["map"]], resources=res)
+    assert below.model_.index_kind_ == "flat" and isinstance(below.model_.index_, faiss.IndexFlatL2)
+    q = below.encode(tr["query"], resources=res)
+    np.testing.assert_array_equal(below.score(q), exact.score(q))  # the exact index's scores, bit for bit
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", n - 1)
+    above = LandmarkMap().fit([tr["map"]], resources=res)
+    assert above.model_.index_kind_ == "hnsw" and isinstance(above.model_.index_, faiss.IndexHNSWFlat)
+    assert above.get_params()["index"] == "auto"  # the parameter stays what was asked; the model holds the kind
+    assert np.mean(np.argmax(above.score(q), axis=0) == np.arange(N_FRAMES)) >= 0.75
+    with pytest.raises(TopolocError, match="index must be one of 'auto', 'flat', 'hnsw'"):
+        LandmarkMap(index="ivf").fit([tr["map"]], resources=res)
+
+
+@pytest.mark.parametrize("kind", ["flat", "hnsw"])
+def test_a_restored_map_searches_with_the_kind_it_was_built_with(kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    res, tr = _resources()
+    n = LandmarkMap(index="flat").fit([tr["map"]], resources=res).model_.n_landmarks_
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", n if kind == "flat" else n - 1)
+    built = LandmarkMap().fit([tr["map"]], resources=res)
+    assert built.model_.index_kind_ == kind
+    meta, arrays = built.get_state()
+    assert meta["model"]["json"]["index_kind_"] == kind  # what a map file stores
+    # The switch moved the other way since: the restored map keeps the kind it was built with.
+    monkeypatch.setattr(landmark_model, "AUTO_FLAT_MAX_LANDMARKS", n - 1 if kind == "flat" else n)
+    back = LandmarkMap.from_state(built.get_params(), meta, arrays, resources=res)
+    assert back.model_.index_kind_ == kind
+    assert isinstance(back.model_.index_, faiss.IndexFlatL2 if kind == "flat" else faiss.IndexHNSWFlat)
+    q = built.encode(tr["query"], resources=res)
+    np.testing.assert_array_equal(back.score(q), built.score(q))
+
+
+@pytest.mark.parametrize("kind", ["flat", "hnsw"])
+def test_a_map_saved_before_auto_loads_and_scores_as_before(kind: str) -> None:
+    res, tr = _resources()
+    built = LandmarkMap(index=kind).fit([tr["map"]], resources=res)
+    meta, arrays = built.get_state()
+    old = copy.deepcopy(meta)
+    del old["model"]["json"]["index_kind_"]  # saved before the kind was recorded: its index named it
+    back = LandmarkMap.from_state(built.get_params(), old, arrays, resources=res)
+    assert back.model_.index_kind_ == kind and back.index == kind
+    q = built.encode(tr["query"], resources=res)
+    np.testing.assert_array_equal(back.score(q), built.score(q))
+    bad = copy.deepcopy(meta)
+    bad["model"]["json"]["index_kind_"] = "auto"  # a file can claim anything: "auto" is never a stored kind
+    with pytest.raises(TopolocError, match="stored index kind 'auto'"):
+        LandmarkMap.from_state(built.get_params(), bad, arrays, resources=res)

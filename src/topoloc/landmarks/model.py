@@ -61,6 +61,77 @@ from topoloc.landmarks.similarity import node_similarity
 from topoloc.landmarks.splitting import node_ratios, split_candidate
 from topoloc.landmarks.tracking import Tracks
 
+#: The faiss indexes a model can search its landmark means with: exact, or HNSW (approximate).
+INDEX_KINDS = ("flat", "hnsw")
+
+AUTO_FLAT_MAX_LANDMARKS = 32768
+"""Most landmarks for which ``index="auto"`` keeps the exact flat index; HNSW above.
+
+From ``benchmarks/bench_landmark_index.py`` (``docs/results/landmark_index.md`` and its .json,
+which also list the development maps' landmark counts and check this value against the rule
+below).  Flat search compares every query feature with every landmark mean, so a query costs
+time linear in the landmarks: with the gardens_point ``day_right`` queries (median 772 SIFT
+features, one thread) 3.6 ms at 1,024 landmarks, 9.1 ms at 2,048, more than HNSW's from 8,192
+on (31.8 ms against 20.8 ms) and 131 ms at 32,768 (HNSW 34 ms).  A switch where flat search
+first costs more than a few ms (5 ms: 2,048 landmarks) would put every gardens_point map that
+the scorecard and the results pages build (6,762 to 15,424 landmarks) on the approximate index,
+whose scores are not the exact index's (up to 0.008 apart on the scorecard's ``landmarks_day`` map), so the results
+pages' numbers would change.  The rule is therefore: the smallest measured size past 5 ms that
+is at least 1.5 times the largest development map (20,594 landmarks: all three gardens_point
+traverses), i.e. 32,768, 2.1 times the largest map a results page reports (15,424).  A long
+route is far above it (``docs/results/localize_100k.md``: 2.9 million landmarks, 5,725 ms per
+query flat against 30.6 ms with HNSW).
+"""
+
+
+def resolve_index(index: str, n_landmarks: int) -> str:
+    """The faiss index kind that ``index`` means for a model of ``n_landmarks`` landmarks.
+
+    Parameters
+    ----------
+    index : {"auto", "flat", "hnsw"}
+        ``"auto"``: ``"flat"`` up to :data:`AUTO_FLAT_MAX_LANDMARKS` landmarks, ``"hnsw"`` above.
+    n_landmarks : int
+
+    Returns
+    -------
+    {"flat", "hnsw"}
+    """
+    if index == "auto":
+        # Read at call time (not bound as a default), so tests can move the switch on a tiny map.
+        return "flat" if n_landmarks <= AUTO_FLAT_MAX_LANDMARKS else "hnsw"
+    if index not in INDEX_KINDS:
+        raise TopolocError(f"landmarks: index must be one of 'auto', 'flat', 'hnsw', got {index!r}")
+    return index
+
+
+def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
+    """A faiss index of kind ``kind`` over the landmark means, as :class:`LandmarkModel` searches them.
+
+    Parameters
+    ----------
+    kind : {"flat", "hnsw"}
+    means : ndarray of float32, shape (n_landmarks, d)
+    n_candidates : int
+        Neighbours looked up per query feature; HNSW's ``efSearch`` is at least twice that.
+
+    Returns
+    -------
+    faiss.Index
+    """
+    d = means.shape[1]
+    index: Any
+    if kind == "hnsw":
+        index = faiss.IndexHNSWFlat(d, 32)
+        index.hnsw.efSearch = max(64, 2 * n_candidates)
+    elif kind == "flat":
+        index = faiss.IndexFlatL2(d)
+    else:
+        raise TopolocError(f"landmarks: index kind must be 'flat' or 'hnsw', got {kind!r}")
+    if len(means):
+        index.add(np.ascontiguousarray(means, np.float32))
+    return index
+
 
 class LandmarkModel(Configurable):
     """Landmarks of one map-building tour with the probabilities of Sec. IV-V.
@@ -86,14 +157,20 @@ class LandmarkModel(Configurable):
     min_track_length : int
         Tracks shorter than this form no landmark (their features still count
         in ``b`` and ``|f_x|``).
-    index : {"flat", "hnsw"}
-        faiss index over landmark means: exact, or HNSW (approximate, faster).
+    index : {"auto", "flat", "hnsw"}
+        faiss index over landmark means: exact, HNSW (approximate, faster on
+        large maps), or ``"auto"`` (default): flat up to
+        :data:`AUTO_FLAT_MAX_LANDMARKS` landmarks, HNSW above, decided when
+        the model is built (:func:`resolve_index`).
     seed : int
         Seed of the background sample.
 
     Attributes (after :meth:`build`)
     --------------------------------
     n_nodes_, n_landmarks_ : int
+    index_kind_ : {"flat", "hnsw"}
+        The index ``index`` resolved to for ``n_landmarks_`` (after any
+        splitting); a saved model keeps it, so a loaded one searches the same way.
     mean_ : ndarray of float32, shape (n_landmarks, d)
     radius_ : ndarray of float32, shape (n_landmarks,)
         ``d_max`` (before ``radius_floor``).
@@ -126,7 +203,7 @@ class LandmarkModel(Configurable):
     nbr_twidth_: np.ndarray
 
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
-        "top_k": Interval(int, 1), "index": Options(("flat", "hnsw")), "min_track_length": Interval(int, 1),
+        "top_k": Interval(int, 1), "index": Options(("auto", *INDEX_KINDS)), "min_track_length": Interval(int, 1),
     }
 
     @classmethod
@@ -144,7 +221,7 @@ class LandmarkModel(Configurable):
         n_background: int = 5000,
         alpha: float = 0.5,
         min_track_length: int = 2,
-        index: str = "flat",
+        index: str = "auto",
         seed: int = 0,
     ) -> None:
         self.top_k = int(top_k)
@@ -236,6 +313,7 @@ class LandmarkModel(Configurable):
         self._update_landmarks(ids)
         self._update_neighbours(ids)
         self._update_probabilities()
+        self.index_kind_ = resolve_index(self.index, self.n_landmarks_)
         self._build_index()
         return self
 
@@ -297,16 +375,8 @@ class LandmarkModel(Configurable):
             self.nbr_twidth_, self.nbr_dmin_, self.nbr_dmax_, self.image_area_)
 
     def _build_index(self) -> None:
-        d = self.mean_.shape[1]
-        index: Any
-        if self.index == "hnsw":
-            index = faiss.IndexHNSWFlat(d, 32)
-            index.hnsw.efSearch = max(64, 2 * self.n_candidates)
-        else:
-            index = faiss.IndexFlatL2(d)
-        if self.n_landmarks_:
-            index.add(np.ascontiguousarray(self.mean_))
-        self.index_ = index
+        """The faiss index of kind ``index_kind_`` over the landmark means (not saved: rebuilt on load)."""
+        self.index_ = landmark_index(self.index_kind_, self.mean_, self.n_candidates)
 
     # -- per-landmark summaries ---------------------------------------------------------
     def landmark_posterior(self) -> np.ndarray:
@@ -473,5 +543,7 @@ class LandmarkModel(Configurable):
             self.split(target)
             done.append(target)
         if done:
+            # Splitting adds landmarks: "auto" decides again for the map as it will be saved and searched.
+            self.index_kind_ = resolve_index(self.index, self.n_landmarks_)
             self._build_index()
         return done

@@ -29,7 +29,7 @@ from topoloc.errors import TopolocError
 from topoloc.features import FeatureSet
 from topoloc.geometry import epipolar_inliers, normalise_descriptors
 from topoloc.io.state import new_object, object_state, restore_state
-from topoloc.landmarks.model import LandmarkModel
+from topoloc.landmarks.model import INDEX_KINDS, LandmarkModel
 from topoloc.landmarks.similarity import node_denominators, node_similarity
 from topoloc.landmarks.tracking import adjacent_matches, chain_tracks, pair_matches
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
@@ -66,8 +66,18 @@ class LandmarkMap(PlaceRecognizer):
         Nearest landmarks looked up per query feature in the faiss index.
     min_track_length : int
         Shortest track that forms a landmark.
-    index : {"flat", "hnsw"}
-        faiss index over the landmark means.
+    index : {"auto", "flat", "hnsw"}
+        faiss index over the landmark means: ``"flat"`` (exact, the paper's
+        nearest-neighbour look-up; time per query linear in the landmarks),
+        ``"hnsw"`` (approximate, about logarithmic) or ``"auto"`` (default):
+        flat up to :data:`topoloc.landmarks.model.AUTO_FLAT_MAX_LANDMARKS`
+        (32,768) landmarks, HNSW above, decided when the map is built and
+        kept with it (``model_.index_kind_``), so a saved map is searched the
+        same way when loaded.  Every landmark map of the development data
+        stays below the switch, so its results are those of the exact index;
+        a long route gets HNSW (``docs/results/landmark_index.md``, written
+        by ``benchmarks/bench_landmark_index.py``, gives the timings and the
+        development maps' landmark counts).
     r_min : float
         Sec. VII: split landmarks until ``min_x r_x > r_min`` (0: no splitting).
     max_splits : int
@@ -122,6 +132,7 @@ class LandmarkMap(PlaceRecognizer):
     ----------
     place_ids_ : ndarray of int64, shape (n_places,)
     model_ : LandmarkModel
+        ``model_.index_kind_`` is the index ``index`` resolved to.
     node_place_ : ndarray of int64, shape (n_nodes,)
         Row of ``S`` of every node (an image of the first map traverse, or
         of every map traverse with ``tours="separate"``).
@@ -142,7 +153,8 @@ class LandmarkMap(PlaceRecognizer):
         "ransac_px": Interval(float, 0.0, closed="neither"),
         "top_k_neighbours": Interval(int, 0), "radius_floor": Interval(float, 0.0),
         "distance_margin": Interval(float, 0.0), "angle_margin": Interval(float, 0.0),
-        "n_candidates": Interval(int, 1), "min_track_length": Interval(int, 2), "index": Options(("flat", "hnsw")),
+        "n_candidates": Interval(int, 1), "min_track_length": Interval(int, 2),
+        "index": Options(("auto", *INDEX_KINDS)),
         "r_min": Interval(float, 0.0), "max_splits": Interval(int, 0), "online_supervised": OfType(bool),
         "tours": Options(("separate", "first")),
         "verify_nodes": Interval(int, 0), "n_background": Interval(int, 1), "shrinkage": Interval(float, 0.0),
@@ -161,7 +173,7 @@ class LandmarkMap(PlaceRecognizer):
         angle_margin: float = 0.5,
         n_candidates: int = 8,
         min_track_length: int = 2,
-        index: str = "flat",
+        index: str = "auto",
         r_min: float = 0.0,
         max_splits: int = 1000,
         online_supervised: bool = False,
@@ -357,6 +369,11 @@ class LandmarkMap(PlaceRecognizer):
         restore_state(self, meta, arrays, copy=True)
         # Online learning updates the model's counts in place: writeable copies.
         model = restore_state(new_object(LandmarkModel), meta["model"], arrays, prefix="model/", copy=True)
+        # Models saved before ``index="auto"`` existed hold only ``index``, "flat" or "hnsw": the kind they searched.
+        kind = getattr(model, "index_kind_", getattr(model, "index", None))
+        if kind not in INDEX_KINDS:
+            raise TopolocError(f"landmarks: stored index kind {kind!r} is not one of {', '.join(INDEX_KINDS)}")
+        model.index_kind_ = kind
         model._bg_index = faiss.IndexFlatL2(model.bg_desc_.shape[1] if model.bg_desc_.ndim == 2 else 128)
         if len(model.bg_desc_):
             model._bg_index.add(np.ascontiguousarray(model.bg_desc_))
