@@ -510,8 +510,8 @@ def render_page(meta: dict[str, Any], rows: Sequence[dict[str, Any]], lm: Sequen
             "\nWhat bounds each: bag of words and FAB-MAP 2.0 score through an inverted file, so a query touches only "
             "the images that share one of its words (FAB-MAP 2.0's bailout also drops the places that cannot win). "
             "Cooc-Map (Sec. II-C, II-D, `topoloc.coocmap.compiled`) counts each location's candidates through the "
-            "inverted file word -> locations, then visits the locations in decreasing count until the count falls "
-            "below the `top_k`-th best exact score (`top_k` = 10 by default, so that ranks 1 to 10 are exact); a "
+            "inverted file word -> locations, then visits only the locations whose count reaches the `top_k`-th "
+            "best exact score found so far (`top_k` = 10 by default, so that ranks 1 to 10 are exact); a "
             "visited location is first bounded from its correspondences' translations, and its consistency graph "
             "is built only where the bounds cannot drop it. Its time grows with the locations visited. Tiling "
             "changes that number: every copy of a place ties with it, so on a tiled map the `top_k`-th best score "
@@ -521,7 +521,8 @@ def render_page(meta: dict[str, Any], rows: Sequence[dict[str, Any]], lm: Sequen
         "\nThe CPU column is the process's CPU time per query (all its threads): on a machine shared with other "
         "work the wall clock also counts the time the query waited for a core, so \"met\" is given for both. Bag "
         "of words, FAB-MAP 2.0 and landmarks score on one thread (a query's faiss search runs on the calling thread), "
-        "so on an idle core the two agree; Cooc-Map's matcher also runs on numba's threads, whose CPU times add up. "
+        "so on an idle core the two agree; Cooc-Map's matcher also runs on a helper thread per further core "
+        "(its compiled loops release the GIL), whose CPU times add up. "
         "The landmarks row is the largest landmark map measured (below); its fit s is the build from the route's "
         "tracks, tracking excluded.\n")
     if lm:
