@@ -363,11 +363,11 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
 
     Returns ``(score, exact, elimination steps, pair tests, dropped by the
-    translation bound)``; when exact, ``keep`` (bool, F) marks the query
+    bounds before J)``; when exact, ``keep`` (bool, F) marks the query
     features of the final group (the caller clears it).  The work arrays
     (``stamp`` .. ``hist``) are those of :func:`_new_scratch`, ``t_*`` large
     enough for the location's triples; ``tag`` differs between the calls that
-    share them.  ``tb_prune=False`` skips the translation bound (for profiling).
+    share them.  ``tb_prune=False`` skips the bounds before J (for profiling).
     """
     r = tol + 1
     NB = (2 * gx) * (2 * gy)
