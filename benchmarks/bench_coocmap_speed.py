@@ -35,6 +35,7 @@ from benchmarks.common import DATA, GP, RESULTS, VOCAB_FOR_GP, require_data
 from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
 from topoloc.coocmap.compiled import (
     _PAIRWISE_MAX,
+    _PARTNERS_MAX,
     _column_bound,
     _match_location,
     _new_scratch,
@@ -128,7 +129,7 @@ def _phases(L, thr, tb_prune, bounds_only, loc_ptr, word, xy, groups, qptr, qf, 
         else:
             total += _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, 0, loc,
                                      stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune,
-                                     _PAIRWISE_MAX)[0]
+                                     _PAIRWISE_MAX, _PARTNERS_MAX)[0]
             keep[:] = False
     return total
 

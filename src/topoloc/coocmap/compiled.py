@@ -116,6 +116,11 @@ def _candidate_counts(wloc_ptr: np.ndarray, wloc: np.ndarray, qwords: np.ndarray
 
 #: Translation bounds from at most this many triples compare them pair by pair; more fill a histogram.
 _PAIRWISE_MAX = 32
+#: The partner bound (:func:`_partner_bound`) costs up to the square of the triples, like building ``J``:
+#: computed only for locations with at most this many, where it drops most wrong locations on a long
+#: route; above (a query of a thousand features against a small map, across day and night) it would
+#: only add to ``J``'s cost.
+_PARTNERS_MAX = 128
 
 
 @njit(cache=True)
@@ -359,7 +364,8 @@ def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx,
 
 @njit(cache=True, nogil=True)
 def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed, tag,
-                    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune, pairwise_max):
+                    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune, pairwise_max,
+                    partners_max):
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
 
     Returns ``(score, exact, elimination steps, pair tests, dropped by the
@@ -367,7 +373,8 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     features of the final group (the caller clears it).  The work arrays
     (``stamp`` .. ``hist``) are those of :func:`_new_scratch`, ``t_*`` large
     enough for the location's triples; ``tag`` differs between the calls that
-    share them.  ``tb_prune=False`` skips the bounds before J (for profiling).
+    share them.  ``tb_prune=False`` skips the bounds before J (for profiling);
+    :func:`_partner_bound` is computed only for at most ``partners_max`` triples.
     """
     r = tol + 1
     NB = (2 * gx) * (2 * gy)
@@ -387,7 +394,7 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     tb = _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, r, pairwise_max)
     if tb_prune and tb < thr:
         return float(tb), False, 0, 0, 1
-    if tb_prune:
+    if tb_prune and nt <= partners_max:
         pb = _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, r)
         if pb < thr:
             return float(pb), False, 0, 0, 1
@@ -589,7 +596,7 @@ def _match_chunk(order, p0, p1, seed_first, head, n_cand, top, n_fin, top_k, loc
             visited += 1
             res = _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed,
                                   p, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, True,
-                                  _PAIRWISE_MAX)
+                                  _PAIRWISE_MAX, _PARTNERS_MAX)
         k = p - p0
         out_score[k] = res[0]
         out_exact[k] = res[1]
@@ -651,7 +658,7 @@ def _one_location(model: CoocModel, loc: int, thr: float, words: np.ndarray, xy:
     res = _match_location(int(loc), float(thr), model.loc_ptr, model.word, model.xy, model.group_masks(interpolate),
                           qptr, qf, qx, qy, int(tol), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
                           0, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, bool(tb_prune),
-                          int(pairwise_max))
+                          int(pairwise_max), _PARTNERS_MAX)
     return (*res, np.flatnonzero(keep))
 
 
@@ -671,8 +678,10 @@ def _query_table(model: CoocModel, words: np.ndarray,
 
 #: Locations in a thread's first claim; each later claim takes twice as many, up to :data:`MAX_CHUNK`.
 FIRST_CHUNK = 8
-#: Most locations claimed at once, and at most 1 / :data:`CHUNK_SHARE` of the map's: a helper that the
-#: operating system stops running holds no more, so the calling thread repeats at most that much work.
+#: Most locations claimed at once, and at most 1 / :data:`CHUNK_SHARE` of the map's (but
+#: :data:`FIRST_CHUNK` on any map): a helper that the operating system stops running holds no more, so
+#: the calling thread repeats at most that much work, while each claim's cost in the interpreter (tens
+#: of microseconds) is shared by several locations even on a map of a hundred places.
 MAX_CHUNK = 512
 CHUNK_SHARE = 64
 #: Locations matched in decreasing candidate count before the rest are taken in location order
@@ -699,7 +708,7 @@ class _Shared:
         self.tail_built = self.head >= len(order)
         self.F = F
         self.next = 0  # the next position of ``order`` nobody has claimed
-        self.max_chunk = max(1, min(MAX_CHUNK, len(order) // CHUNK_SHARE))
+        self.max_chunk = max(FIRST_CHUNK, min(MAX_CHUNK, len(order) // CHUNK_SHARE))
         self.chunk = min(FIRST_CHUNK, self.max_chunk)
         self.stopped = False
         self.visited = 0  # locations matched or bounded: every one whose candidate count reached the threshold
@@ -814,7 +823,8 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     the head is done (it only rises later, so none that can reach the
     ``top_k``-th best score is left out).  Locations are claimed in chunks
     (:data:`FIRST_CHUNK` locations first, twice as many each claim, at most
-    :data:`MAX_CHUNK` and 1 / :data:`CHUNK_SHARE` of the locations), by the
+    :data:`MAX_CHUNK` and 1 / :data:`CHUNK_SHARE` of the locations, or
+    :data:`FIRST_CHUNK`), by the
     calling thread and by ``threads - 1`` helper threads; a chunk is matched
     in one compiled loop (:func:`_match_chunk`) against the threshold known
     when it is claimed, raised by its own finished locations (the
