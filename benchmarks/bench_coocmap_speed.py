@@ -125,7 +125,7 @@ def _phases(L, thr, tb_prune, bounds_only, loc_ptr, word, xy, groups, qptr, qf, 
                 _triple_rows(nt, t_f, t_a, t_x, xy, qy, gy, t_y, t_b)
                 total += _column_bound(n, nt, cand, t_f, t_x, U, P, hist, gx, tol + 1)
                 total += _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, tol + 1, _PAIRWISE_MAX)
-                total += _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, tol + 1)
+                total += _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, tol + 1)
         else:
             total += _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, 0, loc,
                                      stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune,

@@ -134,23 +134,34 @@ def _query_ptr(qword_sorted: np.ndarray, n_words: int) -> np.ndarray:
     return ptr
 
 
+@njit(cache=True, nogil=True)
+def _counting_order(keys, n, nbins):
+    """Stable order of ``keys[:n]`` (each in ``[0, nbins)``) by key: a counting sort, O(n + nbins).
+
+    Returns ``(starts, order)``: ``starts`` (nbins + 1,) int64, ``order`` (n,)
+    int64; the items of key ``b`` are ``order[starts[b]:starts[b + 1]]``, in
+    ascending index.
+    """
+    starts = np.zeros(nbins + 1, np.int64)
+    for i in range(n):
+        starts[keys[i] + 1] += 1
+    for b in range(nbins):
+        starts[b + 1] += starts[b]
+    fill = starts[:nbins].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
+    return starts, order
+
+
 @njit(cache=True)
 def _order_by_count(n_cand: np.ndarray) -> np.ndarray:
     """Locations by decreasing candidate count, lowest index among ties (a counting sort, O(L))."""
     top = 0
     for c in n_cand:
         top = max(top, c)
-    start = np.zeros(top + 2, np.int64)
-    for c in n_cand:
-        start[top - c + 1] += 1
-    for k in range(top + 1):
-        start[k + 1] += start[k]
-    order = np.empty(len(n_cand), np.int64)
-    for i in range(len(n_cand)):
-        k = top - n_cand[i]
-        order[start[k]] = i
-        start[k] += 1
-    return order
+    return _counting_order(top - n_cand, len(n_cand), top + 1)[1]
 
 
 @njit(cache=True, nogil=True)
@@ -302,7 +313,7 @@ def _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, r, pairwi
 
 
 @njit(cache=True, nogil=True)
-def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, r):
+def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r):
     """Upper bound on the final group from the partners each candidate can have, before ``J`` is built.
 
     ``J[f, g] = 1`` needs triples ``(f, a)`` and ``(g, b)`` with ``f != g``,
@@ -316,22 +327,15 @@ def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx,
     ``cand``.  The triples are ordered by column first (a counting sort), so
     each is compared only with those at most ``r`` columns on.
     """
-    BX = 2 * gx
-    for k in range(BX + 1):
-        P[k] = 0
-    for t in range(nt):
-        P[t_x[t] + 1] += 1
-    for x in range(BX):
-        P[x + 1] += P[x]
     # Gathered in column order into contiguous arrays: the loop below reads nothing indirectly.
+    perm = _counting_order(t_x, nt, 2 * gx)[1]
     ox = np.empty(nt, np.int64)
     oy = np.empty(nt, np.int64)
     oc = np.empty(nt, np.int64)
     oa = np.empty(nt, np.int64)
     og = np.empty(nt, groups.dtype)
-    for t in range(nt):
-        d = P[t_x[t]]
-        P[t_x[t]] += 1
+    for d in range(nt):
+        t = perm[d]
         ox[d] = t_x[t]
         oy[d] = t_y[t]
         oc[d] = cof[t_f[t]]
@@ -395,7 +399,7 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     if tb_prune and tb < thr:
         return float(tb), False, 0, 0, 1
     if tb_prune and nt <= partners_max:
-        pb = _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, P, hist, gx, r)
+        pb = _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r)
         if pb < thr:
             return float(pb), False, 0, 0, 1
     # Candidate ids follow ascending query feature index, as in consistency_graphs:
@@ -403,13 +407,8 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     cand_feat = np.sort(cand[:n])
     for i in range(n):
         cof[cand_feat[i]] = i
-    # Counting sort of the triples by translation bucket.
-    bcount = np.zeros(NB + 1, np.int64)
-    for i in range(nt):
-        bcount[t_b[i] + 1] += 1
-    for b in range(NB):
-        bcount[b + 1] += bcount[b]
-    fill = bcount[:NB].copy()
+    # The triples in translation-bucket order, gathered into contiguous arrays.
+    bcount, perm = _counting_order(t_b, nt, NB)
     sf = np.empty(nt, np.int64)
     sc = np.empty(nt, np.int64)
     sa = np.empty(nt, np.int64)
@@ -418,10 +417,8 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     tx = np.empty(nt, np.int64)
     ty = np.empty(nt, np.int64)
     sg = np.empty(nt, np.uint64)
-    for i in range(nt):
-        b = t_b[i]
-        d = fill[b]
-        fill[b] += 1
+    for d in range(nt):
+        i = perm[d]
         f = t_f[i]
         a = t_a[i]
         sf[d] = f
@@ -680,8 +677,8 @@ def _query_table(model: CoocModel, words: np.ndarray,
 FIRST_CHUNK = 8
 #: Most locations claimed at once, and at most 1 / :data:`CHUNK_SHARE` of the map's (but
 #: :data:`FIRST_CHUNK` on any map): a helper that the operating system stops running holds no more, so
-#: the calling thread repeats at most that much work, while each claim's cost in the interpreter (tens
-#: of microseconds) is shared by several locations even on a map of a hundred places.
+#: the calling thread repeats at most that much work, while each claim's cost in the interpreter is
+#: shared by several locations even on a map of a hundred places.
 MAX_CHUNK = 512
 CHUNK_SHARE = 64
 #: Locations matched in decreasing candidate count before the rest are taken in location order
@@ -906,14 +903,14 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     t0 = time.perf_counter()
     L = model.n_locations
     words = np.asarray(words, np.int64).ravel()
-    f_ids = np.flatnonzero((words >= 0) & (words < model.n_words))
-    n_cand = _candidate_counts(model.wloc_ptr, model.wloc, words[f_ids], L)
+    qptr, qf, qx, qy = _query_table(model, words, xy)
+    # qf: the query's in-vocabulary features (by word; a count does not depend on the order).
+    n_cand = _candidate_counts(model.wloc_ptr, model.wloc, words[qf], L)
     order = _order_by_count(n_cand)
     scores = n_cand.astype(np.float32)
     exact = np.zeros(L, bool)
     stats = np.zeros(6, np.int64)
     keep = np.zeros(len(words), bool)
-    qptr, qf, qx, qy = _query_table(model, words, xy)
     # In a Dask worker task the worker's threads already use the cores (topoloc.cluster.in_worker_task).
     n_threads = 1 if not parallel or in_worker_task() else n_workers(-1 if threads is None else threads)
     kernel_args = (model.loc_ptr, model.word, model.xy, model.group_masks(interpolate), qptr, qf, qx, qy,

@@ -78,7 +78,7 @@ def inverted_files(loc: np.ndarray, word: np.ndarray, n_locations: int,
         wloc_ptr[k + 1] += wloc_ptr[k]
     # Next free slot of each word in by_word, then in wloc; taking features in index order keeps
     # each word's run ascending, which is what a stable sort gives.  Two loops, not one: each
-    # keeps one write cursor per word live instead of two (~8% faster at 20,000 x 170 features).
+    # keeps one write cursor per word live instead of two.
     by_word = np.empty(n, np.int32)
     at = word_ptr[:n_words].copy()
     for i in range(n):
