@@ -94,11 +94,15 @@ class Executor(Protocol):
         ...
 
     def map(self, fn: Callable[..., R], items: Sequence[T], *,
-            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None) -> list[R]:
+            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None,
+            keep: Callable[[R], Any] | None = None) -> list[Any]:
         """``[fn(x, **common) for x in items]``, run in parallel; ``advance(1)`` after each item completes.
 
         ``common`` holds arguments every call shares (a whole tour, the resources): on a
-        cluster each worker receives them once, not once per task.
+        cluster each worker receives them once, not once per task.  ``keep``, when given, is
+        applied in this process to each result as it arrives, and the list holds what it
+        returns: a caller that moves large results to disk (``io.scratch``) then never
+        holds all of them in memory at once.
         """
         ...
 
@@ -141,11 +145,14 @@ class LocalExecutor(_Closing):
         return n_workers(self.n_jobs)
 
     def map(self, fn: Callable[..., R], items: Sequence[T], *,
-            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None) -> list[R]:
+            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None,
+            keep: Callable[[R], Any] | None = None) -> list[Any]:
         kwargs = dict(common or {})
 
-        def run(x: T) -> R:
+        def run(x: T) -> Any:
             out = fn(x, **kwargs)
+            if keep is not None:
+                out = keep(out)
             if advance is not None:
                 advance(1)
             return out
@@ -242,7 +249,8 @@ class DaskExecutor(_Closing):
         return None
 
     def map(self, fn: Callable[..., R], items: Sequence[T], *,
-            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None) -> list[R]:
+            advance: Callable[[int], None] | None = None, common: Mapping[str, Any] | None = None,
+            keep: Callable[[R], Any] | None = None) -> list[Any]:
         import distributed
 
         if not items:
@@ -263,7 +271,13 @@ class DaskExecutor(_Closing):
             while not done.is_empty():
                 if done.has_ready():
                     for fut in done.next_batch(block=False):
-                        out[index[fut.key]] = self._result(fut)
+                        result = self._result(fut)
+                        k = index[fut.key]
+                        out[k] = result if keep is None else keep(result)
+                        # The last reference to the future: the worker may then drop the result,
+                        # so that the workers do not hold every result of the run until its end.
+                        futures[k] = None
+                        del result, fut
                         if advance is not None:
                             advance(1)
                     healthy_at = time.monotonic()
@@ -280,7 +294,7 @@ class DaskExecutor(_Closing):
                     raise TopolocError(problem)
         except BaseException:
             if self.client.status == "running":
-                self.client.cancel(futures)
+                self.client.cancel([f for f in futures if f is not None])
             raise
         return out
 

@@ -44,6 +44,7 @@ from topoloc.cli.options import (
 )
 from topoloc.cli.progress import rich_progress
 from topoloc.errors import TopolocError
+from topoloc.io.scratch import spill_to
 from topoloc.spec.parts import STREAM_SEQUENCE_MODE, stream_sequence_for
 
 log = logging.getLogger(__name__)
@@ -92,14 +93,17 @@ def map_build(
     tours = spec.inputs.load(spec.maps)
     params = build_method(spec.method, spec.params).get_params()  # checks names and types first
     t0 = time.perf_counter()
-    with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
-        v = spec.vocabulary
-        m = Map.build(executor=executor, method=spec.method, tours=tours, params=params, vocabulary=v.file,
-                      vocab_train=v.train, vocab_words=v.words, seed=v.seed,
-                      features=spec.features.config(), cache_dir=spec.execution.cache_dir,
-                      progress=progress, shards=spec.shards)
-    m.spec = spec_to_dict(spec)
-    m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
+    # The map's large intermediates (merged shards, inverted files) as scratch files beside the map,
+    # until it is saved: the process then holds chunks of the map, not all of it (io.scratch).
+    with spill_to(spec.out.parent):
+        with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
+            v = spec.vocabulary
+            m = Map.build(executor=executor, method=spec.method, tours=tours, params=params, vocabulary=v.file,
+                          vocab_train=v.train, vocab_words=v.words, seed=v.seed,
+                          features=spec.features.config(), cache_dir=spec.execution.cache_dir,
+                          progress=progress, shards=spec.shards)
+        m.spec = spec_to_dict(spec)
+        m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
     info = m.info()
     typer.echo(json.dumps({"out": str(spec.out), "bytes": info["bytes"], "method": info["method"],
                            "places": info["places"], "tours": [t["name"] for t in m.tours],

@@ -47,7 +47,7 @@ locations containing it, Sec. II-C).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -55,6 +55,7 @@ import numpy as np
 from topoloc._params import Configurable, Constraint, Interval
 from topoloc.coocmap.spatial import n_spatial_words, spatial_words
 from topoloc.errors import TopolocError
+from topoloc.io.scratch import CHUNK_BYTES, chunk_rows, empty, release
 
 MAX_TOURS = 64
 #: The arrays :meth:`CoocModel._index` derives from the features (the inverted files of Sec. II-C).
@@ -197,54 +198,77 @@ class CoocModel(Configurable):
         k = n_old if position is None else int(position)
         if not 0 <= k <= n_old:
             raise TopolocError(f"coocmap: tour position {k} out of range 0..{n_old}")
-        locs, words, xys = [], [], []
+        # Checked here, gathered later a block of locations at a time (_tour_block): the tour's
+        # features are never all copied at once.
+        obs: list[tuple[int, np.ndarray, np.ndarray]] = []
         for loc, w, xy in observations:
             w = np.asarray(w).ravel()
-            xy = self.quantise_xy(xy)
+            xy = np.asarray(xy).reshape(-1, 2)
             if len(w) != len(xy):
                 raise TopolocError("coocmap: words and positions differ in length")
             if not 0 <= int(loc) < self.n_locations:
                 raise TopolocError(f"coocmap: location {loc} out of range 0..{self.n_locations - 1}")
             if len(w) and (w.min() < 0 or w.max() >= self.n_words):
                 raise TopolocError(f"coocmap: word ids must lie in [0, {self.n_words})")
-            locs.append(np.full(len(w), int(loc), _small_uint(self.n_locations)))
-            words.append(w.astype(_small_uint(self.n_words)))
-            xys.append(xy)
-        n_new = sum(len(w) for w in words)
-        # Insert bit k: bits below k stay, bits from k up move one place up.  The mask grows by
-        # one bit, so it is widened to the new tour count's dtype before shifting; in place on the
-        # widened copy, so that masks of up to 64 bits cost two temporaries, not five.
+            obs.append((int(loc), w, xy))
         mask_dt = _mask_dtype(n_old + 1)
-        old = self.tours.astype(mask_dt)
-        low = mask_dt.type((1 << k) - 1)
-        high = old & ~low
-        high <<= mask_dt.type(1)
-        old &= low
-        old |= high
-        del high
         self.tour_names.insert(k, name or f"tour{n_old}")
         self.tour_hours.insert(k, hour)
-        loc_dt, word_dt = _small_uint(self.n_locations), _small_uint(self.n_words)
-        new = (np.concatenate(locs) if locs else np.zeros(0, loc_dt),
-               np.concatenate(words) if words else np.zeros(0, word_dt),
-               np.concatenate(xys) if xys else np.zeros((0, 2), np.uint16),
-               np.full(n_new, mask_dt.type(1 << k), mask_dt))
-        del locs, words, xys
         if _key_word_bits(self.n_locations, self.n_words) is None:
             # No packed key to search the table with (see sort_unique_features): sort it whole.
-            self._set_features(np.concatenate([self.loc, new[0]]).astype(loc_dt, copy=False),
-                               np.concatenate([self.word, new[1]]).astype(word_dt, copy=False),
-                               np.concatenate([self.xy, new[2]]), np.concatenate([old, new[3]]))
+            new = self._tour_block(obs, list(range(len(obs))), k, mask_dt)
+            self._set_features(np.concatenate([self.loc, new[0]]).astype(new[0].dtype, copy=False),
+                               np.concatenate([self.word, new[1]]).astype(new[1].dtype, copy=False),
+                               np.concatenate([self.xy, new[2]]),
+                               np.concatenate([_insert_bit(self.tours, k, mask_dt), new[3]]))
             return self
         # The table is sorted and unique already (bit insertion keeps that), so only the tour's own
-        # features are sorted; they are then merged in, which is linear in the table.
-        if n_new:
-            new = sort_unique_features(*new, n_locations=self.n_locations, n_words=self.n_words)
-        merged = merge_sorted_features((self.loc, self.word, self.xy, old), new, n_locations=self.n_locations,
-                                       n_words=self.n_words)
-        # Dropped before indexing, which is where the peak is: only the merged table stays.
-        del old, new
-        self._set_sorted(*merged)
+        # features are sorted, a block of locations at a time, and merged into the table's block.
+        self._set_sorted(*_merge_by_locations(self, obs, k, mask_dt))
+        return self
+
+    def _tour_block(self, obs: Sequence[tuple[int, np.ndarray, np.ndarray]], which: Sequence[int], k: int,
+                    mask_dt: np.dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The features of the observations ``which`` of a tour as the table holds them: quantised, tour bit ``k``.
+
+        Returns
+        -------
+        loc, word, xy, mask
+            Sorted and unique (:func:`sort_unique_features`), except where
+            the features do not fit a packed key (the caller sorts the table whole).
+        """
+        loc_dt, word_dt = _small_uint(self.n_locations), _small_uint(self.n_words)
+        sizes = [len(obs[i][1]) for i in which]
+        n = int(sum(sizes))
+        loc = np.repeat(np.asarray([obs[i][0] for i in which], np.int64), sizes).astype(loc_dt)
+        word = np.concatenate([obs[i][1] for i in which]).astype(word_dt) if n else np.zeros(0, word_dt)
+        xy = self.quantise_xy(np.concatenate([obs[i][2] for i in which])) if n else np.zeros((0, 2), np.uint16)
+        mask = np.full(n, mask_dt.type(1 << k), mask_dt)
+        if n == 0 or _key_word_bits(self.n_locations, self.n_words) is None:
+            return loc, word, xy, mask
+        return sort_unique_features(loc, word, xy, mask, n_locations=self.n_locations, n_words=self.n_words)
+
+    def renumber_locations(self, rows: np.ndarray, n_locations: int) -> CoocModel:
+        """Location ``i`` becomes location ``rows[i]`` of ``n_locations`` (new locations get no feature).
+
+        Parameters
+        ----------
+        rows : ndarray of int, shape (n_locations_before,)
+            Increasing, so that the table stays sorted by location.
+        n_locations : int
+            Locations after the change.
+        """
+        rows = np.asarray(rows, np.int64)
+        if len(rows) != self.n_locations or (len(rows) and (rows.min() < 0 or rows.max() >= n_locations)) \
+                or np.any(np.diff(rows) <= 0):
+            raise TopolocError("coocmap: renumbered locations must be increasing and within the new count")
+        self.n_locations = int(n_locations)
+        loc_dt = _small_uint(self.n_locations)
+        out = empty(len(self.loc), loc_dt)
+        for s, e in chunk_rows(len(self.loc), 12):
+            out[s:e] = rows[np.asarray(self.loc[s:e])]
+            release(self.loc, out)
+        self._set_sorted(out, self.word, self.xy, self.tours)
         return self
 
     def _set_features(self, loc: np.ndarray, word: np.ndarray, xy: np.ndarray,
@@ -550,6 +574,86 @@ def merge_sorted_features(table: tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
             merged(mask, np.asarray(new[3]), mask.dtype))
 
 
+def _insert_bit(mask: np.ndarray, k: int, dtype: np.dtype) -> np.ndarray:
+    """Tour masks with a zero bit inserted at ``k`` (bits from ``k`` up move one place up), as ``dtype``.
+
+    Widened before shifting, since the mask grows by one bit; in place on the
+    widened copy, so that masks of up to 64 bits cost two temporaries, not five.
+    """
+    out = np.asarray(mask).astype(dtype)
+    low = dtype.type((1 << k) - 1)
+    high = out & ~low
+    high <<= dtype.type(1)
+    out &= low
+    out |= high
+    return out
+
+
+def _merge_by_locations(model: CoocModel, obs: Sequence[tuple[int, np.ndarray, np.ndarray]], k: int,
+                        mask_dt: np.dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The model's table, tour bit ``k`` inserted, merged with a tour's observations, block of locations by block.
+
+    The table is sorted by location first, so a block of consecutive
+    locations merges with the tour's features of the same locations alone
+    (:func:`merge_sorted_features`), and the blocks' results follow each
+    other.  Blocks hold about :data:`topoloc.io.scratch.CHUNK_BYTES` of the
+    table (at most a sixteenth of it); the result is written into
+    :func:`topoloc.io.scratch.empty` arrays and the table's pages are let go
+    of after each block, so that within ``spill_to`` this holds a block of the
+    map and of the tour, not the map.  The tour's blocks are sorted twice, once
+    to count the merged table (allocated once, at its size) and once to merge.
+    """
+    loc, word, xy, tours = model.loc, model.word, model.xy, model.tours
+    n_loc = model.n_locations
+    loc_dt, word_dt = _small_uint(n_loc), _small_uint(model.n_words)
+    n_old = len(word)
+    old_ptr = np.asarray(model.loc_ptr, np.int64)
+    obs_loc = np.asarray([o[0] for o in obs], np.int64)
+    order = np.argsort(obs_loc, kind="stable")
+    obs_ptr = np.searchsorted(obs_loc[order], np.arange(n_loc + 1), side="left")
+    row = loc.itemsize + word.itemsize + 4 + tours.itemsize
+    chunk = min(CHUNK_BYTES, max(64 << 10, n_old * row // 16))
+    cuts = np.unique(np.searchsorted(old_ptr, [s for s, _ in chunk_rows(n_old, row, chunk_bytes=chunk)],
+                                     side="right") - 1)
+    bounds = [int(b) for b in cuts if 0 < b < n_loc] + [n_loc]
+    wb = _key_word_bits(n_loc, model.n_words)
+    assert wb is not None  # add_tour sorts the whole table otherwise
+
+    def blocks() -> Iterator[tuple[int, int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]]:
+        first = 0
+        for last in bounds:
+            yield (int(old_ptr[first]), int(old_ptr[last]),
+                   model._tour_block(obs, order[obs_ptr[first]:obs_ptr[last]].tolist(), k, mask_dt))
+            first = last
+
+    n_out = n_old
+    for ts, te, new in blocks():
+        n_out += len(new[1])
+        if len(new[1]) and te > ts:
+            keys = _feature_keys(loc[ts:te], word[ts:te], xy[ts:te], wb)
+            new_key = _feature_keys(*new[:3], wb)
+            hit = np.minimum(np.searchsorted(keys, new_key), len(keys) - 1)
+            n_out -= int(np.count_nonzero(keys[hit] == new_key))
+            release(loc, word, xy)
+    out_loc, out_word = empty(n_out, loc_dt), empty(n_out, word_dt)
+    out_xy, out_mask = empty((n_out, 2), np.uint16), empty(n_out, mask_dt)
+    at = 0
+    for ts, te, new in blocks():
+        block = (np.array(loc[ts:te]), np.array(word[ts:te]), np.array(xy[ts:te]),
+                 _insert_bit(tours[ts:te], k, mask_dt))
+        release(loc, word, xy, tours)
+        if len(new[1]):
+            block = merge_sorted_features(block, new, n_locations=n_loc, n_words=model.n_words)
+        m = len(block[0])
+        out_loc[at:at + m], out_word[at:at + m], out_xy[at:at + m], out_mask[at:at + m] = block
+        del block
+        release(out_loc, out_word, out_xy, out_mask)
+        at += m
+    if at != n_out:
+        raise AssertionError(f"coocmap: merged {at} features, counted {n_out}")
+    return out_loc, out_word, out_xy, out_mask
+
+
 def merge_models(parts: Sequence[CoocModel]) -> CoocModel:
     """One model from the models of consecutive location ranges (map shards), locations in order.
 
@@ -592,12 +696,23 @@ def merge_models(parts: Sequence[CoocModel]) -> CoocModel:
     out.built_from = dict(first.built_from)
     offsets = np.cumsum([0] + [p.n_locations for p in parts[:-1]])
     loc_dt = _small_uint(out.n_locations)
+    n = sum(p.n_features for p in parts)
+    mask_dt = _mask_dtype(max(len(first.tour_names), 1))
+    loc, word = empty(n, loc_dt), empty(n, _small_uint(out.n_words))
+    xy, tours = empty((n, 2), np.uint16), empty(n, mask_dt)
     # Each part is sorted and unique by (location, word, y, x) and the parts' locations are
-    # consecutive ranges, so their concatenation already is: no sort, compact dtypes throughout.
-    out._set_sorted(
-        np.concatenate([p.loc.astype(loc_dt) + loc_dt.type(o) for p, o in zip(parts, offsets, strict=True)]),
-        np.concatenate([p.word for p in parts]),
-        np.concatenate([np.asarray(p.xy, np.uint16).reshape(-1, 2) for p in parts]),
-        np.concatenate([p.tours for p in parts]),
-    )
+    # consecutive ranges, so their concatenation already is: no sort.  Copied a chunk at a time,
+    # each part's pages and the output's let go of after each (io.scratch), so that merging holds
+    # a chunk of the map, not the shards and the map.
+    at = 0
+    for p, o in zip(parts, offsets, strict=True):
+        row = p.loc.itemsize + p.word.itemsize + 4 + p.tours.itemsize
+        for s, e in chunk_rows(p.n_features, row):
+            loc[at + s:at + e] = np.asarray(p.loc[s:e]).astype(loc_dt) + loc_dt.type(o)
+            word[at + s:at + e] = p.word[s:e]
+            xy[at + s:at + e] = np.asarray(p.xy[s:e], np.uint16).reshape(-1, 2)
+            tours[at + s:at + e] = p.tours[s:e]
+            release(p.loc, p.word, p.xy, p.tours, loc, word, xy, tours)
+        at += p.n_features
+    out._set_sorted(loc, word, xy, tours)
     return out

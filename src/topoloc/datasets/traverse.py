@@ -17,6 +17,7 @@ import csv
 import hashlib
 import logging
 import math
+import os
 import re
 import uuid
 from collections.abc import Sequence
@@ -278,6 +279,18 @@ def _list_images(folder: Path) -> list[Path]:
     )
 
 
+def _image_names(folder: Path) -> set[str]:
+    """Names of the image files directly in ``folder``, unordered.
+
+    One directory read (``os.scandir`` knows which entries are files without a
+    stat of each), and plain strings: a sidecar of 100,000 rows is checked
+    against this set, where a ``stat`` and a ``Path`` per row took a minute and
+    hundreds of MB (``benchmarks/bench_cluster.py``, ``map build``'s client).
+    """
+    with os.scandir(folder) as entries:
+        return {e.name for e in entries if e.is_file() and os.path.splitext(e.name)[1].lower() in IMAGE_SUFFIXES}
+
+
 def _parse_time(text: str, csv_path: Path, line: int) -> np.datetime64:
     try:
         return np.datetime64(datetime.fromisoformat(text.strip()).replace(tzinfo=None), "s")
@@ -294,6 +307,10 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
     xy: list[tuple[float, float]] = []
     seen: set[str] = set()
     try:
+        in_folder = _image_names(folder)
+    except OSError as exc:
+        raise input_error(f"cannot list the traverse folder ({exc.strerror or type(exc).__name__})", folder) from None
+    try:
         # utf-8-sig: spreadsheets save a byte-order mark before the header.
         with csv_path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh, skipinitialspace=True)
@@ -308,7 +325,7 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
             for row in reader:
                 # The line the row ends on (a quoted field may span lines), as an editor numbers it.
                 i = reader.line_num
-                name, pid, when, pos = _sidecar_row(row, folder, csv_path, i, has_time, has_xy)
+                name, pid, when, pos = _sidecar_row(row, folder, csv_path, i, has_time, has_xy, in_folder)
                 if name in seen:
                     raise input_error(f"{csv_path}:{i}: image {name!r} is listed twice", None)
                 seen.add(name)
@@ -322,8 +339,7 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
         raise input_error(f"cannot read places.csv ({type(exc).__name__}: {exc})", csv_path) from None
     if not images:
         raise input_error("places.csv lists no images", csv_path)
-    in_folder = {p.name for p in _list_images(folder)}
-    unlisted = len(in_folder - {str(p.relative_to(folder)) for p in images})
+    unlisted = len(in_folder - {os.path.normpath(n) for n in seen})
     if unlisted:
         # Leaving images out is how a sidecar selects them, but 7 of 10 images silently dropped looks
         # like a stale places.csv: say it once, with the count.
@@ -340,13 +356,18 @@ def _read_sidecar(folder: Path, csv_path: Path) -> Traverse:
 
 def _sidecar_row(
     row: dict[str | Any, str | Any], folder: Path, csv_path: Path, i: int, has_time: bool, has_xy: bool,
+    in_folder: set[str],
 ) -> tuple[str, int, np.datetime64 | None, tuple[float, float] | None]:
-    """One row of ``places.csv`` checked: image name, place id, time and position (line ``i``)."""
+    """One row of ``places.csv`` checked: image name, place id, time and position (line ``i``).
+
+    ``in_folder`` (:func:`_image_names`) answers for a plain image name; a name
+    in a subfolder, or of another suffix, is looked up on disk.
+    """
     name = (row.get("image") or "").strip()
     if not name:
         raise input_error(f"{csv_path}:{i}: empty image name", None)
-    img = folder / name
-    if not img.is_file():
+    if name not in in_folder and not (folder / name).is_file():
+        img = folder / name
         raise input_error(f"{csv_path}:{i}: image {name!r} does not exist", img)
     raw = (row.get("place") or "").strip()
     try:

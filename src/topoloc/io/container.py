@@ -37,7 +37,7 @@ import struct
 import tempfile
 import threading
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ import numpy as np
 
 from topoloc.errors import WriteError, input_error
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
+from topoloc.io.scratch import chunk_rows, release
 
 MAGIC = b"TOPOLOC\x00"
 CONTAINER_VERSION = 2
@@ -82,7 +83,7 @@ def _sweep_once(folder: Path) -> None:
     remove_stale_temporaries(folder / "_", any_target=True)
 
 
-def atomic_write_bytes(path: str | Path, chunks: Sequence[bytes | memoryview] | bytes) -> None:
+def atomic_write_bytes(path: str | Path, chunks: Iterable[bytes | memoryview] | bytes) -> None:
     """Write ``chunks`` to ``path`` atomically (temporary file, fsync, rename).
 
     The file gets the permissions of any file the user creates (``0666`` less
@@ -158,9 +159,10 @@ def write_container(
         JSON-serialisable metadata.
     """
     entries = []
-    # Views of the arrays' own memory, not copies: a map at 100,000 places is hundreds of MB,
-    # and a second copy of it in bytes would be the largest allocation of `map build`.
-    blobs: list[bytes | memoryview] = []
+    # The arrays' own memory, a chunk at a time, never a copy: a map at 100,000 places is hundreds
+    # of MB.  Memory-mapped arrays (a map being updated, the scratch arrays of io.scratch) are let go
+    # of chunk by chunk, so that writing a map does not make it resident in this process.
+    parts: list[np.ndarray | bytes] = []
     offset = 0
     crc = 0
     for name, arr in arrays.items():
@@ -169,24 +171,42 @@ def write_container(
             raise TypeError(f"array {name!r} has dtype object; not storable")
         pad = (-offset) % _ALIGN
         if pad:
-            blobs.append(b"\x00" * pad)
+            parts.append(b"\x00" * pad)
             crc = zlib.crc32(b"\x00" * pad, crc)
             offset += pad
-        raw = a.reshape(-1).view(np.uint8).data
+        nbytes = int(a.nbytes)
         entries.append(
             {"name": name, "dtype": a.dtype.str, "shape": list(a.shape),
-             "offset": offset, "nbytes": raw.nbytes}
+             "offset": offset, "nbytes": nbytes}
         )
-        blobs.append(raw)
-        crc = zlib.crc32(raw, crc)
-        offset += raw.nbytes
+        parts.append(a)
+        for piece in _pieces(a):
+            crc = zlib.crc32(piece, crc)
+        offset += nbytes
     header = json.dumps(
         {"kind": kind, "kind_version": kind_version, "meta": dict(meta or {}),
          "arrays": entries, "payload_nbytes": offset, "payload_crc32": crc},
         sort_keys=True,
     ).encode()
-    atomic_write_bytes(path, [_PREFIX.pack(MAGIC, CONTAINER_VERSION, len(header), zlib.crc32(header)), header,
-                              *blobs])
+
+    def chunks() -> Iterator[bytes | memoryview]:
+        yield _PREFIX.pack(MAGIC, CONTAINER_VERSION, len(header), zlib.crc32(header))
+        yield header
+        for part in parts:
+            if isinstance(part, bytes):
+                yield part
+            else:
+                yield from _pieces(part)
+
+    atomic_write_bytes(path, chunks())
+
+
+def _pieces(a: np.ndarray) -> Iterator[memoryview]:
+    """The bytes of a C-contiguous array in chunks (``io.scratch.CHUNK_BYTES``), file pages let go of after each."""
+    raw = a.reshape(-1).view(np.uint8)
+    for s, e in chunk_rows(len(raw), 1):
+        yield raw[s:e].data
+        release(a)
 
 
 def _whole(value: Any) -> bool:
@@ -317,7 +337,13 @@ def read_container(
             f"{kind} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",
             path,
         )
-    if zlib.crc32(payload) != header["payload_crc32"]:
+    crc = 0
+    # In chunks, each let go of once checked: the checksum reads the whole file, and a mapping
+    # left resident would make opening a map cost its size in this process's memory.
+    for s, e in chunk_rows(len(payload), 1):
+        crc = zlib.crc32(payload[s:e], crc)
+        release(data)
+    if crc != header["payload_crc32"]:
         raise input_error(f"{kind} file is corrupted (checksum mismatch)", path)
     arrays = {}
     try:

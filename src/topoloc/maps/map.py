@@ -32,6 +32,7 @@ from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig
 from topoloc.io.lock import file_lock
+from topoloc.io.scratch import spill_to
 from topoloc.maps.frame_resources import FrameResources, describe
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
@@ -402,7 +403,10 @@ class Map:
         path = Path(path)
         if not path.is_file():
             read_map_file(path)  # the one-line error of a missing map, before any lock
-        with file_lock(path, timeout=timeout):
+        # Large intermediates of the change (a tour merged into the map, its inverted files) as scratch
+        # files beside the map until it is saved (io.scratch): held in memory, they would make the
+        # update's peak grow with the map.
+        with file_lock(path, timeout=timeout), spill_to(path.parent):
             m = cls.load(path)
             yield m
             m.save(path, timeout=timeout)

@@ -276,8 +276,7 @@ class CoocMap(PlaceRecognizer):
         model = self.model_
         if len(place_ids) != len(self.place_ids_):
             # Old rows keep their order, so the remapped features stay sorted and unique.
-            model.n_locations = len(place_ids)
-            model._set_sorted(old_rows[model.loc], model.word, model.xy, model.tours)
+            model.renumber_locations(old_rows, len(place_ids))
         hour = tour.median_time_of_day()
         hours = model.tour_hours
         position = None

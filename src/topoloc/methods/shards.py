@@ -24,6 +24,7 @@ merge is exact rather than "equal up to a permutation".
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import itertools
 import logging
@@ -35,6 +36,7 @@ import numpy as np
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
+from topoloc.io.scratch import empty, release, spilling
 from topoloc.progress import no_progress
 
 if TYPE_CHECKING:
@@ -182,6 +184,26 @@ def _shard_task(k: int, *, cls: type[PlaceRecognizer], params: Mapping[str, Any]
     return rec.fit_shard(maps, places=ranges[k], index=k, resources=portable(resources, remote=True))
 
 
+def _spilled(part: ShardPart) -> ShardPart:
+    """``part`` with its large arrays moved to scratch files (within ``io.scratch.spill_to``; else as it is).
+
+    Applied to each shard as it arrives, so that the process merging them holds
+    one shard's arrays in memory at a time, not the whole map's.
+    """
+    if not spilling():
+        return part
+    arrays = {}
+    for name, a in part.arrays.items():
+        out = empty(a.shape, a.dtype, always=True)
+        if not isinstance(out, np.memmap):
+            arrays[name] = a
+            continue
+        out[...] = a
+        release(out)
+        arrays[name] = out
+    return dataclasses.replace(part, arrays=arrays)
+
+
 def build_from_shards(
     cls: type[PlaceRecognizer], maps: Sequence[Traverse], *, params: Mapping[str, Any] | None = None,
     resources: Resources, n_shards: int, executor: Executor | None = None,
@@ -228,7 +250,7 @@ def build_from_shards(
                              resources=portable(resources, remote=not isinstance(ex, LocalExecutor)))
     common = {"maps": maps}
     log.info("building %s from %d shards on %s", cls.name, len(ranges), ex.name)
-    parts = ex.map(task, list(range(len(ranges))), advance=advance, common=common)
+    parts = ex.map(task, list(range(len(ranges))), advance=advance, common=common, keep=_spilled)
     return cls.from_shards(parts, maps, params=params, resources=resources)
 
 
