@@ -67,6 +67,23 @@ def test_local_executor_keeps_order_and_counts_progress() -> None:
         np.testing.assert_array_equal(row, _work(k))
 
 
+def _keep_sum(row: np.ndarray) -> float:
+    return float(np.sum(row))
+
+
+@pytest.mark.parametrize("n_jobs", [1, 2])
+def test_keep_is_applied_to_each_result_as_it_arrives(n_jobs: int) -> None:
+    kept: list[float] = []
+
+    def keep(row: np.ndarray) -> float:
+        kept.append(_keep_sum(row))
+        return kept[-1]
+
+    with LocalExecutor(n_jobs=n_jobs) as ex:
+        out = ex.map(_work, list(range(7)), keep=keep)
+    assert out == [_keep_sum(_work(k)) for k in range(7)] and sorted(kept) == sorted(out)
+
+
 def test_connect_without_scheduler_runs_locally(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("TOPOLOC_SCHEDULER", raising=False)
     assert isinstance(connect(None, n_jobs=1), LocalExecutor)
@@ -126,6 +143,18 @@ def test_dask_equals_local_bit_for_bit(dask_scheduler: str) -> None:
     assert len(seen) == 12
     for a, b in zip(expected, got, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_keep_on_dask_sees_each_result_once_and_in_item_order_in_the_list(dask_scheduler: str) -> None:
+    kept: list[float] = []
+
+    def keep(row: np.ndarray) -> float:
+        kept.append(_keep_sum(row))
+        return kept[-1]
+
+    with connect(dask_scheduler, timeout_s=20) as ex:
+        out = ex.map(_work, list(range(10)), keep=keep)
+    assert out == [_keep_sum(_work(k)) for k in range(10)] and sorted(kept) == sorted(out)
 
 
 def test_a_task_that_raises_is_retried(dask_scheduler: str, tmp_path: Path) -> None:

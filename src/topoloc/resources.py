@@ -42,6 +42,7 @@ from topoloc._parallel import n_workers
 from topoloc.cluster import Executor, LocalExecutor, flatten
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import ParameterError, TopolocError
+from topoloc.io.scratch import spill, spilling
 from topoloc.progress import ProgressFactory, no_progress
 
 if TYPE_CHECKING:
@@ -450,7 +451,10 @@ class CachedResources(_MemoisedResources):
         """``fn`` of every block task on the executor, progress advancing by each block's images."""
         advance = self.progress(f"words {traverse.name}", len(traverse))
         sizes = iter([len(t.block.images) for t in tasks])
-        return list(self.executor.map(fn, tasks, advance=lambda _: advance(next(sizes))))
+        # Within io.scratch.spill_to (map build, map add) each block's result goes to a scratch file as it
+        # arrives: the results of a whole tour are as large as the map's table.
+        return list(self.executor.map(fn, tasks, advance=lambda _: advance(next(sizes)),
+                                      keep=spill if spilling() else None))
 
     def _quantize(self, traverse: Traverse, timed: bool) -> list[np.ndarray]:
         if self._on_workers(traverse):
@@ -605,8 +609,11 @@ def placed_block(task: QuantizeTask) -> dict[str, np.ndarray]:
 
 def split_placed(block: dict[str, np.ndarray]) -> list[PlacedWords]:
     """The per-image views of one :func:`placed_block` result."""
-    off, shapes = block["offsets"], block["shapes"]
-    return [(block["words"][off[i]:off[i + 1]], block["xy"][off[i]:off[i + 1]],
+    off, shapes = np.asarray(block["offsets"]), np.asarray(block["shapes"])
+    # Plain views even of a block moved to a scratch file (io.scratch.spill): a memmap view per image
+    # costs several times a plain one, and a tour has one per image.
+    words, xy = np.asarray(block["words"]), np.asarray(block["xy"])
+    return [(words[off[i]:off[i + 1]], xy[off[i]:off[i + 1]],
              (int(shapes[i, 0]), int(shapes[i, 1]))) for i in range(len(shapes))]
 
 

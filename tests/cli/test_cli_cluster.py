@@ -88,6 +88,36 @@ def test_map_add_and_batch_localize_on_a_cluster(cli: Cli, rf: dict[str, Path], 
     assert len(lines["local"]) == 12 and lines["cluster"] == lines["local"]  # same lines, same order
 
 
+@pytest.mark.parametrize("spill_bytes", [0, 1 << 40])
+def test_cooc_map_built_in_shards_and_extended_on_a_cluster_through_scratch_files(
+        spill_bytes: int, cli: Cli, rf: dict[str, Path], tmp_path: Path, dask_scheduler: str,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # `map build --shards` and `map add` keep the map's large arrays in scratch files beside it (io.scratch;
+    # 0: every array, 2^40: none) and leave nothing there but the map; the map is the local one-piece map.
+    from topoloc.io import scratch
+    from topoloc.maps import Map
+
+    monkeypatch.delenv("TOPOLOC_SCHEDULER", raising=False)
+    monkeypatch.setattr(scratch, "SPILL_BYTES", spill_bytes)
+    folder = tmp_path / "maps"
+    folder.mkdir()
+    tlm, whole = folder / "sharded.tlm", tmp_path / "whole.tlm"
+    build = ["map", "build", "--method", "coocmap", "--map", str(rf["map"]), "--vocab", str(rf["vocab"]), "-q"]
+    cli.ok([*build, "--out", str(tlm), "--shards", "3", "--cache-dir", str(tmp_path / "cache_c"),
+            "--scheduler", dask_scheduler])
+    cli.ok(["map", "add", str(tlm), str(rf["morning"]), "--cache-dir", str(tmp_path / "cache_c"), "-q",
+            "--scheduler", dask_scheduler])
+    monkeypatch.setattr(scratch, "SPILL_BYTES", 1 << 40)
+    cli.ok([*build, "--out", str(whole), "--cache-dir", str(tmp_path / "cache_l")])
+    cli.ok(["map", "add", str(whole), str(rf["morning"]), "--cache-dir", str(tmp_path / "cache_l"), "-q"])
+    assert sorted(p.name for p in folder.iterdir()) == ["sharded.tlm"]
+    (meta_a, arrays_a), (meta_b, arrays_b) = (Map.load(p).recognizer.get_state() for p in (tlm, whole))
+    assert meta_a == meta_b and arrays_a.keys() == arrays_b.keys()
+    for key in arrays_a:
+        np.testing.assert_array_equal(arrays_a[key], arrays_b[key])
+        assert arrays_a[key].dtype == arrays_b[key].dtype
+
+
 def test_vocab_train_on_a_cluster_equals_the_local_vocabulary(cli: Cli, rf: dict[str, Path], tmp_path: Path,
                                                               dask_scheduler: str) -> None:
     from topoloc.vocabulary import Vocabulary

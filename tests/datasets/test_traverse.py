@@ -105,3 +105,22 @@ def test_take_keeps_each_image_with_its_place_time_position_and_frame() -> None:
     np.testing.assert_array_equal(sub.xy, xy[[3, 1]])
     assert sub.frames is not None and [int(f[0, 0]) for f in sub.frames] == [3, 1]
     assert len(t.take(np.zeros(0, np.int64))) == 0
+
+
+def test_sidecar_names_are_checked_against_one_listing_of_the_folder(tmp_path: Path,
+                                                                     caplog: pytest.LogCaptureFixture) -> None:
+    # Plain names are looked up in one directory read; a name in a subfolder, a "./" name and an image
+    # of an unlisted suffix are looked up on disk; a folder named like an image is not an image.
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "dir.png").mkdir()
+    for name in ("a.png", "sub/b.png", "c.png", "d.png"):
+        _img(tmp_path / name)
+    (tmp_path / "places.csv").write_text("image,place\na.png,1\nsub/b.png,2\n./c.png,3\n")
+    with caplog.at_level("WARNING"):
+        t = load_traverse(tmp_path)
+    assert [p.relative_to(tmp_path).as_posix() for p in t.images] == ["a.png", "sub/b.png", "c.png"]
+    # d.png alone is left out (c.png is listed as ./c.png; dir.png is a folder).
+    assert "1 of the 3 images" in caplog.text  # the folder's own: a.png, c.png, d.png
+    (tmp_path / "places.csv").write_text("image,place\na.png,1\ndir.png,2\n")
+    with pytest.raises(TopolocError, match=r"'dir\.png' does not exist"):
+        load_traverse(tmp_path)

@@ -11,7 +11,8 @@ import pytest
 from topoloc.cluster import LocalExecutor
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.methods import available_methods, get_method
+from topoloc.io.scratch import file_backed, spill_to
+from topoloc.methods import available_methods, get_method, shards
 from topoloc.methods.shards import ShardPart, build_from_shards, shard_maps, split_places
 from topoloc.resources import InMemoryResources
 
@@ -79,6 +80,39 @@ def test_three_shards_equal_the_one_piece_map(name: str, extra: dict[str, Any], 
     assert_same_state(merged, whole)
     np.testing.assert_array_equal(merged.place_ids_, whole.place_ids_)
     np.testing.assert_array_equal(merged.similarity(tiny_route["query"]), whole.similarity(tiny_route["query"]))
+
+
+@pytest.mark.parametrize("name", available_methods())
+def test_shards_moved_to_scratch_files_as_they_arrive_build_the_same_map(name: str, tiny_route: dict[str, Any],
+                                                                        tmp_path: Any) -> None:
+    # Within spill_to (map build, map add) each shard's arrays go to scratch files as the shard arrives,
+    # so that the merging process holds one shard in memory; every method merges them the same.
+    cls = get_method(name)
+    if not cls.tags.builds_shards:
+        pytest.skip(f"{name} is built in one piece")
+    maps = [tiny_route["map"], tiny_route["training"]]
+    params = FAST.get(name, {})
+    want = build_from_shards(cls, maps, params=params, resources=_res(tiny_route), n_shards=3,
+                             executor=LocalExecutor(n_jobs=1))
+    arrived: list[ShardPart] = []
+    spilled = shards._spilled
+
+    def spy(part: ShardPart) -> ShardPart:
+        arrived.append(spilled(part))
+        return arrived[-1]
+
+    with spill_to(tmp_path, min_bytes=1 << 30):  # "always": even arrays far below the threshold
+        shards._spilled = spy
+        try:
+            got = build_from_shards(cls, maps, params=params, resources=_res(tiny_route), n_shards=3,
+                                    executor=LocalExecutor(n_jobs=1))
+        finally:
+            shards._spilled = spilled
+    assert len(arrived) == 3
+    assert all(file_backed(a) for p in arrived for a in p.arrays.values() if a.size)
+    assert list(tmp_path.iterdir()) == []
+    assert_same_state(got, want)
+    np.testing.assert_array_equal(got.similarity(tiny_route["query"]), want.similarity(tiny_route["query"]))
 
 
 def test_parts_that_do_not_cover_the_map_are_refused(tiny_route: dict[str, Any]) -> None:

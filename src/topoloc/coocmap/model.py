@@ -198,25 +198,28 @@ class CoocModel(Configurable):
         k = n_old if position is None else int(position)
         if not 0 <= k <= n_old:
             raise TopolocError(f"coocmap: tour position {k} out of range 0..{n_old}")
-        # Checked here, gathered later a block of locations at a time (_tour_block): the tour's
-        # features are never all copied at once.
-        obs: list[tuple[int, np.ndarray, np.ndarray]] = []
-        for loc, w, xy in observations:
+        # Checked here, read again a block of locations at a time (_tour_block): nothing of the tour is
+        # kept from here but its locations, so that a tour whose words are in scratch files (a
+        # methods.cooc_map._TourObservations within io.scratch.spill_to) is never all in memory.
+        if not isinstance(observations, Sequence):
+            observations = list(observations)
+        obs_loc = np.empty(len(observations), np.int64)
+        for i, (loc, w, xy) in enumerate(observations):
             w = np.asarray(w).ravel()
-            xy = np.asarray(xy).reshape(-1, 2)
-            if len(w) != len(xy):
+            if len(w) != len(np.asarray(xy).reshape(-1, 2)):
                 raise TopolocError("coocmap: words and positions differ in length")
             if not 0 <= int(loc) < self.n_locations:
                 raise TopolocError(f"coocmap: location {loc} out of range 0..{self.n_locations - 1}")
             if len(w) and (w.min() < 0 or w.max() >= self.n_words):
                 raise TopolocError(f"coocmap: word ids must lie in [0, {self.n_words})")
-            obs.append((int(loc), w, xy))
+            obs_loc[i] = int(loc)
+            release(w, xy)
         mask_dt = _mask_dtype(n_old + 1)
         self.tour_names.insert(k, name or f"tour{n_old}")
         self.tour_hours.insert(k, hour)
         if _key_word_bits(self.n_locations, self.n_words) is None:
             # No packed key to search the table with (see sort_unique_features): sort it whole.
-            new = self._tour_block(obs, list(range(len(obs))), k, mask_dt)
+            new = self._tour_block(observations, range(len(observations)), k, mask_dt)
             self._set_features(np.concatenate([self.loc, new[0]]).astype(new[0].dtype, copy=False),
                                np.concatenate([self.word, new[1]]).astype(new[1].dtype, copy=False),
                                np.concatenate([self.xy, new[2]]),
@@ -224,10 +227,10 @@ class CoocModel(Configurable):
             return self
         # The table is sorted and unique already (bit insertion keeps that), so only the tour's own
         # features are sorted, a block of locations at a time, and merged into the table's block.
-        self._set_sorted(*_merge_by_locations(self, obs, k, mask_dt))
+        self._set_sorted(*_merge_by_locations(self, observations, obs_loc, k, mask_dt))
         return self
 
-    def _tour_block(self, obs: Sequence[tuple[int, np.ndarray, np.ndarray]], which: Sequence[int], k: int,
+    def _tour_block(self, obs: Sequence[Observation], which: Sequence[int], k: int,
                     mask_dt: np.dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The features of the observations ``which`` of a tour as the table holds them: quantised, tour bit ``k``.
 
@@ -238,11 +241,16 @@ class CoocModel(Configurable):
             the features do not fit a packed key (the caller sorts the table whole).
         """
         loc_dt, word_dt = _small_uint(self.n_locations), _small_uint(self.n_words)
-        sizes = [len(obs[i][1]) for i in which]
+        read = [obs[i] for i in which]
+        sizes = [len(np.asarray(w).ravel()) for _, w, _ in read]
         n = int(sum(sizes))
-        loc = np.repeat(np.asarray([obs[i][0] for i in which], np.int64), sizes).astype(loc_dt)
-        word = np.concatenate([obs[i][1] for i in which]).astype(word_dt) if n else np.zeros(0, word_dt)
-        xy = self.quantise_xy(np.concatenate([obs[i][2] for i in which])) if n else np.zeros((0, 2), np.uint16)
+        loc = np.repeat(np.asarray([o[0] for o in read], np.int64), sizes).astype(loc_dt)
+        word = (np.concatenate([np.asarray(w).ravel() for _, w, _ in read]).astype(word_dt) if n
+                else np.zeros(0, word_dt))
+        xy = (self.quantise_xy(np.concatenate([np.asarray(p, np.uint16).reshape(-1, 2) for _, _, p in read])) if n
+              else np.zeros((0, 2), np.uint16))
+        release(*(w for _, w, _ in read))
+        del read
         mask = np.full(n, mask_dt.type(1 << k), mask_dt)
         if n == 0 or _key_word_bits(self.n_locations, self.n_words) is None:
             return loc, word, xy, mask
@@ -589,7 +597,7 @@ def _insert_bit(mask: np.ndarray, k: int, dtype: np.dtype) -> np.ndarray:
     return out
 
 
-def _merge_by_locations(model: CoocModel, obs: Sequence[tuple[int, np.ndarray, np.ndarray]], k: int,
+def _merge_by_locations(model: CoocModel, obs: Sequence[Observation], obs_loc: np.ndarray, k: int,
                         mask_dt: np.dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The model's table, tour bit ``k`` inserted, merged with a tour's observations, block of locations by block.
 
@@ -608,7 +616,6 @@ def _merge_by_locations(model: CoocModel, obs: Sequence[tuple[int, np.ndarray, n
     loc_dt, word_dt = _small_uint(n_loc), _small_uint(model.n_words)
     n_old = len(word)
     old_ptr = np.asarray(model.loc_ptr, np.int64)
-    obs_loc = np.asarray([o[0] for o in obs], np.int64)
     order = np.argsort(obs_loc, kind="stable")
     obs_ptr = np.searchsorted(obs_loc[order], np.arange(n_loc + 1), side="left")
     row = loc.itemsize + word.itemsize + 4 + tours.itemsize

@@ -14,19 +14,22 @@ Outside :func:`spill_to`, :func:`empty` is :func:`numpy.empty` and nothing is
 written: the algorithms that use it take arrays and give arrays, and the layer
 that writes the map decides where its intermediates live.
 
-The scratch folder is made inside the folder given to :func:`spill_to` (the
-map's own, so that it is on a disk with room for the map) and removed when the
-block ends; each file is unlinked as soon as it is mapped where the system
-allows it, so that a process that is killed leaves an empty folder, not the
-arrays.
+The scratch folder (``.topoloc-scratch-PID-HOST-XXXXXXXX``) is made inside
+the folder given to :func:`spill_to` (the map's own, so that it is on a disk
+with room for the map) and removed when the block ends; each file is unlinked
+as soon as it is mapped where the system allows it, so that a process that is
+killed leaves an empty folder, not the arrays, and the next :func:`spill_to`
+there removes the folders of writers that are gone (:mod:`topoloc.io.lock`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import mmap
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -35,24 +38,29 @@ from typing import Any
 
 import numpy as np
 
+from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
+
 #: Arrays of at least this many bytes are file-backed within :func:`spill_to`.
 SPILL_BYTES = 32 << 20
 #: Rows (or bytes, for byte-wise work) handled between two :func:`release` calls by chunked code.
-CHUNK_BYTES = 8 << 20
+CHUNK_BYTES = 4 << 20
 
+_PREFIX = ".topoloc-scratch-"
+_LEFTOVER = re.compile(rf"^{re.escape(_PREFIX)}{TAG_PATTERN}-[a-z0-9_]{{8}}$")
 _SCRATCH: contextvars.ContextVar[tuple[Path, int] | None] = contextvars.ContextVar("topoloc_scratch", default=None)
 
 
 @contextlib.contextmanager
-def spill_to(folder: str | Path, *, min_bytes: int = SPILL_BYTES) -> Iterator[Path]:
+def spill_to(folder: str | Path, *, min_bytes: int | None = None) -> Iterator[Path]:
     """Within the block, :func:`empty` maps arrays of ``min_bytes`` or more to files in a scratch folder.
 
     Parameters
     ----------
     folder : path-like
         Where the scratch folder is made (created if missing).
-    min_bytes : int
-        Smaller arrays stay in memory (0: every array is file-backed, for tests).
+    min_bytes : int, optional
+        Smaller arrays stay in memory (default :data:`SPILL_BYTES`, read when
+        the block starts; 0: every array is file-backed).
 
     Yields
     ------
@@ -61,8 +69,9 @@ def spill_to(folder: str | Path, *, min_bytes: int = SPILL_BYTES) -> Iterator[Pa
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    scratch = Path(tempfile.mkdtemp(prefix=".topoloc-scratch-", dir=folder))
-    token = _SCRATCH.set((scratch, int(min_bytes)))
+    remove_stale(folder, _LEFTOVER, functools.partial(shutil.rmtree, ignore_errors=True))
+    scratch = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{writer_tag()}-", dir=folder))
+    token = _SCRATCH.set((scratch, int(SPILL_BYTES if min_bytes is None else min_bytes)))
     try:
         yield scratch
     finally:
@@ -109,15 +118,46 @@ def empty(shape: int | tuple[int, ...], dtype: Any, *, always: bool = False) -> 
     return out
 
 
+def spill(obj: Any) -> Any:
+    """``obj`` with each array in it (a dict, list or tuple of them, nested) moved to a scratch file.
+
+    Within :func:`spill_to` only (else ``obj`` as it is): for results that
+    arrive one by one and together are as large as a map (the shards' models,
+    the word ids of a tour's blocks), so that the process holds one of them in
+    memory at a time.
+    """
+    if not spilling():
+        return obj
+    if isinstance(obj, np.ndarray):
+        out = empty(obj.shape, obj.dtype, always=True)
+        if not isinstance(out, np.memmap):
+            return obj
+        out[...] = obj
+        release(out)
+        return out
+    if isinstance(obj, dict):
+        return {k: spill(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return type(obj)(spill(v) for v in obj)
+    return obj
+
+
 def _mapping(a: Any) -> mmap.mmap | None:
     """The ``mmap`` under an array (through views, memoryviews and memmaps), or None."""
     seen = 0
     while a is not None and seen < 64:
         if isinstance(a, mmap.mmap):
             return a
+        if isinstance(a, np.memmap) and a.mode == "c":
+            return None  # copy-on-write: letting go of its pages would drop the changes made to them
         a = a.obj if isinstance(a, memoryview) else getattr(a, "base", None)
         seen += 1
     return None
+
+
+def file_backed(a: Any) -> bool:
+    """Whether ``a`` (an array, a view of one) lies in a file mapping: a spilled array or a memory-mapped file's."""
+    return _mapping(a) is not None
 
 
 def release(*arrays: Any) -> None:
@@ -144,4 +184,5 @@ def chunk_rows(n: int, row_bytes: int, *, chunk_bytes: int = CHUNK_BYTES) -> Ite
         yield s, min(int(n), s + step)
 
 
-__all__ = ["CHUNK_BYTES", "SPILL_BYTES", "chunk_rows", "empty", "release", "spill_to", "spilling"]
+__all__ = ["CHUNK_BYTES", "SPILL_BYTES", "chunk_rows", "empty", "file_backed", "release", "spill", "spill_to",
+           "spilling"]

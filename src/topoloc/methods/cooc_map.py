@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, overload
 
 import numpy as np
 
@@ -45,14 +45,47 @@ from topoloc.coocmap.matching import (
 from topoloc.coocmap.model import INDEX_ARRAYS, CoocModel, Observation, merge_models
 from topoloc.coocmap.spatial import normalise_xy
 from topoloc.datasets.traverse import Traverse
+from topoloc.errors import TopolocError
 from topoloc.io.state import new_object, object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer, extend_place_ids, map_place_ids
 from topoloc.methods.shards import ShardPart
-from topoloc.resources import Resources
+from topoloc.resources import PlacedWords, Resources
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 #: A query item: (word ids (n,), normalised positions (n, 2) uint16).
 Item = tuple[np.ndarray, np.ndarray]
+
+
+class _TourObservations(Sequence[Observation]):
+    """A tour's observations, each converted when it is read: (location row, word ids, normalised positions).
+
+    The words and keypoints stay where the resources put them (within
+    ``io.scratch.spill_to``, scratch files), so that adding a tour of the
+    whole route holds the blocks of locations being merged, not the tour
+    (:meth:`CoocModel.add_tour` reads each observation when it checks it and
+    again when it merges its block).
+    """
+
+    def __init__(self, rows: np.ndarray, placed: Sequence[PlacedWords]) -> None:
+        if len(rows) != len(placed):
+            raise TopolocError(f"coocmap: {len(placed)} images' words for {len(rows)} places")
+        self.rows = rows
+        self.placed = placed
+
+    def __len__(self) -> int:
+        return len(self.placed)
+
+    @overload
+    def __getitem__(self, i: int) -> Observation: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[Observation]: ...
+
+    def __getitem__(self, i: int | slice) -> Observation | list[Observation]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        w, xy, shape = self.placed[i]
+        return int(self.rows[i]), np.asarray(w), normalise_xy(xy, shape)
 
 
 @dataclass(frozen=True)
@@ -211,6 +244,11 @@ class CoocMap(PlaceRecognizer):
         placed = resources.placed_words(traverse, limit=self.max_words_per_image or None)
         return [(np.asarray(w, np.int64), normalise_xy(xy, shape)) for w, xy, shape in placed]
 
+    def _tour(self, traverse: Traverse, place_ids: np.ndarray, resources: Resources) -> _TourObservations:
+        """A tour's observations for :meth:`CoocModel.add_tour`, its images' locations among ``place_ids``."""
+        placed = resources.placed_words(traverse, limit=self.max_words_per_image or None)
+        return _TourObservations(np.searchsorted(place_ids, traverse.places), placed)
+
     def _fit(self, maps: list[Traverse], resources: Resources) -> None:
         place_ids = map_place_ids(maps)
         vocab = resources.vocabulary
@@ -220,10 +258,7 @@ class CoocMap(PlaceRecognizer):
                           grid_x=self.grid_x, grid_y=self.grid_y, interpolate=self.interpolate,
                           position_bits=self.position_bits)
         for tour in tours:
-            rows = np.searchsorted(place_ids, tour.places)
-            obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
-                                      in zip(rows, self._observations(tour, resources), strict=True)]
-            model.add_tour(obs, name=tour.name, hour=tour.median_time_of_day())
+            model.add_tour(self._tour(tour, place_ids, resources), name=tour.name, hour=tour.median_time_of_day())
         model.vocabulary = fingerprint
         model.built_from = {"tours": [t.fingerprint() for t in tours], "features": resources.extractor.config.key()}
         self.model_ = model
@@ -242,10 +277,8 @@ class CoocMap(PlaceRecognizer):
         model = CoocModel(n_locations=len(place_ids), n_words=int(vocab.n_words_), grid_x=self.grid_x,
                           grid_y=self.grid_y, interpolate=self.interpolate, position_bits=self.position_bits)
         for i in tour_order(maps):
-            rows = np.searchsorted(place_ids, shard[i].places)
-            obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
-                                      in zip(rows, self._observations(shard[i], resources), strict=True)]
-            model.add_tour(obs, name=maps[i].name, hour=maps[i].median_time_of_day())
+            model.add_tour(self._tour(shard[i], place_ids, resources), name=maps[i].name,
+                           hour=maps[i].median_time_of_day())
         model.vocabulary = vocabulary_fingerprint(vocab)
         # The inverted files are rebuilt by the merge: sent back, they would double what the
         # client gathers from the shards.
@@ -282,10 +315,7 @@ class CoocMap(PlaceRecognizer):
         position = None
         if hour is not None and all(h is not None for h in hours):
             position = int(sum(1 for h in hours if h is not None and h <= hour))
-        rows = np.searchsorted(place_ids, tour.places)
-        obs: list[Observation] = [(int(r), w, xy) for r, (w, xy)
-                                  in zip(rows, self._observations(tour, resources), strict=True)]
-        model.add_tour(obs, name=tour.name, hour=hour, position=position)
+        model.add_tour(self._tour(tour, place_ids, resources), name=tour.name, hour=hour, position=position)
         self.tour_order_.insert(len(self.tour_order_) if position is None else position, tour.name)
         self.place_ids_ = place_ids
 

@@ -36,7 +36,7 @@ import numpy as np
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.io.scratch import empty, release, spilling
+from topoloc.io.scratch import spill, spilling
 from topoloc.progress import no_progress
 
 if TYPE_CHECKING:
@@ -185,23 +185,12 @@ def _shard_task(k: int, *, cls: type[PlaceRecognizer], params: Mapping[str, Any]
 
 
 def _spilled(part: ShardPart) -> ShardPart:
-    """``part`` with its large arrays moved to scratch files (within ``io.scratch.spill_to``; else as it is).
+    """``part`` with its arrays moved to scratch files (within ``io.scratch.spill_to``; else as it is).
 
     Applied to each shard as it arrives, so that the process merging them holds
     one shard's arrays in memory at a time, not the whole map's.
     """
-    if not spilling():
-        return part
-    arrays = {}
-    for name, a in part.arrays.items():
-        out = empty(a.shape, a.dtype, always=True)
-        if not isinstance(out, np.memmap):
-            arrays[name] = a
-            continue
-        out[...] = a
-        release(out)
-        arrays[name] = out
-    return dataclasses.replace(part, arrays=arrays)
+    return dataclasses.replace(part, arrays=spill(part.arrays)) if spilling() else part
 
 
 def build_from_shards(

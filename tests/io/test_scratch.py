@@ -1,0 +1,130 @@
+"""Scratch arrays (io.scratch) and file-backed pages a process lets go of (container reads and writes)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from topoloc.io import scratch
+from topoloc.io.container import read_container, write_container
+from topoloc.io.lock import writer_tag
+
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
+
+
+def _rss_mib() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    raise AssertionError("no VmRSS")
+
+
+def test_empty_is_in_memory_outside_spill_to() -> None:
+    a = scratch.empty((1000, 2), np.uint16, always=True)
+    assert type(a) is np.ndarray and a.shape == (1000, 2) and a.dtype == np.uint16
+    assert not scratch.spilling()
+
+
+def test_spill_to_maps_large_arrays_to_files_it_removes(tmp_path: Path) -> None:
+    with scratch.spill_to(tmp_path, min_bytes=1 << 16) as folder:
+        assert scratch.spilling() and folder.parent == tmp_path and writer_tag() in folder.name
+        small = scratch.empty(100, np.int32)
+        large = scratch.empty((1 << 14, 2), np.int32)
+        forced = scratch.empty(100, np.int32, always=True)
+        assert type(small) is np.ndarray
+        assert isinstance(large, np.memmap) and isinstance(forced, np.memmap)
+        large[:] = 7
+        forced[:] = np.arange(100)
+        # The files are unlinked once mapped (a killed process leaves no array behind).
+        assert list(folder.iterdir()) == []
+    assert not scratch.spilling()
+    assert list(tmp_path.iterdir()) == []
+    # The mappings outlive the folder.
+    assert int(large.sum()) == 7 * 2 * (1 << 14) and forced[99] == 99
+
+
+def test_spill_to_removes_the_folders_of_writers_that_are_gone(tmp_path: Path) -> None:
+    host = writer_tag().split("-")[1]
+    dead = tmp_path / f".topoloc-scratch-999999999-{host}-abcdefgh"
+    alive = tmp_path / f".topoloc-scratch-{writer_tag()}-abcdefgh"
+    other = tmp_path / ".topoloc-scratch-notatag"
+    for d in (dead, alive, other):
+        d.mkdir()
+    with scratch.spill_to(tmp_path):
+        pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, other.name])
+
+
+def test_chunk_rows_covers_the_range() -> None:
+    got = list(scratch.chunk_rows(10, 3, chunk_bytes=7))
+    assert got == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
+    assert list(scratch.chunk_rows(0, 4)) == []
+    assert list(scratch.chunk_rows(5, 100, chunk_bytes=1)) == [(k, k + 1) for k in range(5)]
+
+
+@linux_only
+def test_release_lets_go_of_written_and_read_pages(tmp_path: Path) -> None:
+    n = 64 << 20  # 64 MiB
+    with scratch.spill_to(tmp_path):
+        a = scratch.empty(n, np.uint8)
+        base = _rss_mib()
+        for s, e in scratch.chunk_rows(n, 1):
+            a[s:e] = 1
+            scratch.release(a[s:e])  # a view: the mapping under it is found
+        assert _rss_mib() - base < 24
+        assert int(a[::4096].sum()) == n // 4096  # the data stayed in the file
+        a.sum()
+        assert _rss_mib() - base > 48  # read whole, it is resident...
+        scratch.release(a)
+        assert _rss_mib() - base < 24  # ...until let go of
+    scratch.release(np.zeros(3), None, b"bytes")  # nothing to let go of: no error
+
+
+def test_release_keeps_the_changes_of_a_copy_on_write_map(tmp_path: Path) -> None:
+    path = tmp_path / "a.raw"
+    path.write_bytes(bytes(1 << 16))
+    a = np.memmap(path, dtype=np.uint8, mode="c")
+    a[:] = 5
+    assert not scratch.file_backed(a)
+    scratch.release(a, a[10:])
+    assert int(a.min()) == 5 and path.read_bytes() == bytes(1 << 16)
+
+
+@linux_only
+def test_opening_and_writing_a_container_does_not_keep_it_resident(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    big = rng.integers(0, 255, 96 << 20, dtype=np.uint8)
+    write_container(tmp_path / "a.tlx", "test", 1, {"big": big, "small": np.arange(5)}, {"k": 1})
+    del big
+    base = _rss_mib()
+    _, arrays = read_container(tmp_path / "a.tlx", "test", 1, mmap=True)
+    # The checksum read all 96 MiB; the mapping holds none of it afterwards.
+    assert _rss_mib() - base < 32
+    write_container(tmp_path / "b.tlx", "test", 1, arrays, {"k": 2})
+    assert _rss_mib() - base < 48
+    meta, again = read_container(tmp_path / "b.tlx", "test", 1)
+    assert meta == {"k": 2} and np.array_equal(again["small"], np.arange(5))
+    assert np.array_equal(again["big"], arrays["big"])
+
+
+def test_write_container_streams_the_same_bytes(tmp_path: Path) -> None:
+    # Arrays larger than a chunk, odd sizes and alignment padding: the file is what one buffer would give.
+    rng = np.random.default_rng(1)
+    arrays = {"a": rng.integers(0, 9, (scratch.CHUNK_BYTES // 4) + 3, dtype=np.int32),
+              "b": np.ones(7, np.uint8), "c": np.float64(2.5) * np.ones((3, 3)), "d": np.zeros(0, np.int64),
+              "e": np.array(True)}
+    write_container(tmp_path / "x.tlx", "test", 1, arrays)
+    _, got = read_container(tmp_path / "x.tlx", "test", 1)
+    for k, v in arrays.items():
+        assert got[k].dtype == v.dtype and got[k].shape == v.shape and np.array_equal(got[k], v)
+    data = (tmp_path / "x.tlx").read_bytes()
+    flipped = bytearray(data)
+    flipped[-20] ^= 1
+    (tmp_path / "y.tlx").write_bytes(bytes(flipped))
+    with pytest.raises(Exception, match="checksum"):
+        read_container(tmp_path / "y.tlx", "test", 1, mmap=True)
+    assert os.path.getsize(tmp_path / "x.tlx") == len(data)
