@@ -287,19 +287,27 @@ def _run_dates(runs: list[dict[str, Any]]) -> str:
 
 
 def _growth_sentence(runs: list[dict[str, Any]], peaks: list[tuple[int, float, float]]) -> str:
-    """The shortest route against the longest: how the peaks grew beside the route and the map file."""
+    """The shortest route against the longest: how the peaks grew beside the route and the map file.
+
+    Each command's growth is also given per 100,000 places (a straight line through the shortest and the
+    longest route), and where that line would take its peak past the client's bound.
+    """
     (p0, c0, w0), (p1, c1, w1) = peaks[0], peaks[-1]
     m0, m1 = runs[0]["map_bytes"] / 2**20, runs[-1]["map_bytes"] / 2**20
-    by_command = ", ".join(
-        f"`{r1['stage']}` {r0['client_peak_mib']:.0f} → {r1['client_peak_mib']:.0f}"
-        for r0, r1 in zip(runs[0]["stages"], runs[-1]["stages"], strict=True))
+    slopes = []
+    for r0, r1 in zip(runs[0]["stages"], runs[-1]["stages"], strict=True):
+        per = (r1["client_peak_mib"] - r0["client_peak_mib"]) / (p1 - p0) * 100_000
+        reach = (f", {p1 + (CLIENT_BOUND_MIB - r1['client_peak_mib']) / per * 100_000:,.0f} places to "
+                 f"{CLIENT_BOUND_MIB:,} MiB" if per > 0 else "")
+        slopes.append(f"`{r1['stage']}` {r0['client_peak_mib']:.0f} → {r1['client_peak_mib']:.0f} "
+                      f"({per:+.0f} per 100,000 places{reach})")
     within = c1 <= CLIENT_BOUND_MIB and w1 <= WORKER_BOUND_MIB and all(
         c <= CLIENT_BOUND_MIB and w <= WORKER_BOUND_MIB for _, c, w in peaks)
     return (f"\n**Growth.** From {p0:,} to {p1:,} places ({p1 / p0:.0f}x the route) the client's highest peak went "
-            f"from {c0:.0f} to {c1:.0f} MiB ({c1 / c0:.2f}x; per command, MiB: {by_command}), the workers' from "
-            f"{w0:.0f} to {w1:.0f} MiB ({w1 / w0:.2f}x), and the map file from {m0:.1f} to {m1:.1f} MiB. "
-            f"Every peak is {'within' if within else '**not** within'} {CLIENT_BOUND_MIB:,} MiB for the client and "
-            f"{WORKER_BOUND_MIB:,} MiB for a worker.\n")
+            f"from {c0:.0f} to {c1:.0f} MiB ({c1 / c0:.2f}x), the workers' from {w0:.0f} to {w1:.0f} MiB "
+            f"({w1 / w0:.2f}x), and the map file from {m0:.1f} to {m1:.1f} MiB ({m1 / m0:.1f}x). Per command, "
+            f"client MiB: {'; '.join(slopes)}. Every peak is {'within' if within else '**not** within'} "
+            f"{CLIENT_BOUND_MIB:,} MiB for the client and {WORKER_BOUND_MIB:,} MiB for a worker.\n")
 
 
 def _query_sentence(runs: list[dict[str, Any]]) -> str:

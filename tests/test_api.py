@@ -23,7 +23,7 @@ PUBLIC = {
     "NotFittedError", "PlaceRecognizer", "Resources", "Scores", "SeqSLAM", "SingleImageSeqSLAM", "TopolocError",
     "Traverse", "Vocabulary", "__version__", "available_methods", "compute_metrics", "evaluate",
     "extract_features", "get_method", "ground_truth_from_file", "ground_truth_from_places",
-    "ground_truth_from_xy", "load_traverse", "read_image", "sequence_similarity", "train_vocabulary",
+    "ground_truth_from_xy", "load_traverse", "read_image", "sequence_similarity", "spill_to", "train_vocabulary",
 }
 
 

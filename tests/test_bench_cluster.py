@@ -23,8 +23,11 @@ def test_growth_sentence_compares_shortest_and_longest_route(cluster: ModuleType
     runs = [_run(5_000, 200.0, 400.0, 14.0), _run(100_000, 900.0, 600.0, 280.0)]
     text = cluster._growth_sentence(runs, [(5_000, 200.0, 400.0), (100_000, 900.0, 600.0)])
     assert "From 5,000 to 100,000 places (20x the route) the client's highest peak went from 200 to 900 MiB " \
-           "(4.50x; per command, MiB: `map build` 200 → 900)" in text
-    assert "map file from 14.0 to 280.0 MiB" in text
+           "(4.50x)" in text
+    # 700 MiB over 95,000 places: +737 per 100,000; 1,148 MiB more at that slope is 155,800 places more.
+    assert "Per command, client MiB: `map build` 200 → 900 (+737 per 100,000 places, 255,800 places to 2,048 MiB)" \
+        in text
+    assert "map file from 14.0 to 280.0 MiB (20.0x)" in text
     assert "Every peak is within 2,048 MiB for the client and 4,096 MiB for a worker." in text
 
 
@@ -32,6 +35,9 @@ def test_growth_sentence_says_when_a_bound_is_broken(cluster: ModuleType) -> Non
     runs = [_run(5_000, 200.0, 400.0, 14.0), _run(100_000, 2_500.0, 600.0, 280.0)]
     text = cluster._growth_sentence(runs, [(5_000, 200.0, 400.0), (100_000, 2_500.0, 600.0)])
     assert "Every peak is **not** within 2,048 MiB" in text
+    flat = cluster._growth_sentence([_run(5_000, 300.0, 400.0, 14.0), _run(100_000, 290.0, 600.0, 280.0)],
+                                    [(5_000, 300.0, 400.0), (100_000, 290.0, 600.0)])
+    assert "`map build` 300 → 290 (-11 per 100,000 places)." in flat  # no bound to reach
 
 
 def test_query_sentence_reports_the_probe_counters(cluster: ModuleType) -> None:

@@ -54,6 +54,8 @@ _LAZY: dict[str, str] = {
     # saved maps and localisation
     "Map": "topoloc.maps.map",
     "Localizer": "topoloc.maps.map",
+    # a long route's map built or updated through scratch files beside it (what `map build` does)
+    "spill_to": "topoloc.io.scratch",
     # evaluation
     "evaluate": "topoloc.evaluation.pipeline",
     # run specifications (topoloc.spec): what a command runs, validated once
@@ -119,6 +121,7 @@ __all__ = [
     "load_traverse",
     "read_image",
     "sequence_similarity",
+    "spill_to",
     "train_vocabulary",
 ]
 

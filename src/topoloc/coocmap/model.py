@@ -189,6 +189,11 @@ class CoocModel(Configurable):
         Only the tour's features are sorted; they are merged into the stored
         table (:func:`merge_sorted_features`), which is sorted and unique
         already, and the result is the table that sorting both together gives.
+        Both are taken a block of consecutive locations at a time
+        (:func:`_merge_by_locations`), and ``observations`` is read once to
+        check it and once more, block by block, to merge it: within
+        :func:`topoloc.io.scratch.spill_to` the new table is written to
+        scratch files and this holds a block of the map and of the tour.
         Where location, word and position do not fit one 64-bit key
         (:func:`sort_unique_features`) the whole table is sorted again.
         """

@@ -40,10 +40,13 @@ import numpy as np
 
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 
-#: Arrays of at least this many bytes are file-backed within :func:`spill_to`.
-SPILL_BYTES = 32 << 20
-#: Rows (or bytes, for byte-wise work) handled between two :func:`release` calls by chunked code.
+#: Bytes handled between two :func:`release` calls by chunked code.
 CHUNK_BYTES = 4 << 20
+#: Arrays of at least this many bytes are file-backed within :func:`spill_to`: a chunk, so that
+#: what a process holds in memory does not grow with a map until its arrays pass some larger size
+#: (at 32 MiB, ``map build``'s client grew by 45 MiB from 5,000 to 20,000 places, each of a map's
+#: arrays still below it; benchmarks/bench_cluster.py).
+SPILL_BYTES = CHUNK_BYTES
 
 _PREFIX = ".topoloc-scratch-"
 _LEFTOVER = re.compile(rf"^{re.escape(_PREFIX)}{TAG_PATTERN}-[a-z0-9_]{{8}}$")

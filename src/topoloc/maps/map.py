@@ -228,6 +228,19 @@ class Map:
         executor : Executor, optional
             Where the shard tasks run (:func:`topoloc.cluster.connect`;
             default: threads of this process).
+
+        Notes
+        -----
+        The map is built in this process's memory.  For a long route, build
+        and save it within :func:`topoloc.spill_to` (as ``topoloc map build``
+        does): its large arrays are then scratch files beside the map until it
+        is saved, and the process holds chunks of the map, not all of it
+        (``docs/results/cluster.md``).  :meth:`update` does that by itself.
+
+        Examples
+        --------
+        >>> with topoloc.spill_to("maps"):  # doctest: +SKIP
+        ...     Map.build(method="coocmap", tours=["route/day"], vocabulary="v.tlv", shards=40).save("maps/route.tlm")
         """
         maps = [t if isinstance(t, Traverse) else load_traverse(t) for t in tours]
         if not maps:
