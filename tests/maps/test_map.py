@@ -262,3 +262,35 @@ def test_update_saves_when_the_block_ends_and_only_then(tiny_route: dict[str, An
     with pytest.raises(TopolocError, match="map file not found"), Map.update(tmp_path / "none.tlm"):
         pass
     assert [p.name for p in tmp_path.iterdir()] == ["m.tlm"]  # no lock file, no temporary
+
+
+def test_place_images_are_arrays_of_the_map_file_and_old_headers_still_read(tmp_path: Path) -> None:
+    # The first image of each place (for --pairs-out) is stored as arrays, not as JSON pairs in the
+    # header that every command opening the map would parse; a map file with the pairs in its header
+    # (written before) reads the same.
+    from topoloc.io.container import read_container, write_container
+    from topoloc.maps.mapfile import MAP_KIND, MAP_VERSION
+    from topoloc.maps.place_images import PlaceImages
+
+    images = [np.full((40, 40), 30 * k, np.uint8) for k in range(6)]
+    tour = Traverse.from_images(images, places=[3, 3, 5, 9, 9, 12], name="dé")
+    m = Map.build(method="seqslam", tours=[tour])
+    m.save(tmp_path / "m.tlm")
+    meta, arrays = read_container(tmp_path / "m.tlm", MAP_KIND, MAP_VERSION)
+    assert "place_images" not in meta["tours"][0]
+    assert arrays["tours/0/place_ids"].tolist() == [3, 5, 9, 12]
+    names = Map.load(tmp_path / "m.tlm").place_image_names()
+    assert names == [f"dé/{k}" for k in (0, 2, 3, 5)]
+    pairs = PlaceImages.of_tour(tour)
+    assert dict(pairs) == dict(pairs.items()) == dict(zip([3, 5, 9, 12], names, strict=True))
+    with pytest.raises(KeyError):
+        pairs[4]
+    old_meta = dict(meta)
+    old_meta["tours"] = [{**meta["tours"][0], "place_images": [[p, n] for p, n in pairs.items()]}]
+    write_container(tmp_path / "old.tlm", MAP_KIND, MAP_VERSION,
+                    {k: v for k, v in arrays.items() if not k.startswith("tours/")}, old_meta)
+    old = Map.load(tmp_path / "old.tlm")
+    assert old.place_image_names() == names
+    old.save(tmp_path / "again.tlm")  # saved again, the pairs move to arrays
+    again, again_arrays = read_container(tmp_path / "again.tlm", MAP_KIND, MAP_VERSION)
+    assert "place_images" not in again["tours"][0] and "tours/0/image_names" in again_arrays

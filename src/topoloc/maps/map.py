@@ -35,6 +35,7 @@ from topoloc.io.lock import file_lock
 from topoloc.io.scratch import spill_to
 from topoloc.maps.frame_resources import FrameResources, describe
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
+from topoloc.maps.place_images import PlaceImages
 from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
@@ -55,16 +56,15 @@ log = logging.getLogger(__name__)
 def tour_record(tour: Traverse) -> dict[str, Any]:
     """What a map remembers of a tour: name, size, times and a fingerprint of its images and places.
 
-    ``place_images`` lists ``[place id, image]``: the first image of each place of the tour
-    (:func:`topoloc.evaluation.pairs.image_name`), what ``localize --pairs-out`` writes for the place.
+    ``place_images`` (:class:`~topoloc.maps.place_images.PlaceImages`, saved as arrays) maps each
+    place of the tour to its first image (:func:`topoloc.evaluation.pairs.image_name`), what
+    ``localize --pairs-out`` writes for the place.
     """
-    from topoloc.evaluation.pairs import first_images
-
     rec: dict[str, Any] = {
         "name": tour.name, "root": _tour_root(tour),
         "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": tour.fingerprint(),
         "median_hour": tour.median_time_of_day(), "start": None, "end": None,
-        "place_images": [[p, name] for p, name in sorted(first_images(tour).items())],
+        "place_images": PlaceImages.of_tour(tour),
     }
     if tour.times is not None and len(tour.times):
         rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
@@ -380,9 +380,14 @@ class Map:
                         "index": self.vocabulary.index, "ef_search": self.vocabulary.ef_search}
         from topoloc import __version__
 
+        for k, tour in enumerate(self.tours):
+            pairs = tour.get("place_images")
+            if pairs is not None:
+                out.update((pairs if isinstance(pairs, PlaceImages) else PlaceImages.of(pairs)).arrays(k))
         header = {
             "method": self.recognizer.name, "params": self.recognizer.get_params(),
-            "features": asdict(self.features), "vocabulary": voc_meta, "tours": self.tours,
+            "features": asdict(self.features), "vocabulary": voc_meta,
+            "tours": [{key: v for key, v in t.items() if key != "place_images"} for t in self.tours],
             "state": meta, "calibration": self.calibration, "created": self.created, "spec": self.spec,
             "modified": datetime.now(UTC).isoformat(timespec="seconds"), "topoloc_version": __version__,
         }
@@ -460,7 +465,14 @@ class Map:
             place_ids = np.asarray(arrays["places/ids"])
             if not np.array_equal(place_ids, rec.place_ids_):
                 raise input_error("map file is inconsistent (place ids differ from the method's)", path)
-            return cls(rec, features=features, vocabulary=voc, tours=list(meta["tours"]),
+            tours = [dict(t) for t in meta["tours"]]
+            for k, tour in enumerate(tours):
+                stored = PlaceImages.from_arrays(arrays, k)
+                if stored is not None:
+                    tour["place_images"] = stored
+                elif tour.get("place_images") is not None:  # a map file with the pairs in its header
+                    tour["place_images"] = PlaceImages.of(tour["place_images"])
+            return cls(rec, features=features, vocabulary=voc, tours=tours,
                        xy_sums=np.array(arrays["places/xy_sums"]),
                        calibration=_json_calibration(meta.get("calibration")),
                        created=meta.get("created"), path=path, spec=meta.get("spec"))
@@ -503,8 +515,7 @@ class Map:
         """
         from topoloc.evaluation.pairs import place_names
 
-        return place_names(self.place_ids, ({int(p): str(n) for p, n in t.get("place_images") or ()}
-                                            for t in self.tours))
+        return place_names(self.place_ids, (t.get("place_images") or {} for t in self.tours))
 
     def info(self) -> dict[str, Any]:
         """Method, parameters, places, tours, vocabulary, features, calibration and file size."""

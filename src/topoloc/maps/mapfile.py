@@ -19,7 +19,10 @@ JSON header holds:
     One entry per tour in the order added: ``name``, ``root``, ``n_images``,
     ``n_places``, ``start``/``end`` capture times when known, ``median_hour``
     and a ``fingerprint`` (SHA-1 of the image names, sizes, capture
-    times and place ids).
+    times and place ids).  The first image of each of its places (what
+    ``--pairs-out`` writes) is in the arrays ``tours/<k>/*``
+    (:mod:`topoloc.maps.place_images`); files written before held it here,
+    as ``place_images`` pairs, and are read as they are.
 ``state``
     The recogniser's learned state (:meth:`~topoloc.methods.base.PlaceRecognizer.get_state`):
     its JSON part here, its arrays as ``state/<name>``.
@@ -31,7 +34,8 @@ JSON header holds:
 Arrays: ``places/ids`` (sorted place ids, the rows of ``S``),
 ``places/xy_sums`` (per place: sum of x, sum of y in metres and the number of
 map images with a position, so that later tours update the mean exactly),
-``vocabulary/words``, ``state/*``.  Large arrays are
+``vocabulary/words``, ``state/*``, ``tours/<k>/place_ids``, ``tours/<k>/image_names``,
+``tours/<k>/image_name_ends``.  Large arrays are
 memory-mapped on load, so opening a map costs what it reads.
 """
 
