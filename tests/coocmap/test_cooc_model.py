@@ -486,3 +486,20 @@ def test_renumber_locations_equals_building_with_the_new_numbers(tmp_path: Any) 
     for bad in (rows[::-1], np.r_[rows[:-1], 1000], rows[:-1]):
         with pytest.raises(TopolocError, match="renumbered"):
             copy.deepcopy(m).renumber_locations(bad, 1000)
+
+
+def test_within_spill_to_a_merge_and_a_tour_hold_blocks_of_the_map_not_the_map(tmp_path: Any) -> None:
+    # The heap a merge and an added tour use within spill_to is blocks (io.scratch.CHUNK_BYTES), not the
+    # map: its arrays are scratch files, which tracemalloc does not count (in memory, both peak above
+    # 1x the model: test_add_tour_peak_is_a_small_multiple_of_the_model).
+    rng = np.random.default_rng(14)
+    parts = [_model(rng, 6000, 60) for _ in range(3)]
+    out: list[CoocModel] = []
+    with spill_to(tmp_path, min_bytes=0):
+        merge_peak = _peak(lambda: out.append(merge_models(parts)))
+        m = out[0]
+        tour = _tour(rng, 18000, 15, skip=2)
+        add_peak = _peak(lambda: m.add_tour(tour, name="b"))
+    assert m.nbytes > 16 << 20
+    # Measured: 0.04x and 0.14x the 20 MB model.
+    assert merge_peak < 0.1 * m.nbytes and add_peak < 0.25 * m.nbytes, (merge_peak >> 20, add_peak >> 20)
