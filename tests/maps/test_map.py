@@ -294,3 +294,10 @@ def test_place_images_are_arrays_of_the_map_file_and_old_headers_still_read(tmp_
     old.save(tmp_path / "again.tlm")  # saved again, the pairs move to arrays
     again, again_arrays = read_container(tmp_path / "again.tlm", MAP_KIND, MAP_VERSION)
     assert "place_images" not in again["tours"][0] and "tours/0/image_names" in again_arrays
+    # Place-image arrays that disagree with each other: one line naming the file.
+    bad = dict(again_arrays)
+    bad["tours/0/image_name_ends"] = bad["tours/0/image_name_ends"][:2]
+    write_container(tmp_path / "bad.tlm", MAP_KIND, MAP_VERSION, bad, again)
+    with pytest.raises(TopolocError, match="place image names do not match") as info:
+        Map.load(tmp_path / "bad.tlm")
+    assert str(tmp_path / "bad.tlm") in str(info.value) and "\n" not in str(info.value)
