@@ -128,3 +128,48 @@ def test_write_container_streams_the_same_bytes(tmp_path: Path) -> None:
     with pytest.raises(Exception, match="checksum"):
         read_container(tmp_path / "y.tlx", "test", 1, mmap=True)
     assert os.path.getsize(tmp_path / "x.tlx") == len(data)
+
+
+def test_spill_moves_a_result_to_one_file_and_one_mapping(tmp_path: Path) -> None:
+    # A block's result holds an array per image: one mapping each would pass the system's limit on
+    # mappings within a long tour, so all the arrays of a result share one.
+    rng = np.random.default_rng(2)
+    result = {"per_image": [rng.integers(0, 9, int(n)).astype(np.int32) for n in rng.integers(0, 50, 1000)],
+              "xy": (rng.random((7, 2)).astype(np.float32), np.array(True)), "name": "block", "empty": np.zeros((0, 2))}
+    assert scratch.spill(result) is result  # outside spill_to: as it is
+    with scratch.spill_to(tmp_path):
+        moved = scratch.spill(result)
+        assert list(next(tmp_path.iterdir()).iterdir()) == []
+    leaves = [*moved["per_image"], *moved["xy"], moved["empty"]]
+    assert len({id(scratch._mapping(a)) for a in leaves}) == 1 and scratch.file_backed(leaves[0])
+    assert moved["name"] == "block" and isinstance(moved["xy"], tuple)
+    for got, want in zip(leaves, [*result["per_image"], *result["xy"], result["empty"]], strict=True):
+        assert got.dtype == want.dtype and got.shape == want.shape and np.array_equal(got, want)
+
+
+def test_a_full_disk_is_a_one_line_error_naming_the_folder_before_any_write(tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    # The scratch file's blocks are reserved when it is made: a full disk is an error there, not a
+    # SIGBUS at the first write into the mapping.
+    import errno
+
+    from topoloc.errors import WriteError
+
+    def full(fd: int, offset: int, length: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
+    with scratch.spill_to(tmp_path / "maps", min_bytes=0) as folder:
+        with pytest.raises(WriteError) as info:
+            scratch.empty(1000, np.int32)
+        assert list(folder.iterdir()) == []
+    assert str(info.value) == f"cannot write {tmp_path / 'maps'}: No space left on device"
+
+
+def test_a_scratch_folder_that_cannot_be_made_is_a_one_line_error(tmp_path: Path) -> None:
+    from topoloc.errors import WriteError
+
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(WriteError) as info, scratch.spill_to(tmp_path / "file" / "maps"):
+        pass
+    assert str(tmp_path / "file" / "maps") in str(info.value) and "\n" not in str(info.value)

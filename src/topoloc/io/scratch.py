@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import errno
 import functools
 import mmap
 import os
@@ -38,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from topoloc.errors import WriteError
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 
 #: Bytes handled between two :func:`release` calls by chunked code.
@@ -71,9 +73,12 @@ def spill_to(folder: str | Path, *, min_bytes: int | None = None) -> Iterator[Pa
         The scratch folder, removed at the end of the block.
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    remove_stale(folder, _LEFTOVER, functools.partial(shutil.rmtree, ignore_errors=True))
-    scratch = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{writer_tag()}-", dir=folder))
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        remove_stale(folder, _LEFTOVER, functools.partial(shutil.rmtree, ignore_errors=True))
+        scratch = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{writer_tag()}-", dir=folder))
+    except OSError as exc:
+        raise WriteError.of(folder, exc) from None
     token = _SCRATCH.set((scratch, int(SPILL_BYTES if min_bytes is None else min_bytes)))
     try:
         yield scratch
@@ -109,12 +114,20 @@ def empty(shape: int | tuple[int, ...], dtype: Any, *, always: bool = False) -> 
     where = _SCRATCH.get()
     if where is None or nbytes == 0 or (nbytes < where[1] and not always):
         return np.empty(shape, dt)
-    fd, name = tempfile.mkstemp(suffix=".raw", dir=where[0])
+    name = None
     try:
-        os.ftruncate(fd, nbytes)
-        out = np.memmap(name, dtype=dt, mode="r+", shape=shape)
-    finally:
-        os.close(fd)
+        fd, name = tempfile.mkstemp(suffix=".raw", dir=where[0])
+        try:
+            _reserve(fd, nbytes)
+            out = np.memmap(name, dtype=dt, mode="r+", shape=shape)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        if name is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(name)
+        # Named by the folder the user gave spill_to (the map's): the scratch names mean nothing to them.
+        raise WriteError.of(where[0].parent, exc) from None
     with contextlib.suppress(OSError):
         # The mapping keeps the data; the name is only needed by systems that cannot unlink an open file.
         os.unlink(name)
@@ -122,27 +135,75 @@ def empty(shape: int | tuple[int, ...], dtype: Any, *, always: bool = False) -> 
 
 
 def spill(obj: Any) -> Any:
-    """``obj`` with each array in it (a dict, list or tuple of them, nested) moved to a scratch file.
+    """``obj`` with the arrays in it (a dict, list or tuple of them, nested) moved to one scratch file.
 
     Within :func:`spill_to` only (else ``obj`` as it is): for results that
     arrive one by one and together are as large as a map (the shards' models,
     the word ids of a tour's blocks), so that the process holds one of them in
-    memory at a time.
+    memory at a time.  All the arrays of ``obj`` share one file and one
+    mapping: a block's result holds an array per image, and a mapping each
+    would pass the system's limit on mappings (65,530 by default on Linux)
+    within a tour of that many images.
     """
     if not spilling():
         return obj
+    leaves: list[np.ndarray] = []
+    _collect(obj, leaves)
+    starts = np.cumsum([0] + [-(-a.nbytes // _ALIGN) * _ALIGN for a in leaves])
+    if not leaves or starts[-1] == 0:
+        return obj
+    buf = empty(int(starts[-1]), np.uint8, always=True)
+    moved = []
+    for a, start in zip(leaves, starts[:-1].tolist(), strict=True):
+        out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+        out[...] = a
+        moved.append(out)
+    release(buf)
+    return _rebuild(obj, iter(moved))
+
+
+#: Arrays moved by :func:`spill` start on multiples of this many bytes (any dtype's alignment).
+_ALIGN = 64
+
+
+def _collect(obj: Any, out: list[np.ndarray]) -> None:
     if isinstance(obj, np.ndarray):
-        out = empty(obj.shape, obj.dtype, always=True)
-        if not isinstance(out, np.memmap):
-            return obj
-        out[...] = obj
-        release(out)
-        return out
+        out.append(obj)
+    elif isinstance(obj, dict):
+        for v in obj.values():
+            _collect(v, out)
+    elif isinstance(obj, list | tuple):
+        for v in obj:
+            _collect(v, out)
+
+
+def _rebuild(obj: Any, moved: Iterator[np.ndarray]) -> Any:
+    """``obj`` with its arrays replaced, in :func:`_collect`'s order, by ``moved``."""
+    if isinstance(obj, np.ndarray):
+        return next(moved)
     if isinstance(obj, dict):
-        return {k: spill(v) for k, v in obj.items()}
+        return {k: _rebuild(v, moved) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return type(obj)(spill(v) for v in obj)
+        return type(obj)(_rebuild(v, moved) for v in obj)
     return obj
+
+
+def _reserve(fd: int, nbytes: int) -> None:
+    """Give the file ``nbytes``, its disk blocks reserved where the file system can.
+
+    A memory-mapped file whose blocks are allocated only when written kills the
+    process (SIGBUS) at the first write that finds the disk full; reserved at
+    once, a full disk is an ``OSError`` here, before any work.
+    """
+    allocate = getattr(os, "posix_fallocate", None)
+    if allocate is not None:
+        try:
+            allocate(fd, 0, nbytes)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                raise
+    os.ftruncate(fd, nbytes)
 
 
 def _mapping(a: Any) -> mmap.mmap | None:
