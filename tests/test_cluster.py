@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextvars
 import os
 import socket
 import sys
@@ -82,6 +83,20 @@ def test_keep_is_applied_to_each_result_as_it_arrives(n_jobs: int) -> None:
     with LocalExecutor(n_jobs=n_jobs) as ex:
         out = ex.map(_work, list(range(7)), keep=keep)
     assert out == [_keep_sum(_work(k)) for k in range(7)] and sorted(kept) == sorted(out)
+
+
+_CALLER: contextvars.ContextVar[str] = contextvars.ContextVar("caller", default="unset")
+
+
+def test_local_tasks_and_keep_see_the_callers_context() -> None:
+    # io.scratch.spill_to is a context variable: tasks on threads and `keep` must see what the caller set.
+    token = _CALLER.set("set")
+    try:
+        with LocalExecutor(n_jobs=2) as ex:
+            out = ex.map(lambda k: (k, _CALLER.get()), list(range(6)), keep=lambda r: (*r, _CALLER.get()))
+    finally:
+        _CALLER.reset(token)
+    assert out == [(k, "set", "set") for k in range(6)]
 
 
 def test_connect_without_scheduler_runs_locally(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextvars
 import logging
 import os
 import sys
@@ -161,8 +162,11 @@ class LocalExecutor(_Closing):
         if workers == 1:
             return [run(x) for x in items]
         pool = ThreadPoolExecutor(max_workers=workers)
+        # Each task in a copy of the caller's context, as the one-thread path runs: context variables
+        # the caller set (io.scratch.spill_to) hold in the tasks and in `keep` too.
+        caller = contextvars.copy_context()
         try:
-            out = list(pool.map(run, items))
+            out = list(pool.map(lambda x: caller.copy().run(run, x), items))
         except BaseException:
             # Interrupted (Ctrl-C) or failed: items not yet started are dropped, not run to the end.
             pool.shutdown(wait=True, cancel_futures=True)
