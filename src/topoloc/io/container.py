@@ -180,8 +180,7 @@ def write_container(
              "offset": offset, "nbytes": nbytes}
         )
         parts.append(a)
-        for piece in _pieces(a):
-            crc = zlib.crc32(piece, crc)
+        crc = _crc32(a, crc)
         offset += nbytes
     header = json.dumps(
         {"kind": kind, "kind_version": kind_version, "meta": dict(meta or {}),
@@ -199,6 +198,13 @@ def write_container(
                 yield from _pieces(part)
 
     atomic_write_bytes(path, chunks())
+
+
+def _crc32(a: np.ndarray, crc: int = 0) -> int:
+    """``crc`` continued over the bytes of a C-contiguous array, read a chunk at a time (:func:`_pieces`)."""
+    for piece in _pieces(a):
+        crc = zlib.crc32(piece, crc)
+    return crc
 
 
 def _pieces(a: np.ndarray) -> Iterator[memoryview]:
@@ -337,13 +343,9 @@ def read_container(
             f"{kind} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",
             path,
         )
-    crc = 0
-    # In chunks, each let go of once checked: the checksum reads the whole file, and a mapping
-    # left resident would make opening a map cost its size in this process's memory.
-    for s, e in chunk_rows(len(payload), 1):
-        crc = zlib.crc32(payload[s:e], crc)
-        release(data)
-    if crc != header["payload_crc32"]:
+    # In chunks, each let go of once checked (_crc32): the checksum reads the whole file, and a
+    # mapping left resident would make opening a map cost its size in this process's memory.
+    if _crc32(np.frombuffer(payload, np.uint8)) != header["payload_crc32"]:
         raise input_error(f"{kind} file is corrupted (checksum mismatch)", path)
     arrays = {}
     try:

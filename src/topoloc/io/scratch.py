@@ -46,8 +46,7 @@ from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
 CHUNK_BYTES = 4 << 20
 #: Arrays of at least this many bytes are file-backed within :func:`spill_to`: a chunk, so that
 #: what a process holds in memory does not grow with a map until its arrays pass some larger size
-#: (at 32 MiB, ``map build``'s client grew by 45 MiB from 5,000 to 20,000 places, each of a map's
-#: arrays still below it; benchmarks/bench_cluster.py).
+#: (``benchmarks/bench_cluster.py`` measures the client's peak against the route's length).
 SPILL_BYTES = CHUNK_BYTES
 
 _PREFIX = ".topoloc-scratch-"

@@ -1,11 +1,11 @@
 """The first image of each place of a map's tour, as arrays (what ``--pairs-out`` writes for a place).
 
 A map file records, per tour, the image each place is written as in a pairs
-file (:mod:`topoloc.evaluation.pairs`).  Kept as JSON pairs in the header, a
-100,000-place tour made a 3.7 MB header that every command opening the map
-parsed into ~21 MB of Python lists (``localize``'s client,
-``benchmarks/bench_cluster.py``); as three arrays of the container they are
-memory-mapped like the rest of the map and read only by ``--pairs-out``:
+file (:mod:`topoloc.evaluation.pairs`).  Kept as JSON pairs in the header,
+they made the header grow with the route, and every command opening the map
+parsed it into Python lists of a few hundred bytes a place; as three arrays
+of the container they are memory-mapped like the rest of the map and read
+only by ``--pairs-out``:
 
 ``tours/<k>/place_ids`` (n,) int64
     The tour's place ids, increasing.

@@ -36,7 +36,7 @@ import numpy as np
 
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
-from topoloc.io.scratch import spill, spilling
+from topoloc.io.scratch import spill
 from topoloc.progress import no_progress
 
 if TYPE_CHECKING:
@@ -190,7 +190,7 @@ def _spilled(part: ShardPart) -> ShardPart:
     Applied to each shard as it arrives, so that the process merging them holds
     one shard's arrays in memory at a time, not the whole map's.
     """
-    return dataclasses.replace(part, arrays=spill(part.arrays)) if spilling() else part
+    return dataclasses.replace(part, arrays=spill(part.arrays))
 
 
 def build_from_shards(
