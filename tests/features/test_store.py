@@ -261,6 +261,10 @@ def _die_once_mid_write(task: Any) -> Any:
 
     marker = Path(task.path).parent.parent / "died"
     if task.block == 1 and not marker.exists():
+        # The store's folder may not exist yet when block 1 runs first (no block written): without it
+        # the marker could not be written, the task failed and was retried, and the run could outlast
+        # the test's timeout.
+        marker.parent.mkdir(parents=True, exist_ok=True)
         marker.write_text("died")
         Path(task.path).parent.mkdir(parents=True, exist_ok=True)
         Path(task.path).with_name(f".{Path(task.path).name}.killed.tmp").write_bytes(b"TOPOLOC\x00half")
