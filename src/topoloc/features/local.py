@@ -15,6 +15,9 @@ akaze       akaze-61-uint8         Alcantarilla et al. 2013, 486-bit binary (MLD
                                    OpenCV 5 moved AKAZE to opencv-contrib; it is used
                                    when ``cv2.AKAZE_create`` or
                                    ``cv2.xfeatures2d.AKAZE_create`` exists
+xfeat       xfeat-64-float32       Potje et al., CVPR 2024: a learned detector and
+                                   descriptor (:mod:`topoloc.features.learned`);
+                                   unit-norm rows; needs ``topoloc[learned]``
 ==========  =====================  ==================================================
 
 Keypoints are returned strongest first (by detector response) and capped at
@@ -50,7 +53,10 @@ log = logging.getLogger(__name__)
 FEATURES_SCHEMA = 1
 """Version of the feature computation and cache-entry layout; part of every cache key."""
 
-METHODS = ("sift", "rootsift", "orb", "akaze")
+METHODS = ("sift", "rootsift", "orb", "akaze", "xfeat")
+
+#: Methods computed by a neural network (:mod:`topoloc.features.learned`), not by OpenCV.
+LEARNED_METHODS = ("xfeat",)
 PREPROCESS = ("none", "clahe", "equalize", "auto")
 
 AUTO_PREPROCESS_VERSION = 1
@@ -62,6 +68,7 @@ _DESCRIPTORS: dict[str, tuple[int, str]] = {
     "rootsift": (128, "float32"),
     "orb": (32, "uint8"),
     "akaze": (61, "uint8"),
+    "xfeat": (64, "float32"),
 }
 
 _KEYPOINT_COLUMNS = 5  # x, y, size, angle_degrees, response
@@ -73,7 +80,7 @@ class FeatureConfig(Configurable):
 
     Parameters
     ----------
-    method : {"sift", "rootsift", "orb", "akaze"}
+    method : {"sift", "rootsift", "orb", "akaze", "xfeat"}
         Detector and descriptor.
     max_features : int
         Keep at most this many keypoints per image, the strongest by response.
@@ -89,6 +96,10 @@ class FeatureConfig(Configurable):
         ORB FAST threshold (OpenCV default 20).
     akaze_threshold : float
         AKAZE detector response threshold (OpenCV default 0.001).
+    xfeat_threshold : float
+        XFeat's smallest keypoint-heatmap value (its reference inference's 0.05);
+        the ``max_features`` best by score are kept of those above it
+        (:func:`topoloc.features.learned.detect_xfeat`).
     preprocess : {"none", "clahe", "equalize", "auto"}
         Photometric normalisation of the gray image before detection.
         ``"clahe"`` is contrast-limited adaptive histogram equalisation (Zuiderveld
@@ -113,12 +124,14 @@ class FeatureConfig(Configurable):
     fast_threshold: int = 20
     akaze_threshold: float = 0.001
     preprocess: str = "auto"
+    xfeat_threshold: float = 0.05
 
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "method": Options(METHODS, unknown="feature method"),
         "max_features": Interval(int, 1),
         "max_side": Interval(int, 0),
         "preprocess": Options(PREPROCESS, unknown="preprocess"),
+        "xfeat_threshold": Interval(float, 0.0, 1.0, closed="neither"),
     }
 
     def __post_init__(self) -> None:
@@ -131,6 +144,7 @@ class FeatureConfig(Configurable):
         object.__setattr__(self, "fast_threshold", int(self.fast_threshold))
         object.__setattr__(self, "akaze_threshold", float(self.akaze_threshold))
         object.__setattr__(self, "preprocess", str(self.preprocess).lower())
+        object.__setattr__(self, "xfeat_threshold", float(self.xfeat_threshold))
         self.validate_params()
 
     @classmethod
@@ -146,6 +160,14 @@ class FeatureConfig(Configurable):
         pixels features are extracted from), used as cache key.
         """
         fields = asdict(self)
+        if self.method in LEARNED_METHODS:
+            # The network's weights and the framework that runs it decide the features, as OpenCV does for the rest.
+            from topoloc.features import learned
+
+            fields["learned"] = learned.provenance()
+        else:
+            # Settings of OpenCV methods keep the keys (and cache entries) they had before XFeat.
+            del fields["xfeat_threshold"]
         if fields["preprocess"] == "none":
             # Settings from before ``preprocess`` existed keep their cache entries.
             del fields["preprocess"]
@@ -241,7 +263,15 @@ def _akaze_factory() -> Callable[..., Any] | None:
 
 
 def check_method_available(method: str) -> None:
-    """Raise :class:`TopolocError` if this OpenCV build lacks the detector for ``method``."""
+    """Raise :class:`TopolocError` if this OpenCV build lacks the detector for ``method``.
+
+    For a learned method, if its extra (PyTorch and the weights) is not installed.
+    """
+    if method in LEARNED_METHODS:
+        from topoloc.features import learned
+
+        learned.check_available()
+        return
     if method == "akaze" and _akaze_factory() is None:
         raise TopolocError(
             f"AKAZE is not available in OpenCV {cv2.__version__} (OpenCV 5 moved it to "
@@ -414,6 +444,8 @@ def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
     h, w = gray.shape
     work, sx, sy = _downscale(gray, config.max_side)
     work = _normalise(work, config.preprocess)
+    if config.method in LEARNED_METHODS:
+        return _extract_learned(work, (h, w), sx, sy, config, t0)
     dim, dtype = config.descriptor_dim, config.descriptor_dtype
     kps, desc = _detector(config).detectAndCompute(work, None)
     n = len(kps)
@@ -440,6 +472,10 @@ def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
             keypoints[:, 2] *= 0.5 * (sx + sy)
         if config.method == "rootsift":
             descriptors = _rootsift(descriptors)
+    return _feature_set(keypoints, descriptors, (h, w), t0)
+
+
+def _feature_set(keypoints: np.ndarray, descriptors: np.ndarray, shape: tuple[int, int], t0: float) -> FeatureSet:
     keypoints = np.ascontiguousarray(keypoints)
     descriptors = np.ascontiguousarray(descriptors)
     # Read-only, like the arrays loaded from the cache: FeatureSets are shared and memoised.
@@ -448,9 +484,30 @@ def extract_features(image: np.ndarray, config: FeatureConfig) -> FeatureSet:
     return FeatureSet(
         keypoints=keypoints,
         descriptors=descriptors,
-        image_shape=(h, w),
+        image_shape=shape,
         extract_ms=1e3 * (time.perf_counter() - t0),
     )
+
+
+def _extract_learned(work: np.ndarray, shape: tuple[int, int], sx: float, sy: float, config: FeatureConfig,
+                     t0: float) -> FeatureSet:
+    """XFeat on the downscaled, normalised gray image ``work``; keypoints back in original pixels.
+
+    Keypoint columns: x, y, size (the 8-pixel cell of the network, in original
+    pixels), angle -1 (XFeat has no orientation), response (XFeat's score).
+    """
+    from topoloc.features import learned
+
+    xy, score, desc = learned.detect_xfeat([work], max_features=config.max_features,
+                                           detection_threshold=config.xfeat_threshold,
+                                           device=learned.resolve_device())[0]
+    keypoints = np.empty((len(score), _KEYPOINT_COLUMNS), np.float32)
+    keypoints[:, 0] = (xy[:, 0] + 0.5) * sx - 0.5
+    keypoints[:, 1] = (xy[:, 1] + 0.5) * sy - 0.5
+    keypoints[:, 2] = learned.CELL * 0.5 * (sx + sy)
+    keypoints[:, 3] = -1.0
+    keypoints[:, 4] = score
+    return _feature_set(keypoints, desc, shape, t0)
 
 
 def _rootsift(desc: np.ndarray) -> np.ndarray:
@@ -585,7 +642,13 @@ class FeatureExtractor:
                 advance(1)
             return fs
 
-        workers = min(n_workers(self.n_jobs), len(files))
+        if self.config.method in LEARNED_METHODS:
+            from topoloc.features import learned
+
+            # One thread per image (deterministic output); as many images at a time as cores are free.
+            workers = min(learned.extraction_workers(self.n_jobs), len(files))
+        else:
+            workers = min(n_workers(self.n_jobs), len(files))
         if workers <= 1:
             return [one(p) for p in files]
         with ThreadPoolExecutor(max_workers=workers) as pool:
