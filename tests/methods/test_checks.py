@@ -89,6 +89,26 @@ def test_every_method_passes_every_check(recognizer: PlaceRecognizer, check: Any
     check(recognizer, check_data)
 
 
+@pytest.fixture(scope="module")
+def xfeat_check_data(xfeat_route: dict[str, Any]) -> CheckData:
+    # The same data described with XFeat (float32, 64 columns, unit norm) and quantised with XFeat words.
+    res = InMemoryResources(feature_config=xfeat_route["features"], vocabulary=xfeat_route["vocabulary"],
+                            training=xfeat_route["training"])
+    query = xfeat_route["query"].take(np.arange(6))
+    return CheckData(maps=[xfeat_route["map"]], query=query, resources=res, tour=xfeat_route["training"])
+
+
+# Every check, for every method that reads local features (skipped without the 'learned' extra).
+@parametrize_with_checks([get_method(name)(**FAST.get(name, {})) for name in available_methods()
+                          if get_method(name).tags.uses_local_features])
+def test_every_local_feature_method_passes_every_check_on_xfeat(recognizer: PlaceRecognizer, check: Any,
+                                                               xfeat_check_data: CheckData) -> None:
+    res = xfeat_check_data.resources
+    assert res.extractor.config.descriptor_kind == res.vocabulary.descriptor_kind_ == "xfeat-64-float32"
+    check(recognizer, xfeat_check_data)
+    assert res.features(xfeat_check_data.maps[0])[0].descriptors.shape[1] == 64
+
+
 def test_the_checks_follow_the_tags() -> None:
     names = {c.__name__ for c in recognizer_checks(get_method("descriptors")())}
     assert {"check_top_k", "check_shards", "check_add_tour", "check_state_round_trip"} <= names

@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import functools
 import logging
+import os
 import sys
 from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
@@ -99,8 +100,21 @@ def _setup(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
     version: Annotated[bool, typer.Option(
         "--version", help="Print the version and exit.", callback=_print_version, is_eager=True)] = False,
+    device: Annotated[str | None, typer.Option(
+        "--device", help="Where learned features (--features xfeat) are extracted: cpu (default), cuda, or auto "
+                         "(CUDA when PyTorch sees one). Sets TOPOLOC_DEVICE for this run and its local workers.",
+    )] = None,
 ) -> None:
     from topoloc.cli.progress import LogHandler
+
+    if device is not None:
+        from topoloc.features.learned import DEVICES
+
+        name = device.strip().lower()
+        if name not in DEVICES:
+            raise _fail(f"--device must be one of {', '.join(DEVICES)}, got {device!r}")
+        # An environment variable, not a setting passed down: Dask workers started from here inherit it.
+        os.environ["TOPOLOC_DEVICE"] = name
 
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
                         handlers=[LogHandler()])

@@ -63,7 +63,7 @@ def map_build(
     vocab_train: VocabTrainOption = None,
     vocab_words: VocabWordsOption = 10000,
     param: ParamOption = None,
-    features: FeaturesOption = "sift",
+    features: FeaturesOption = "auto",
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "auto",

@@ -30,7 +30,9 @@ ParamOption = Annotated[list[str] | None, typer.Option(
 ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="Settings file (TOML, YAML, or a run's metrics.json); flags given here override it.")]
 # -- features and vocabulary ------------------------------------------------------------------------------
-FeaturesOption = Annotated[str, typer.Option(help="Local features: sift, rootsift, orb, akaze.")]
+FeaturesOption = Annotated[str, typer.Option(
+    help="Local features: auto (xfeat where pip install 'topoloc[learned]' put it, else sift with a warning), "
+         "xfeat (learned), sift, rootsift, orb, akaze.")]
 MaxFeaturesOption = Annotated[int, typer.Option(help="Cap on features per image.")]
 MaxSideAutoOption = Annotated[str, typer.Option(
     help="Downscale images to this longer side before extraction; 'auto' = 640 (smaller images "

@@ -50,7 +50,7 @@ from topoloc.methods.base import PlaceRecognizer
 from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
 from topoloc.resources import CachedResources
-from topoloc.spec import EvaluateSpec, parse_recall_at, spec_from_flat, spec_to_dict
+from topoloc.spec import EvaluateSpec, FeatureSpec, parse_recall_at, spec_from_flat, spec_to_dict
 from topoloc.spec.setup import build_method, make_resources
 
 log = logging.getLogger(__name__)
@@ -274,6 +274,15 @@ def _saved_map(
                     "map's own images", spec.query, spec.map_file)
     if spec.method and spec.method != rec.name:
         raise ParameterError("method", f"{spec.method} differs from the map file's, a {rec.name} map: {spec.map_file}")
+    if rec.uses_local_features:
+        # Feature options left at their defaults take the map's; one given otherwise must be the map's: the
+        # queries are described with the map's features, and ``--features xfeat`` against a SIFT map was ignored.
+        default = FeatureSpec()
+        keys = ("method", "max_features", "preprocess")
+        given = {k: getattr(spec.features, k) for k in keys if getattr(spec.features, k) != getattr(default, k)
+                 or (k == "method" and spec.features.method_named)}
+        if given:
+            saved.check_compatible(features=FeatureSpec(**{**{k: getattr(saved.features, k) for k in keys}, **given}))
     res = saved.resources(cache_dir=spec.execution.cache_dir, progress=progress, executor=executor)
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:

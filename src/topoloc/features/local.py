@@ -271,6 +271,7 @@ def check_method_available(method: str) -> None:
         from topoloc.features import learned
 
         learned.check_available()
+        learned.resolve_device()  # a CUDA device asked for and absent is said before any work starts
         return
     if method == "akaze" and _akaze_factory() is None:
         raise TopolocError(

