@@ -19,6 +19,9 @@ but ``--features``):
   map image is its number of mutual nearest-neighbour descriptor matches with the
   query (a place: the best of its images), on the gardens_point rows; the yardstick
   of "how much of the features a method keeps".
+- ``ablations``: for the methods that keep least of what brute force reaches
+  with XFeat at night, one setting changed (:data:`ABLATIONS`), on the
+  two-tour night row.
 - ``seasons``: michigan_seasons, 5 places on 12 visits over a year: every visit
   against every other (132 ordered pairs, 660 queries), the same brute-force score,
   R@1 over all pairs and per query visit.
@@ -110,6 +113,32 @@ def quality(rows: list[str], methods: list[str], keep: bool) -> list[dict[str, A
     return out
 
 
+# -- where a method keeps less than the features give: one setting changed at a time -------------------------
+#: (method, parameter, value, why): each a hypothesis for a method below brute force on XFeat at night.
+ABLATIONS = (
+    ("voting", "ratio", "0.9", "Lowe's 0.8 was set for SIFT; XFeat's 64-D unit descriptors have closer second "
+                               "neighbours, so the test may reject right matches"),
+    ("landmarks", "match_threshold", "0.6", "0.45 (the paper's, for SIFT) is a cosine of 0.9; XFeat's reference "
+                                            "matcher accepts a cosine of 0.82 (distance 0.6)"),
+)
+ABLATION_ROW = "gp_night_2tours"
+
+
+def ablations(keep: bool) -> list[dict[str, Any]]:
+    maps, query, tol, _ = ROWS[ABLATION_ROW]
+    out = []
+    for method, param, value, why in ABLATIONS:
+        d = RESULTS / "runs" / f"learned_xfeat_{method}_{ABLATION_ROW}_{param}{value}"
+        if not (keep and (d / "metrics.json").is_file() and (d / "S.npy").is_file()):
+            run(method, maps, query, d, vocab_train=[], tolerance=tol, params={param: value},
+                options=["--features", "xfeat"])
+        S = np.load(d / "S.npy")
+        gt = GroundTruth(np.load(d / "gt_hard.npy"), np.load(d / "gt_soft.npy"))
+        out.append({"row": ABLATION_ROW, "method": method, "param": param, "value": value, "why": why,
+                    "single": _scores(S, gt), "sequence": _scores(apply_sequence(S, SEQUENCE)[0], gt)})
+    return out
+
+
 # -- brute force: the features alone -------------------------------------------------------------------
 def _features(paths: list[Path], features: str, cache: Path) -> list[np.ndarray]:
     from topoloc.features import FeatureExtractor
@@ -133,10 +162,10 @@ def brute_S(map_desc: list[list[np.ndarray]], map_places: list[np.ndarray], quer
     """(n_places, n_queries): the most MNN matches of any image of each place (:func:`mnn_count`, vectorised)."""
     k = max(len(q) for q in query_desc)
     dim = query_desc[0].shape[1]
-    Q = np.zeros((len(query_desc), k, dim), np.float32)
-    pad = np.ones((len(query_desc), k), bool)
+    # Padding rows far from every descriptor (SIFT's entries are below 512, XFeat's unit rows below 1): never nearest.
+    Q = np.full((len(query_desc), k, dim), 1e4, np.float32)
     for j, q in enumerate(query_desc):
-        Q[j, :len(q)], pad[j, :len(q)] = q, False
+        Q[j, :len(q)] = q
     qn = (Q * Q).sum(-1)
     S = np.zeros((len(places), len(query_desc)), np.float32)
     for tour, ids in zip(map_desc, map_places, strict=True):
@@ -145,7 +174,6 @@ def brute_S(map_desc: list[list[np.ndarray]], map_places: list[np.ndarray], quer
                 continue
             dots = (a @ Q.reshape(-1, dim).T).reshape(len(a), len(query_desc), k)  # one BLAS product
             d2 = (a * a).sum(1)[:, None, None] - 2.0 * dots + qn[None]
-            d2[:, pad] = np.inf
             ab = d2.argmin(2)  # (n_a, n_q): each map feature's nearest in each query
             ba = d2.argmin(0)  # (n_q, k): each query feature's nearest map feature
             mutual = ba[np.arange(len(query_desc))[None, :], ab] == np.arange(len(a))[:, None]
@@ -224,15 +252,16 @@ def knobs(cache: Path) -> dict[str, Any]:
     mt, qt = load_traverse(maps[0]), load_traverse(query)
     gt = ground_truth_from_places(mt.places, qt.places, hard=0, soft=8)
     out: dict[str, Any] = {"recall": [], "below_cap": {}, "batch_ms": {}}
-    for cap in KNOB_FEATURES:
-        for th in KNOB_THRESHOLDS:
-            cfg = FeatureConfig(method="xfeat", max_features=cap, xfeat_threshold=th, max_side=SPEED_SIDE)
-            ex = FeatureExtractor(cfg, cache_dir=cache)
-            md = [np.asarray(f.descriptors) for f in ex.extract_paths(mt.images)]
-            qd = [np.asarray(f.descriptors) for f in ex.extract_paths(qt.images)]
-            S = brute_S([md], [mt.places], qd, mt.places)
-            out["recall"].append({"max_features": cap, "threshold": th, **_scores(S, gt)})
-            print(f"knobs cap {cap} threshold {th}: {out['recall'][-1]}", flush=True)
+    # Caps at the default threshold, thresholds at the default cap (above the cap the threshold has no say).
+    grid = [(cap, 0.05) for cap in KNOB_FEATURES] + [(1000, th) for th in KNOB_THRESHOLDS if th != 0.05]
+    for cap, th in grid:
+        cfg = FeatureConfig(method="xfeat", max_features=cap, xfeat_threshold=th, max_side=SPEED_SIDE)
+        ex = FeatureExtractor(cfg, cache_dir=cache)
+        md = [np.asarray(f.descriptors) for f in ex.extract_paths(mt.images)]
+        qd = [np.asarray(f.descriptors) for f in ex.extract_paths(qt.images)]
+        S = brute_S([md], [mt.places], qd, mt.places)
+        out["recall"].append({"max_features": cap, "threshold": th, **_scores(S, gt)})
+        print(f"knobs cap {cap} threshold {th}: {out['recall'][-1]}", flush=True)
     for name, folder in (("night", GP / "night_right"), ("day", GP / "day_left")):
         counts = {}
         for th in KNOB_THRESHOLDS:
@@ -363,6 +392,16 @@ def render(o: dict[str, Any]) -> str:
             lines.append(f"| {ROWS[r['row']][3]} | {r['features']} | {_cell(r['single'])} | "
                          + (f"`{best['method']}` {_cell(best['single'])}" if best else "-") + " | "
                          + (f"{share:.2f}" if share is not None else "-") + " |\n")
+    ab = o.get("ablations", [])
+    if ab:
+        lines.append(f"\nOne setting changed at a time, XFeat on {ROWS[ABLATION_ROW][3]} (single images; the default "
+                     "row above for comparison):\n\n| method | setting | default | changed | why it was tried |\n"
+                     "| --- | --- | --- | --- | --- |\n")
+        for a in ab:
+            base = _find(q, row=a["row"], method=a["method"], features="xfeat")
+            default = _cell(base["single"]) if base else "-"
+            lines.append(f"| `{a['method']}` | `{a['param']}={a['value']}` | {default} | {_cell(a['single'])} | "
+                         f"{a['why']} |\n")
     s = o.get("seasons")
     if s:
         lines.append("\n## Seasons: michigan_seasons\n\n5 places on 12 visits over a year; every visit against "
@@ -397,8 +436,8 @@ def render(o: dict[str, Any]) -> str:
                      "threshold:\n\n| keypoints | " + " | ".join(f"threshold {t:g}" for t in KNOB_THRESHOLDS)
                      + " |\n| --- |" + " --- |" * len(KNOB_THRESHOLDS) + "\n")
         for cap in KNOB_FEATURES:
-            cells = [_cell(r) for th in KNOB_THRESHOLDS for r in k["recall"]
-                     if r["max_features"] == cap and r["threshold"] == th]
+            cells = [next((_cell(r) for r in k["recall"] if r["max_features"] == cap and r["threshold"] == th), "-")
+                     for th in KNOB_THRESHOLDS]
             lines.append(f"| {cap} | " + " | ".join(cells) + " |\n")
         lines.append("\nKeypoints above each threshold (no cap): median per frame, and the share of frames with fewer "
                      "than 1,000 (where the threshold, not the cap, decides):\n\n| frames | "
@@ -448,7 +487,7 @@ def _merge(old: list[dict[str, Any]], new: list[dict[str, Any]], keys: tuple[str
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--parts", default="quality,brute,seasons,knobs,speed,localize")
+    ap.add_argument("--parts", default="quality,brute,ablations,seasons,knobs,speed,localize")
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--keep-runs", action="store_true")
@@ -461,19 +500,31 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         cache = Path(os.environ.get("TOPOLOC_CACHE_DIR", Path(tmp) / "cache"))
         # Rows measured now replace the same rows of the last run; the others are kept (a page built in parts).
+        def save() -> None:  # after every part: a long run stopped later keeps what it measured
+            OUT_JSON.write_text(json.dumps(o, indent=1) + "\n")
+
         if "quality" in parts:
             o["quality"] = _merge(o.get("quality", []), quality(rows, methods, args.keep_runs),
                                   ("row", "method", "features"))
+            save()
         if "brute" in parts:
             o["brute"] = _merge(o.get("brute", []), brute(rows, cache), ("row", "features"))
+            save()
         if "seasons" in parts:
             o["seasons"] = seasons(cache)
+            save()
         if "knobs" in parts:
             o["knobs"] = knobs(cache)
+            save()
+        if "ablations" in parts:
+            o["ablations"] = ablations(args.keep_runs)
+            save()
         if "speed" in parts:
             o["speed"] = speed(Path(tmp))
+            save()
         if "localize" in parts:
             o["localize"] = localize_rate(Path(tmp))
+            save()
     OUT_JSON.write_text(json.dumps(o, indent=1) + "\n")
     OUT_MD.write_text(render(o))
     print(f"wrote {OUT_MD}")

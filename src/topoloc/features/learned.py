@@ -64,6 +64,7 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
+import cv2
 import numpy as np
 
 from topoloc.errors import TopolocError
@@ -224,6 +225,23 @@ def _sample(maps: Any, xy: Any, height: int, width: int, mode: str) -> Any:
     return out.permute(0, 2, 3, 1).squeeze(-2)
 
 
+def _local_max(heat: Any) -> Any:
+    """The largest value of each :data:`NMS_WINDOW`-square window of ``heat`` (B, 1, H, W), borders ignored.
+
+    On the CPU, OpenCV's dilation: exactly the values of PyTorch's 5 x 5 max
+    pooling, about 50 times faster at 640 x 352 on one thread (it took a fifth
+    of an extraction); on a GPU, pooling along rows then columns.
+    """
+    torch = _import_torch()
+    F = torch.nn.functional
+    if heat.device.type == "cpu":
+        kernel = np.ones((NMS_WINDOW, NMS_WINDOW), np.uint8)
+        return torch.from_numpy(np.stack([cv2.dilate(m, kernel) for m in heat[:, 0].numpy()]))[:, None]
+    half = NMS_WINDOW // 2
+    rows = F.max_pool2d(heat, (1, NMS_WINDOW), stride=1, padding=(0, half))
+    return F.max_pool2d(rows, (NMS_WINDOW, 1), stride=1, padding=(half, 0))
+
+
 def detect_xfeat(
     images: Sequence[np.ndarray],
     *,
@@ -276,7 +294,7 @@ def detect_xfeat(
         # The 64 in-cell positions of each cell, rearranged to a full-resolution heatmap.
         heat = F.softmax(logits, 1)[:, :CELL * CELL].permute(0, 2, 3, 1).reshape(b, gh, gw, CELL, CELL)
         heat = heat.permute(0, 1, 3, 2, 4).reshape(b, 1, gh * CELL, gw * CELL)
-        peak = F.max_pool2d(heat, NMS_WINDOW, stride=1, padding=NMS_WINDOW // 2)
+        peak = _local_max(heat)
         is_kp = (heat == peak) & (heat > detection_threshold)
         sx, sy = w0 / ww, h0 / hh
         out = []
