@@ -74,13 +74,28 @@ def test_max_side_reports_keypoints_in_original_pixels() -> None:
 
 def test_threshold_and_cap_are_honoured() -> None:
     img = textured_image(5)
-    loose = extract_features(img, FeatureConfig(method="xfeat", max_features=4000, xfeat_threshold=0.01))
-    strict = extract_features(img, FeatureConfig(method="xfeat", max_features=4000, xfeat_threshold=0.2))
-    capped = extract_features(img, FeatureConfig(method="xfeat", max_features=30, xfeat_threshold=0.01))
+    dense = {"method": "xfeat", "xfeat_pixels_per_keypoint": 1}  # no area budget: the threshold decides
+    loose = extract_features(img, FeatureConfig(**dense, max_features=4000, xfeat_threshold=0.01))
+    strict = extract_features(img, FeatureConfig(**dense, max_features=4000, xfeat_threshold=0.2))
+    capped = extract_features(img, FeatureConfig(**dense, max_features=30, xfeat_threshold=0.01))
     assert len(strict) < len(loose) and len(capped) == 30
     np.testing.assert_array_equal(capped.descriptors, loose.descriptors[:30])
     with pytest.raises(TopolocError, match="xfeat_threshold"):
         FeatureConfig(method="xfeat", xfeat_threshold=0.0)
+
+
+def test_the_keypoint_budget_follows_the_area() -> None:
+    img = textured_image(6, h=240, w=320)
+    budget = 240 * 320 // 230
+    many = extract_features(img, FeatureConfig(method="xfeat", max_features=4000))
+    assert len(many) == budget, "a 320 x 240 image gets one keypoint per 230 pixels"
+    half = extract_features(img, FeatureConfig(method="xfeat", max_features=4000, xfeat_pixels_per_keypoint=460))
+    np.testing.assert_array_equal(half.descriptors, many.descriptors[:budget // 2])
+    assert len(extract_features(img, FeatureConfig(method="xfeat", max_features=100))) == 100
+    # The budget is counted on the image described: downscaled by max_side, fewer pixels, fewer keypoints.
+    small = extract_features(img, FeatureConfig(method="xfeat", max_features=4000, max_side=160))
+    assert len(small) <= 160 * 120 // 230
+    assert FeatureConfig(method="xfeat").key() != FeatureConfig(method="xfeat", xfeat_pixels_per_keypoint=100).key()
 
 
 def test_blank_image_has_no_features() -> None:
@@ -95,7 +110,7 @@ def test_cache_records_the_kind_and_the_weights(tmp_path: Path) -> None:
     assert cfg.key().startswith("xfeat-") and cfg.key() != FeatureConfig(method="xfeat", max_features=201).key()
     assert cfg.key() != FeatureConfig(method="xfeat", max_features=200, xfeat_threshold=0.1).key()
     # Settings of OpenCV methods are keyed without the XFeat threshold (their cache entries are kept).
-    assert FeatureConfig().key() == FeatureConfig(xfeat_threshold=0.1).key()
+    assert FeatureConfig().key() == FeatureConfig(xfeat_threshold=0.1, xfeat_pixels_per_keypoint=9).key()
     [path] = write_images(tmp_path / "imgs", 1)
     ex = FeatureExtractor(cfg, cache_dir=tmp_path / "cache")
     first = ex.extract_path(path)
@@ -149,6 +164,23 @@ def test_one_thread_per_image_and_workers_follow_the_free_cores() -> None:
     assert learned.extraction_workers(1) == 1
     extract_features(textured_image(1), FeatureConfig(method="xfeat", max_features=50))
     assert torch.get_num_threads() == learned.THREADS == 1
+
+
+def test_free_cores_sees_busy_processes_at_once() -> None:
+    import os
+    import subprocess
+    import time
+
+    cores = len(os.sched_getaffinity(0))
+    spin = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(cores)]
+    try:
+        time.sleep(0.5)
+        assert learned.free_cores() <= max(1, cores - 1), "one spinning process per core leaves none free"
+    finally:
+        for p in spin:
+            p.kill()
+        for p in spin:
+            p.wait()
 
 
 def test_missing_extra_is_one_line_naming_it(monkeypatch: pytest.MonkeyPatch) -> None:

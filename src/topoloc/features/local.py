@@ -98,8 +98,19 @@ class FeatureConfig(Configurable):
         AKAZE detector response threshold (OpenCV default 0.001).
     xfeat_threshold : float
         XFeat's smallest keypoint-heatmap value (its reference inference's 0.05);
-        the ``max_features`` best by score are kept of those above it
+        the best by score are kept of those above it
         (:func:`topoloc.features.learned.detect_xfeat`).
+    xfeat_pixels_per_keypoint : int
+        XFeat's keypoint budget follows the area of the image it describes: at
+        most one keypoint per this many pixels (after ``max_side``), and never
+        more than ``max_features``.  SIFT's count follows the image's contrast;
+        XFeat has thousands of candidates in any frame and fills whatever budget
+        it gets, so 1,000 keypoints on a 320 x 232 webcam cell crowd neighbouring
+        cells with near-identical descriptors, whose repeated visual words cost
+        Cooc-Map's same-word pairs quadratically.  230 px gives the 1,000 of
+        ``max_features`` to a 640 x 360 frame (``max_side`` auto on 16:9 cameras,
+        where the cap was measured) and 322 to a webcam cell
+        (``benchmarks/bench_learned_features.py``, docs/results/learned_features.md).
     preprocess : {"none", "clahe", "equalize", "auto"}
         Photometric normalisation of the gray image before detection.
         ``"clahe"`` is contrast-limited adaptive histogram equalisation (Zuiderveld
@@ -125,6 +136,7 @@ class FeatureConfig(Configurable):
     akaze_threshold: float = 0.001
     preprocess: str = "auto"
     xfeat_threshold: float = 0.05
+    xfeat_pixels_per_keypoint: int = 230
 
     parameter_constraints: ClassVar[Mapping[str, Constraint]] = {
         "method": Options(METHODS, unknown="feature method"),
@@ -132,6 +144,7 @@ class FeatureConfig(Configurable):
         "max_side": Interval(int, 0),
         "preprocess": Options(PREPROCESS, unknown="preprocess"),
         "xfeat_threshold": Interval(float, 0.0, 1.0, closed="neither"),
+        "xfeat_pixels_per_keypoint": Interval(int, 1),
     }
 
     def __post_init__(self) -> None:
@@ -145,6 +158,7 @@ class FeatureConfig(Configurable):
         object.__setattr__(self, "akaze_threshold", float(self.akaze_threshold))
         object.__setattr__(self, "preprocess", str(self.preprocess).lower())
         object.__setattr__(self, "xfeat_threshold", float(self.xfeat_threshold))
+        object.__setattr__(self, "xfeat_pixels_per_keypoint", int(self.xfeat_pixels_per_keypoint))
         self.validate_params()
 
     @classmethod
@@ -167,7 +181,7 @@ class FeatureConfig(Configurable):
             fields["learned"] = learned.provenance()
         else:
             # Settings of OpenCV methods keep the keys (and cache entries) they had before XFeat.
-            del fields["xfeat_threshold"]
+            del fields["xfeat_threshold"], fields["xfeat_pixels_per_keypoint"]
         if fields["preprocess"] == "none":
             # Settings from before ``preprocess`` existed keep their cache entries.
             del fields["preprocess"]
@@ -499,7 +513,8 @@ def _extract_learned(work: np.ndarray, shape: tuple[int, int], sx: float, sy: fl
     """
     from topoloc.features import learned
 
-    xy, score, desc = learned.detect_xfeat([work], max_features=config.max_features,
+    budget = max(1, min(config.max_features, work.size // config.xfeat_pixels_per_keypoint))
+    xy, score, desc = learned.detect_xfeat([work], max_features=budget,
                                            detection_threshold=config.xfeat_threshold,
                                            device=learned.resolve_device())[0]
     keypoints = np.empty((len(score), _KEYPOINT_COLUMNS), np.float32)
