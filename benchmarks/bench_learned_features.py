@@ -375,7 +375,8 @@ def render(o: dict[str, Any]) -> str:
                     seq = f"{_cell(s['sequence'])} | **{_cell(x['sequence'])}**"
                 else:  # the webcam queries are hours of fixed cameras, not a route driven in order
                     seq = "n/a | n/a"
-                lines.append(f"| {ROWS[row][3]} | `{method}` | {_cell(s['single'])} | **{_cell(x['single'])}** | {seq} | "
+                lines.append(f"| {ROWS[row][3]} | `{method}` | {_cell(s['single'])} | **{_cell(x['single'])}** | "
+                             f"{seq} | "
                              f"{s['ms_per_query']:.1f} / {x['ms_per_query']:.1f} | "
                              f"{s['ms_features']:.0f} / {x['ms_features']:.0f} |\n")
                 for mode in ("single", "sequence") if row in GP_ROWS else ("single",):

@@ -1,4 +1,4 @@
-"""The learned-features page (benchmarks/bench_learned_features.py): brute force, and a page written from the numbers."""
+"""The learned-features page (benchmarks/bench_learned_features.py): brute force, a page written from the numbers."""
 
 from __future__ import annotations
 
