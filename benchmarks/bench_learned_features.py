@@ -28,6 +28,9 @@ but ``--features``):
 - ``knobs``: XFeat's keypoint cap, heatmap threshold and batch size: brute-force
   scores on the night row for each cap and threshold, how often the threshold
   rather than the cap limits a frame's keypoints, and ms per image by batch size.
+- ``slam``: ``topoloc slam rtabmap_loop`` (online FAB-MAP) with each feature
+  kind, the vocabulary trained on the webcams or on gardens_point: places and
+  the accepted loop closures.
 - ``speed``: milliseconds to extract one 640 px frame held in memory (as
   ``localize`` does; gardens_point day frames downscaled by ``max_side=640``),
   quiet and beside 3 busy processes paced at 10 Hz (``benchmarks.bench_load``),
@@ -136,6 +139,31 @@ def ablations(keep: bool) -> list[dict[str, Any]]:
         gt = GroundTruth(np.load(d / "gt_hard.npy"), np.load(d / "gt_soft.npy"))
         out.append({"row": ABLATION_ROW, "method": method, "param": param, "value": value, "why": why,
                     "single": _scores(S, gt), "sequence": _scores(apply_sequence(S, SEQUENCE)[0], gt)})
+    return out
+
+
+# -- online FAB-MAP SLAM (``topoloc slam``) on the loop walked twice -------------------------------------------
+LOOP = DATA / "rtabmap_loop"
+SLAM_VOCABS = (("webcam_daynight/map", WEBCAM / "map"), ("gardens_point", GP))
+
+
+def slam(work: Path) -> list[dict[str, Any]]:
+    """``topoloc slam rtabmap_loop`` with each feature kind and two vocabulary sources: places, loop closures."""
+    import csv
+
+    out = []
+    for vname, vdir in SLAM_VOCABS:
+        for features in FEATURES:
+            d = work / f"slam_{features}_{vdir.name}"
+            subprocess.run([str(TOPOLOC), "slam", str(LOOP), "--vocab-train", str(vdir), "--features", features,
+                            "--out", str(d), "--quiet"], check=True, stdout=subprocess.DEVNULL)
+            info = json.loads((d / "slam.json").read_text())
+            with open(d / "loop_closures.csv", newline="") as fh:
+                pairs = [(r["image_name"], r["matched_image_name"]) for r in csv.DictReader(fh)]
+            out.append({"features": features, "vocabulary": vname, "places": info["n_places"],
+                        "loop_closures": info["n_loop_closures"], "pairs": pairs})
+            print(f"slam {features} {vname}: {out[-1]['places']} places, {out[-1]['loop_closures']} closures",
+                  flush=True)
     return out
 
 
@@ -459,6 +487,16 @@ def render(o: dict[str, Any]) -> str:
                              f" / {loaded['p95']:.1f} | {loaded['median'] / quiet['median']:.2f} | "
                              f"{r['files_ms_per_image']:.1f} | {r['features_per_image']:.0f} | "
                              f"{r['cache_kib_per_image']:.1f} |\n")
+    sl = o.get("slam")
+    if sl:
+        lines.append("\n## Online FAB-MAP SLAM: `topoloc slam rtabmap_loop`\n\n84 frames of an indoor loop walked "
+                     "twice (frames ~1-45 revisited by ~46-84; no ground truth file), FAB-MAP 1.0 with `slam`'s "
+                     "defaults, the vocabulary trained on another dataset. Each accepted closure as `frame -> "
+                     "matched frame` (file names).\n\n| features | vocabulary trained on | places | loop closures | "
+                     "closures |\n| --- | --- | --- | --- | --- |\n")
+        for r in sl:
+            pairs = ", ".join(f"{Path(a).stem}->{Path(b).stem}" for a, b in r["pairs"]) or "-"
+            lines.append(f"| {r['features']} | {r['vocabulary']} | {r['places']} | {r['loop_closures']} | {pairs} |\n")
     k = o.get("knobs")
     if k:
         lines.append("\n## How XFeat's settings were chosen\n\nBrute force (as above) on gardens_point day_right -> "
@@ -517,7 +555,7 @@ def _merge(old: list[dict[str, Any]], new: list[dict[str, Any]], keys: tuple[str
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--parts", default="quality,brute,ablations,seasons,knobs,speed,localize")
+    ap.add_argument("--parts", default="quality,brute,ablations,seasons,knobs,slam,speed,localize")
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--keep-runs", action="store_true")
@@ -548,6 +586,9 @@ def main(argv: list[str] | None = None) -> None:
             save()
         if "ablations" in parts:
             o["ablations"] = ablations(args.keep_runs)
+            save()
+        if "slam" in parts:
+            o["slam"] = slam(Path(tmp))
             save()
         if "speed" in parts:
             o["speed"] = speed(Path(tmp))

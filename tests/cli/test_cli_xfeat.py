@@ -94,6 +94,18 @@ def test_slam_with_xfeat(cli: Cli, xf: dict[str, Path], tmp_path: Path) -> None:
         rows = [(int(r["image"]), int(r["matched_image"])) for r in csv.DictReader(fh)]
     half = len(frames) // 2
     assert rows and all(i >= half and j < half for i, j in rows), rows
+    assert json.loads((out / "slam.json").read_text())["params"]["features"] == "xfeat-64-float32"
+
+
+def test_slam_keeps_sift_by_default_where_xfeat_is_the_default(cli: Cli, xf: dict[str, Path], tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    # Online FAB-MAP with XFeat merged most of a loop into one place (docs/results/learned_features.md): slam's
+    # default stays SIFT whatever "auto" means here.
+    monkeypatch.delenv("TOPOLOC_FEATURES")
+    out = tmp_path / "s"
+    cli.ok(["slam", str(xf["map"]), "--vocab", str(xf["vocab"]), "--cache-dir", str(xf["cache"]), "--out", str(out),
+            "--quiet"])
+    assert json.loads((out / "slam.json").read_text())["params"]["features"] == "sift-128-float32"
 
 
 def test_sift_vocabularies_and_maps_refuse_xfeat_features(cli: Cli, xf: dict[str, Path], tmp_path: Path,

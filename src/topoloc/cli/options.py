@@ -33,6 +33,10 @@ ConfigOption = Annotated[Path | None, typer.Option(
 FeaturesOption = Annotated[str, typer.Option(
     help="Local features: auto (xfeat where pip install 'topoloc[learned]' put it, else sift with a warning), "
          "xfeat (learned), sift, rootsift, orb, akaze.")]
+SlamFeaturesOption = Annotated[str, typer.Option(
+    "--features", help="Local features: sift (the default of slam: online FAB-MAP with XFeat merged most of a loop "
+                       "into one place on rtabmap_loop, docs/results/learned_features.md), xfeat, rootsift, orb, "
+                       "akaze, or auto (xfeat where installed).")]
 MaxFeaturesOption = Annotated[int, typer.Option(help="Cap on features per image.")]
 MaxSideAutoOption = Annotated[str, typer.Option(
     help="Downscale images to this longer side before extraction; 'auto' = 640 (smaller images "

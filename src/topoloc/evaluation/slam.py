@@ -187,6 +187,9 @@ def run_slam(
     # A recording is named by its file (an in-memory traverse's root is a placeholder).
     result.params["traverse"] = str(tr.source["file"]) if tr.source and "file" in tr.source else str(tr.root)
     result.params["images"] = [p.name for p in tr.images]
+    extractor = getattr(resources, "extractor", None)
+    if extractor is not None:  # which features the words came from (slam's default differs from evaluate's)
+        result.params["features"] = extractor.config.descriptor_kind
     write_slam_outputs(result, out, plot=plot)
     progress_csv.unlink(missing_ok=True)
     return result
