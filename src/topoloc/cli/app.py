@@ -108,11 +108,12 @@ def _setup(
     from topoloc.cli.progress import LogHandler
 
     if device is not None:
-        from topoloc.features.learned import DEVICES
+        from topoloc.features.learned import parse_device
 
-        name = device.strip().lower()
-        if name not in DEVICES:
-            raise _fail(f"--device must be one of {', '.join(DEVICES)}, got {device!r}")
+        try:
+            name = parse_device(device)
+        except TopolocError as exc:
+            raise _fail(f"--{exc}") from None
         # An environment variable, not a setting passed down: Dask workers started from here inherit it.
         os.environ["TOPOLOC_DEVICE"] = name
 

