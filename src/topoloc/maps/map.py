@@ -73,7 +73,7 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
     return rec
 
 
-def reload_tour(rec: dict[str, Any]) -> Traverse:
+def reload_tour(rec: dict[str, Any], *, purpose: str = "to add a tour") -> Traverse:
     """The tour a map's tour record names, read again from its folder or recording.
 
     Raises
@@ -85,7 +85,7 @@ def reload_tour(rec: dict[str, Any]) -> Traverse:
     root = str(rec.get("root", ""))
     if root.startswith("<"):
         raise TopolocError(f"tour {rec.get('name')!r} of the map was built from images in memory, which cannot "
-                           "be read again to add a tour: build the map from all tours")
+                           f"be read again {purpose}: build the map from all tours")
     src = rec.get("source") or {}
     if src:
         from topoloc.datasets.sources import load_input
@@ -94,7 +94,7 @@ def reload_tour(rec: dict[str, Any]) -> Traverse:
                        every_m=src.get("every_m"), pose_topic=src.get("pose_topic"))
     else:
         if not Path(root).is_dir():
-            raise input_error(f"tour {rec.get('name')!r} of the map is needed again to add a tour, but its "
+            raise input_error(f"tour {rec.get('name')!r} of the map is needed again {purpose}, but its "
                               "folder is gone", root)
         t = load_traverse(root)
     if t.fingerprint() != rec["fingerprint"]:

@@ -22,6 +22,7 @@ from topoloc.spec.parts import (
     GroundTruthSpec,
     InputSpec,
     SequenceSpec,
+    VerificationSpec,
     VocabularySpec,
     _opt_path,
     _paths,
@@ -108,7 +109,7 @@ class EvaluateSpec(_ChecksOutputs):
     pairs_out : Path, optional
         Also write the ``top_k`` retrieval pairs of each query in hloc's format
         (:mod:`topoloc.evaluation.pairs`); needs ``top_k``.
-    features, vocabulary, inputs, ground_truth, sequence, execution
+    features, vocabulary, inputs, ground_truth, sequence, execution, verification
         The parts (:mod:`topoloc.spec.parts`).
     """
 
@@ -128,6 +129,7 @@ class EvaluateSpec(_ChecksOutputs):
     ground_truth: GroundTruthSpec = field(default_factory=GroundTruthSpec)
     sequence: SequenceSpec = field(default_factory=SequenceSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "maps", _paths(self.maps))
@@ -237,7 +239,7 @@ class LocalizeSpec(_ChecksOutputs):
     prefetch : int
         Frames read and described ahead of the one being matched, on one thread
         per core (-1: two per core; 0: one frame at a time); the lines are the same.
-    sequence, inputs, execution
+    sequence, inputs, execution, verification
         The parts (:mod:`topoloc.spec.parts`).
     """
 
@@ -250,6 +252,7 @@ class LocalizeSpec(_ChecksOutputs):
     sequence: SequenceSpec = field(default_factory=SequenceSpec)
     inputs: InputSpec = field(default_factory=InputSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "images", _paths(self.images))
