@@ -35,6 +35,7 @@ from topoloc.cli.options import (
     ToleranceMOption,
     ToleranceOption,
     TopicOption,
+    VerifyOption,
     VocabOption,
     VocabTrainOption,
     VocabWordsOption,
@@ -68,6 +69,7 @@ def evaluate(
     ] = None,
     sequence: SequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
+    verify: VerifyOption = None,
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
     ] = "1,5,10",

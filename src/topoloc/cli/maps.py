@@ -36,6 +36,7 @@ from topoloc.cli.options import (
     SchedulerTimeoutOption,
     SequenceModeOption,
     TopicOption,
+    VerifyOption,
     VocabOption,
     VocabTrainOption,
     VocabWordsOption,
@@ -76,6 +77,7 @@ def map_build(
     shards: Annotated[int, typer.Option(
         help="Build the map as this many partial models of place ranges, one task each, merged into the "
              "same map as a one-piece build (docs/map_shards.md).")] = 1,
+    verify: VerifyOption = None,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
     config: ConfigOption = None,
@@ -215,6 +217,7 @@ def map_calibrate(
     pose_topic: PoseTopicOption = None,
     sequence: CalibrateSequenceOption = None,
     sequence_mode: SequenceModeOption = STREAM_SEQUENCE_MODE,
+    verify: VerifyOption = None,
 ) -> None:
     """Choose the score threshold that reaches --precision on a labelled tour and store it in the map.
 
@@ -239,7 +242,7 @@ def map_calibrate(
                 seq = SequenceSpec(length=seq.length, mode=sequence_mode)
         with rich_progress(not quiet) as progress:
             cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
-                                 progress=progress, sequence=seq)
+                                 progress=progress, sequence=seq, verify=verify)
     typer.echo(json.dumps(cal))
 
 
@@ -258,6 +261,7 @@ def localize(
              "core; 0: one frame at a time); the lines are the same.")] = -1,
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
+    verify: VerifyOption = None,
     quiet: QuietOption = False,
     topic: TopicOption = None,
     every_s: EverySOption = None,
@@ -306,8 +310,13 @@ def localize(
         log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
                     "hold; run `topoloc map calibrate` with the same --sequence", spec.map_file,
                     _sequence_words(cal.length, cal.mode), _sequence_words(spec.sequence.length, spec.sequence.mode))
+    verify_asked = spec.verification.enabled
+    if m.threshold is not None and verify_asked is not None and verify_asked != m.default_verify:
+        log.warning("%s: the threshold was calibrated %s verification, and this run matches %s: its precision "
+                    "does not hold; run `topoloc map calibrate` with the same --verify/--no-verify", spec.map_file,
+                    "with" if m.default_verify else "without", "with" if verify_asked else "without")
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
-                      prefetch=spec.prefetch)
+                      prefetch=spec.prefetch, verify=verify_asked, candidates=spec.verification.candidates)
     # Written line by line: a run that is stopped keeps every frame done so far.
     with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)

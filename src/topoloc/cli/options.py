@@ -66,6 +66,11 @@ CalibrateSequenceOption = Annotated[int | None, typer.Option(
     "--sequence", help="Calibrate the confidence of sequence matching over each frame and the N before it, as "
                        "`localize` then matches by default; 0 = single images. Default: 10 where the tour "
                        "moves along the route (half its steps advance 1-3 places), else 0 (docs/protocol.md).")]
+VerifyOption = Annotated[bool | None, typer.Option(
+    "--verify/--no-verify", help="Check each answer's candidates by local matches and epipolar geometry and score "
+                                 "it by its inliers (docs/protocol.md, Verification). Default: wherever the map's "
+                                 "images can be read (a saved map: as it was calibrated or built; maps saved before "
+                                 "verification existed are not verified unless asked).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
 PairsOutOption = Annotated[Path | None, typer.Option(

@@ -51,6 +51,7 @@ from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
 from topoloc.resources import CachedResources
 from topoloc.spec import EvaluateSpec, FeatureSpec, parse_recall_at, spec_from_flat, spec_to_dict
+from topoloc.spec.parts import verify_from_env
 from topoloc.spec.setup import build_method, build_verifier, make_resources
 from topoloc.verification import VerifiedBlock, Verifier
 
@@ -233,7 +234,7 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
 
 def _npz(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.savez(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
 
 
@@ -252,7 +253,7 @@ def _verifier(spec: EvaluateSpec, place_ids: np.ndarray, maps: Sequence[Traverse
     Not given (``None``), it is left out, with one line, where it cannot run: a run of the K best places
     only (``top_k``: verification needs each query's whole column), or a saved map whose tours are gone.
     """
-    ask = spec.verification.enabled
+    ask = spec.verification.enabled if spec.verification.enabled is not None else verify_from_env()
     if ask is False:
         return None
     if spec.top_k and not spec.sequence.length and ask is None:

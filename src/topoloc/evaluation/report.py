@@ -42,6 +42,7 @@ def _method_label(m: dict[str, Any]) -> str:
     """Method name with the parameters that differ from its defaults, e.g. ``seqslam (search=acceleration)``."""
     params = dict(m.get("params", {}))
     seq = params.pop("sequence", 0)
+    verified = params.pop("verify", False)
     tags = []
     try:
         cls = get_method(m["method"])
@@ -59,6 +60,8 @@ def _method_label(m: dict[str, Any]) -> str:
     mode = params.pop("sequence_mode", "constant")
     if seq:
         tags.append(f"seq {seq}" + (f" {mode}" if mode != "constant" else ""))
+    if verified:
+        tags.append("verified")
     return m["method"] + (f" ({', '.join(tags)})" if tags else "")
 
 

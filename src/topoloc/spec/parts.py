@@ -533,6 +533,25 @@ class ExecutionSpec:
         return connect(self.scheduler, timeout_s=self.scheduler_timeout)
 
 
+def verify_from_env() -> bool | None:
+    """``$TOPOLOC_VERIFY`` (``1``/``0``): whether answers are verified where no option says; None when unset.
+
+    It stands where a run gives no ``--verify/--no-verify`` (before a saved
+    map's recorded default): ``0`` for a site that keeps scoring as before
+    (the test suite sets it so and tests verification on its own).
+    """
+    import os
+
+    value = os.environ.get("TOPOLOC_VERIFY", "").strip().lower()
+    if not value or value == "auto":
+        return None
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise ParameterError("verification.enabled", f"from TOPOLOC_VERIFY must be 1, 0 or auto, got {value!r}")
+
+
 @dataclass(frozen=True)
 class VerificationSpec:
     """Geometric verification of each answer's candidates (:mod:`topoloc.verification`).
@@ -578,6 +597,7 @@ __all__ = [
     "SequenceSpec",
     "VerificationSpec",
     "VocabularySpec",
+    "verify_from_env",
     "parse_max_side",
     "parse_recall_at",
     "stream_sequence_for",

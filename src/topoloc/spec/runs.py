@@ -186,8 +186,9 @@ class MapBuildSpec(_ChecksOutputs):
         The map file to write (None: a map built from Python, not yet saved).
     shards : int
         Partial models of place ranges, one task each, merged (``docs/map_shards.md``).
-    features, vocabulary, inputs, execution
-        The parts (:mod:`topoloc.spec.parts`).
+    features, vocabulary, inputs, execution, verification
+        The parts (:mod:`topoloc.spec.parts`); ``verification`` is recorded in
+        the map as the default of ``localize`` and ``evaluate --map-file``.
     """
 
     method: str = ""
@@ -199,6 +200,7 @@ class MapBuildSpec(_ChecksOutputs):
     vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
     inputs: InputSpec = field(default_factory=InputSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "maps", _paths(self.maps))

@@ -35,7 +35,7 @@ from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
 from topoloc.resources import CachedResources, Resources
-from topoloc.spec.parts import VerificationSpec, VocabularySpec
+from topoloc.spec.parts import VerificationSpec, VocabularySpec, verify_from_env
 from topoloc.verification import Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import VOCAB_SCHEMA
@@ -246,7 +246,8 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     """The verification stage of a run (:mod:`topoloc.verification`), or None when it is off.
 
     ``spec.enabled`` None (the default) verifies where the map's images can
-    be; True where they cannot is a one-line error naming why; False never.
+    be (unless ``$TOPOLOC_VERIFY`` says otherwise, :func:`verify_from_env`);
+    True where they cannot is a one-line error naming why; False never.
 
     Parameters
     ----------
@@ -260,11 +261,12 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     what : str
         Named in the error.
     """
-    if spec.enabled is False:
+    enabled = spec.enabled if spec.enabled is not None else verify_from_env()
+    if enabled is False:
         return None
     why = unverifiable(tours)
     if why:
-        if spec.enabled:
+        if enabled:
             raise ParameterError("verification.enabled", f"{what} cannot be verified: {why} (use --no-verify)")
         log.info("%s cannot be verified (%s): answers are not verified", what, why)
         return None

@@ -112,7 +112,7 @@ def verified_scores(S: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndar
     g = squash(S)
     out = g.copy()
     ok = (rows >= 0) & (inliers >= needed) & (inliers > 0)
-    verified = ok.any(axis=1)
+    verified: np.ndarray = np.asarray(ok.any(axis=1), bool)
     q = np.flatnonzero(verified)
     # The winner: most inliers, then the method's higher score (the earlier peak on a tie).
     gc = np.where(rows >= 0, g[np.maximum(rows, 0), np.arange(len(rows))[:, None]], -1.0)

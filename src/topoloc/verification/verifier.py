@@ -42,9 +42,12 @@ DEFAULT_MAX_ITERS = 2000
 class HasFeatures(Protocol):
     """What verification reads of an image's local features (:class:`topoloc.features.FeatureSet`)."""
 
-    keypoints: np.ndarray
-    descriptors: np.ndarray
-    image_shape: tuple[int, int]
+    @property
+    def keypoints(self) -> np.ndarray: ...
+    @property
+    def descriptors(self) -> np.ndarray: ...
+    @property
+    def image_shape(self) -> tuple[int, int]: ...
 
 
 @dataclass(frozen=True)
