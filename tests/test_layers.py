@@ -21,8 +21,8 @@ LAYERS: dict[str, int] = {
     # 1 inputs: images, traverses, features, vocabularies, geometry, synthetic data
     "datasets": 1, "features": 1, "vocabulary": 1, "geometry": 1, "synth": 1,
     # 2 algorithm packages: arrays in, arrays out
-    "bow": 2, "confidence": 2, "ranking": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2, "verification": 2,
-    "voting": 2,
+    "bow": 2, "confidence": 2, "ranking": 2, "coocmap": 2, "fabmap": 2, "landmarks": 2, "seqslam": 2, "sequence": 2,
+    "voting": 2, "verification": 2,
     # 3 resources: the per-image inputs a recogniser reads (features, words, vocabulary), cached or in memory
     "resources": 3,
     # 4 recognisers (adapters to the Resources protocol), their registry and test helpers

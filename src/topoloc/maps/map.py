@@ -692,7 +692,7 @@ class Map:
                          verify=self.resolve_verify(verify), candidates=candidates)
 
     def resolve_verify(self, verify: bool | None) -> bool:
-        """``verify`` as asked, else ``$TOPOLOC_VERIFY``, else :attr:`default_verify`, else whether the map can verify."""
+        """``verify`` as asked, else ``$TOPOLOC_VERIFY``, else :attr:`default_verify`, else whether it can verify."""
         if verify is None:
             verify = verify_from_env()
         if verify is not None:

@@ -597,9 +597,9 @@ __all__ = [
     "SequenceSpec",
     "VerificationSpec",
     "VocabularySpec",
-    "verify_from_env",
     "parse_max_side",
     "parse_recall_at",
     "stream_sequence_for",
     "travels_the_route",
+    "verify_from_env",
 ]
