@@ -127,6 +127,13 @@ def render_run_report(m: dict[str, Any]) -> str:
            if "vocabulary_seconds" in run else "")
         + f"; ms/query median {m['ms_per_query']:.2f}, "
         f"95th percentile {run['ms_per_query_p95']:.2f} (feature extraction excluded)\n",
+    ]
+    ver = m.get("verification")
+    if isinstance(ver, dict):
+        lines.append(f"- verification: {ver['verified_fraction']:.0%} of the answers verified (the best places of "
+                     f"{ver['candidates']} distinct peaks per query checked); its ms/query median "
+                     f"{ver['ms_per_query']:.2f}, 95th percentile {ver['ms_per_query_p95']:.2f}, included above\n")
+    lines += [
         f"- machine: {run['machine']}; date {run['date']}\n",
     ]
     return "".join(lines)

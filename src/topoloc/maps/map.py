@@ -692,7 +692,11 @@ class Map:
                          verify=self.resolve_verify(verify), candidates=candidates)
 
     def resolve_verify(self, verify: bool | None) -> bool:
-        """``verify`` as asked, else ``$TOPOLOC_VERIFY``, else :attr:`default_verify`, else whether it can verify."""
+        """Whether to verify: as asked; else as the threshold was calibrated; else ``$TOPOLOC_VERIFY``; else
+        :attr:`default_verify`; else whether the map can verify.  A calibration's record comes before the
+        environment: its threshold holds for the scores it was chosen on only."""
+        if verify is None and "verify" in (self.calibration or {}):
+            verify = bool((self.calibration or {})["verify"])
         if verify is None:
             verify = verify_from_env()
         if verify is not None:

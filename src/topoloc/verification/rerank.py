@@ -19,7 +19,8 @@ Confidence (``docs/protocol.md``, "Verification")
         s'_i = 2 - 1 / (1 + n_w + g(s_w) / 2 + 1 / (2 (1 + |i - w|)))   for i in the peak of w   (verified, in (1, 2))
         s'_i = g(s_i)                                                 otherwise                  (in (0, 1))
 
-    so every verified answer ranks above every unverified one, verified answers
+    so every verified answer ranks above every unverified one (``S`` is
+    float32: scores of one column closer than about ``2e-7`` then tie), verified answers
     rank by their inliers (the method's own score breaking ties), and a query
     none of whose candidates verifies keeps the method's order and confidence
     below them.  The best place may change: the verified candidate with the
