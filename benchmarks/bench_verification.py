@@ -1,4 +1,4 @@
-"""Regenerate docs/results/verification.md (+ .json and verification_pr.png): every method with and without verification.
+"""Regenerate docs/results/verification.md (+ .json, verification_pr.png): every method with and without verification.
 
     .venv/bin/python -m benchmarks.bench_verification [--parts quality,consistency,speed,localize]
         [--rows gp_day,...] [--methods coocmap,...] [--runs DIR]

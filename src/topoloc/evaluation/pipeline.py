@@ -216,10 +216,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     # All files of the run appear together, replacing an earlier run's whole (never a mixture).
     with staged_dir(out) as stage:
         write_outputs(stage, S, place_ids, query.places, metrics, scores, None if top is not None else gt, top=top)
-        if ver is not None:
-            atomic_write_bytes(stage / "verification.npz", _npz(
-                verified=ver.verified, inliers=ver.inliers, candidates=ver.candidates,
-                candidate_inliers=ver.candidate_inliers, ms=ver.ms))
+        if ver is not None and verifier is not None:
+            atomic_write_bytes(stage / "verification.npz", _npz(**verification_arrays(ver, verifier)))
     if spec.pairs_out is not None:
         assert top is not None  # EvaluateSpec refuses pairs_out without top_k
         if place_images is None:
@@ -236,6 +234,22 @@ def _npz(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
+
+
+def verification_arrays(ver: VerifiedBlock, verifier: Verifier) -> dict[str, np.ndarray]:
+    """``verification.npz``: per query whether it verified, its inliers, the candidates' rows and inliers, the
+    stage's ms, and the inlier matches of each verified answer (``match_xy`` rows ``match_offsets[j]`` ..
+    ``match_offsets[j + 1]``: query x, y, map x, y in pixels) with the map image they are in (``match_image``)
+    and both images' (height, width) (``match_shapes``)."""
+    pairs = [m if m is not None else np.zeros((0, 4), np.float32) for m in ver.matches]
+    offsets = np.zeros(len(pairs) + 1, np.int64)
+    offsets[1:] = np.cumsum([len(p) for p in pairs])
+    best = ver.S.argmax(axis=0)
+    names = [verifier.match_image_name(int(best[j]), ver.match_images[j]) for j in range(len(pairs))]
+    return {"verified": ver.verified, "inliers": ver.inliers, "candidates": ver.candidates,
+            "candidate_inliers": ver.candidate_inliers, "ms": ver.ms,
+            "match_xy": np.concatenate(pairs) if pairs else np.zeros((0, 4), np.float32),
+            "match_offsets": offsets, "match_image": np.array(names, dtype=str), "match_shapes": ver.match_shapes}
 
 
 def verification_record(ver: VerifiedBlock, verifier: Verifier) -> dict[str, Any]:

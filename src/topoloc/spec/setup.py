@@ -286,7 +286,10 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
             out.append(feats[ti][k])
         return out
 
-    return Verifier(place_images, candidates=spec.candidates)
+    def image_names(row: int) -> list[str]:
+        return [str(tours[ti].images[k]) for ti, k in rows_of[row]]
+
+    return Verifier(place_images, candidates=spec.candidates, image_names=image_names)
 
 
 __all__ = ["build_method", "build_verifier", "make_resources", "tours_vocabulary", "unverifiable"]

@@ -10,6 +10,7 @@ runs both over a block of queries.  Arrays and feature sets in, arrays out
 from topoloc.verification.pairs import (
     chance_inliers,
     fundamental_inliers,
+    fundamental_mask,
     inlier_threshold,
     mutual_matches,
     prepare_descriptors,
@@ -19,5 +20,6 @@ from topoloc.verification.verifier import DEFAULT_CANDIDATES, DEFAULT_MAX_ITERS,
 
 __all__ = [
     "DEFAULT_CANDIDATES", "DEFAULT_MAX_ITERS", "VerifiedBlock", "Verifier", "candidate_rows", "chance_inliers",
-    "fundamental_inliers", "inlier_threshold", "mutual_matches", "prepare_descriptors", "squash", "verified_scores",
+    "fundamental_inliers", "fundamental_mask", "inlier_threshold", "mutual_matches", "prepare_descriptors", "squash",
+    "verified_scores",
 ]

@@ -141,7 +141,13 @@ def chance_inliers(n_matches: int, image_shape: tuple[int, int], threshold: floa
 
 def fundamental_inliers(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, max_iters: int = 2000,
                         seed: int = 0) -> int:
-    """Inliers of the fundamental matrix USAC MAGSAC++ fits to corresponding points.
+    """Number of inliers of :func:`fundamental_mask`."""
+    return int(np.count_nonzero(fundamental_mask(xy_a, xy_b, threshold, max_iters=max_iters, seed=seed)))
+
+
+def fundamental_mask(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, max_iters: int = 2000,
+                     seed: int = 0) -> np.ndarray:
+    """Inlier mask of the fundamental matrix USAC MAGSAC++ fits to corresponding points.
 
     Parameters
     ----------
@@ -157,17 +163,18 @@ def fundamental_inliers(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *,
 
     Returns
     -------
-    int
-        0 when fewer than 8 matches or no geometry was found.
+    ndarray of bool, shape (m,)
+        All False when fewer than 8 matches or no geometry was found.
     """
-    if len(xy_a) < MIN_SAMPLE + 1:
-        return 0
+    m = len(xy_a)
+    if m < MIN_SAMPLE + 1:
+        return np.zeros(m, bool)
     cv2.setRNGSeed(seed)
     _, mask = cv2.findFundamentalMat(
         np.ascontiguousarray(xy_a, np.float64), np.ascontiguousarray(xy_b, np.float64),
         cv2.USAC_MAGSAC, float(threshold), 0.999, int(max_iters))
-    return 0 if mask is None else int(np.count_nonzero(mask))
+    return np.zeros(m, bool) if mask is None else mask.ravel().astype(bool)
 
 
-__all__ = ["ALPHA", "ETA", "MIN_SAMPLE", "chance_inliers", "fundamental_inliers", "inlier_threshold",
-           "mutual_matches", "prepare_descriptors"]
+__all__ = ["ALPHA", "ETA", "MIN_SAMPLE", "chance_inliers", "fundamental_inliers", "fundamental_mask",
+           "inlier_threshold", "mutual_matches", "prepare_descriptors"]

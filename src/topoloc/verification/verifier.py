@@ -26,7 +26,7 @@ import numpy as np
 
 from topoloc.verification.pairs import (
     chance_inliers,
-    fundamental_inliers,
+    fundamental_mask,
     inlier_threshold,
     mutual_matches,
     prepare_descriptors,
@@ -67,6 +67,14 @@ class VerifiedBlock:
     candidate_inliers : ndarray of int64, shape (n_queries, k)
     ms : ndarray of float64, shape (n_queries,)
         Milliseconds of the stage per query.
+    matches : list of ndarray of float32, shape (n_inliers, 4), or None
+        Per query, the inlier matches of its verified answer: query x, y, then
+        map image x, y (pixels); None when unverified.
+    match_images : list of int or None
+        Per query, which image of the verified place (its index in
+        ``place_images(row)``) they are in.
+    match_shapes : ndarray of int64, shape (n_queries, 4)
+        Per query, the query's and that map image's (height, width); zeros when unverified.
     """
 
     S: np.ndarray
@@ -75,6 +83,9 @@ class VerifiedBlock:
     candidates: np.ndarray
     candidate_inliers: np.ndarray
     ms: np.ndarray
+    matches: list[np.ndarray | None]
+    match_images: list[int | None]
+    match_shapes: np.ndarray
 
 
 class Verifier:
@@ -89,15 +100,20 @@ class Verifier:
         Distinct peaks checked per query.
     max_iters : int
         RANSAC iterations at most per candidate.
+    image_names : callable, optional
+        ``image_names(row)``: a name (path) of each of those images, in order,
+        for reports (:meth:`match_image_name`).
     """
 
     def __init__(self, place_images: Callable[[int], Sequence[HasFeatures]], *,
-                 candidates: int = DEFAULT_CANDIDATES, max_iters: int = DEFAULT_MAX_ITERS) -> None:
+                 candidates: int = DEFAULT_CANDIDATES, max_iters: int = DEFAULT_MAX_ITERS,
+                 image_names: Callable[[int], Sequence[str]] | None = None) -> None:
         if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
             raise ValueError(f"candidates must be a whole number >= 1, got {candidates!r}")
         self.place_images = place_images
         self.candidates = candidates
         self.max_iters = max_iters
+        self.image_names = image_names
         self._prepared: dict[int, list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]] = {}
 
     def _images(self, row: int) -> list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
@@ -110,24 +126,39 @@ class Verifier:
             self._prepared[row] = got
         return got
 
-    def check(self, query: HasFeatures, row: int) -> tuple[int, int]:
-        """``(inliers, chance support)`` of ``query`` against the best-matching map image of place row ``row``."""
+    def match_image_name(self, row: int, k: int | None) -> str:
+        """The name of image ``k`` of place row ``row`` ("" when unknown)."""
+        if k is None or k < 0 or self.image_names is None:
+            return ""
+        names = self.image_names(row)
+        return str(names[k]) if k < len(names) else ""
+
+    def check(self, query: HasFeatures, row: int) -> tuple[int, int, np.ndarray, int]:
+        """``query`` against the best-matching map image of place row ``row``.
+
+        Returns ``(inliers, chance support, inlier matches of shape (n, 4): query
+        x, y, map x, y, index of that image in place_images(row))``; the image
+        index is -1 when the place has none.
+        """
         xy_q = np.ascontiguousarray(query.keypoints[:, :2], np.float64)
         dq = prepare_descriptors(query.descriptors)
         return self._check(xy_q, dq, row)
 
-    def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int) -> tuple[int, int]:
-        best: tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]] | None = None
-        for xy_c, dc, shape in self._images(row):
+    def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int) -> tuple[int, int, np.ndarray, int]:
+        best: tuple[np.ndarray, np.ndarray, int] | None = None
+        images = self._images(row)
+        for k, (_, dc, _) in enumerate(images):
             ia, ib = mutual_matches(dq, dc)
             if best is None or len(ia) > len(best[0]):
-                best = (ia, ib, xy_c, shape)
+                best = (ia, ib, k)
         if best is None:
-            return 0, 1
-        ia, ib, xy_c, shape = best
+            return 0, 1, np.zeros((0, 4), np.float32), -1
+        ia, ib, k = best
+        xy_c, _, shape = images[k]
         t = inlier_threshold(shape)
-        return (fundamental_inliers(xy_q[ia], xy_c[ib], t, max_iters=self.max_iters),
-                chance_inliers(len(ia), shape, t))
+        keep = fundamental_mask(xy_q[ia], xy_c[ib], t, max_iters=self.max_iters)
+        pairs = np.hstack([xy_q[ia[keep]], xy_c[ib[keep]]]).astype(np.float32)
+        return len(pairs), chance_inliers(len(ia), shape, t), pairs, int(k)
 
     def verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
         """Verify the candidates of every column of ``S`` (one column per query, in order).
@@ -149,16 +180,28 @@ class Verifier:
         inl = np.zeros(rows.shape, np.int64)
         need = np.ones(rows.shape, np.int64)
         ms = np.zeros(len(queries))
+        found: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
         for j, q in enumerate(queries):
             t0 = time.perf_counter()
             xy_q = np.ascontiguousarray(q.keypoints[:, :2], np.float64)
             dq = prepare_descriptors(q.descriptors)
             for c, r in enumerate(rows[j]):
                 if r >= 0:
-                    inl[j, c], need[j, c] = self._check(xy_q, dq, int(r))
+                    inl[j, c], need[j, c], pairs, k = self._check(xy_q, dq, int(r))
+                    found[j, c] = (pairs, k)
             ms[j] = 1e3 * (time.perf_counter() - t0)
         S_v, verified, best = verified_scores(S, rows, lo, hi, inl, need)
-        return VerifiedBlock(S_v, verified, best, rows, inl, ms)
+        matches: list[np.ndarray | None] = [None] * len(queries)
+        images: list[int | None] = [None] * len(queries)
+        shapes = np.zeros((len(queries), 4), np.int64)
+        for jj in np.flatnonzero(verified).tolist():
+            # The winner: the verified candidate whose inliers the verified score counts.
+            c = int(np.flatnonzero((inl[jj] == best[jj]) & (inl[jj] >= need[jj]) & (rows[jj] >= 0))[0])
+            matches[jj], images[jj] = found[jj, c]
+            img = images[jj]
+            if img is not None and img >= 0:
+                shapes[jj] = (*queries[jj].image_shape, *self._images(int(rows[jj, c]))[img][2])
+        return VerifiedBlock(S_v, verified, best, rows, inl, ms, matches, images, shapes)
 
 
 __all__ = ["DEFAULT_CANDIDATES", "DEFAULT_MAX_ITERS", "HasFeatures", "VerifiedBlock", "Verifier"]
