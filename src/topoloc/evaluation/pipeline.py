@@ -149,7 +149,7 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     place_ids = method.place_ids_
     gt = spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy)
     check_overlap(gt, query, place_ids)
-    verifier = _verifier(spec, place_ids, maps, tour_records, resources)
+    verifier = _verifier(spec, method, maps, tour_records, resources)
     items = method.encode(query, resources=resources)
     top: TopK | None = None
     S: np.ndarray | None = None
@@ -260,15 +260,20 @@ def verification_record(ver: VerifiedBlock, verifier: Verifier) -> dict[str, Any
             "ms_per_query_p95": float(np.percentile(ver.ms, 95)) if len(ver.ms) else 0.0}
 
 
-def _verifier(spec: EvaluateSpec, place_ids: np.ndarray, maps: Sequence[Traverse],
+def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traverse],
               tour_records: Sequence[dict[str, Any]], resources: CachedResources) -> Verifier | None:
     """The run's verification stage; a saved map's tours are read again from their folders (their features cached).
 
     Not given (``None``), it is left out, with one line, where it cannot run: a run of the K best places
-    only (``top_k``: verification needs each query's whole column), or a saved map whose tours are gone.
+    only (``top_k``: verification needs each query's whole column), or a saved map whose tours are gone;
+    and for a method that checks geometry itself (``verifies_geometry``).
     """
     ask = spec.verification.enabled if spec.verification.enabled is not None else verify_from_env()
     if ask is False:
+        return None
+    if ask is None and method.tags.verifies_geometry:
+        log.info("%s checks the geometry of its candidates itself: answers are not verified again (--verify "
+                 "does)", method.name)
         return None
     if spec.top_k and not spec.sequence.length and ask is None:
         log.info("top_k: answers are not verified (verification needs each query's whole column; --verify forms it)")
@@ -285,7 +290,7 @@ def _verifier(spec: EvaluateSpec, place_ids: np.ndarray, maps: Sequence[Traverse
                 raise
             log.warning("%s; answers are not verified", exc)
             return None
-    return build_verifier(spec.verification, place_ids, tours, resources, what=what)
+    return build_verifier(spec.verification, method.place_ids_, tours, resources, what=what)
 
 
 def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> None:

@@ -704,6 +704,8 @@ class Map:
         default = self.default_verify
         if default is not None:
             return default
+        if self.recognizer.tags.verifies_geometry:
+            return False
         why = self.verification_blocker()
         if why:
             log.info("%s cannot verify answers (%s): they are not verified", self.path or "the map", why)

@@ -16,15 +16,17 @@ Confidence (``docs/protocol.md``, "Verification")
     columns, the verified similarity of place ``i`` for a query is::
 
         w = argmax over verified candidates c (n_c >= n*_c) of (n_c, g(s_c))
-        s'_i = 2 - 1 / (1 + n_w + g(s_w) / 2 + 1 / (2 (1 + |i - w|)))   for i in the peak of w   (verified, in (1, 2))
-        s'_i = g(s_i)                                                 otherwise                  (in (0, 1))
+        s'_i = 2 - 1 / (1 + n_w + g(s_w) / 2 + 1 / (2 (1 + |i - w|)))   for |i - w| <= r_w   (verified, in (1, 2))
+        s'_i = g(s_i)                                                 otherwise             (in (0, 1))
+
+    with ``r_w`` the farther reach of w's peak from w (``max(w - lo, hi - 1 - w)``).
 
     so every verified answer ranks above every unverified one (``S`` is
     float32: scores of one column closer than about ``2e-7`` then tie), verified answers
     rank by their inliers (the method's own score breaking ties), and a query
     none of whose candidates verifies keeps the method's order and confidence
     below them.  The best place may change: the verified candidate with the
-    most inliers wins (a reranking).  Its whole peak is raised, the places
+    most inliers wins (a reranking).  Its peak, made symmetric, is raised, the places
     nearest the verified one first: once a place is verified the route's
     topology, not the method's scores of its neighbours, says which place comes
     next (the protocol scores the best place outside the tolerance's soft band,
@@ -77,6 +79,12 @@ def candidate_rows(S: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.nd
         best, lo, hi = peak_extent(np.where(np.isnan(X), -np.inf, X))
         take = live & (X[best, cols] > -np.inf)
         out[take, i] = best[take]
+        # A peak ends where an earlier one (taken out: -inf) begins: its flank would run on into it.
+        gone = X == -np.inf
+        last_gone = np.maximum.accumulate(np.where(gone, rows, -1), axis=0)[best, cols]
+        next_gone = np.minimum.accumulate(np.where(gone, rows, n)[::-1], axis=0)[::-1][best, cols]
+        lo = np.maximum(lo, last_gone + 1)
+        hi = np.minimum(hi, next_gone)
         # The whole peak leaves the column, at least the best row itself.
         hi = np.maximum(hi, best + 1)
         lo = np.minimum(lo, best)
@@ -121,9 +129,12 @@ def verified_scores(S: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndar
     w = key.argmax(axis=1)
     best_inliers = np.where(verified, inliers[np.arange(len(rows)), w], 0)
     r = np.arange(S.shape[0])[:, None]
-    band = (r >= lo[q, w[q]][None, :]) & (r < hi[q, w[q]][None, :])
+    wr = rows[q, w[q]][None, :]
+    # The band: every place as near the winner as its peak reaches on either side.
+    reach = np.maximum(wr - lo[q, w[q]][None, :], hi[q, w[q]][None, :] - 1 - wr)
+    band = np.abs(r - wr) <= reach
     block = out[:, q]
-    near = 0.5 / (1.0 + np.abs(r - rows[q, w[q]][None, :]))
+    near = 0.5 / (1.0 + np.abs(r - wr))
     raised = 2.0 - 1.0 / (1.0 + best_inliers[q][None, :] + 0.5 * gc[q, w[q]][None, :] + near)
     out[:, q] = np.where(band, raised, block)
     return out.astype(np.float32), verified, best_inliers.astype(np.int64)
