@@ -100,3 +100,15 @@ def test_a_map_whose_tour_is_gone_cannot_verify(tiny_route: dict[str, Any], tmp_
     with pytest.raises(TopolocError, match=r"cannot verify answers: tour 'noon' is gone.*--no-verify"):
         m.localizer(verify=True)
     assert m.localizer(verify=None).verifier is None or m.default_verify is False  # never silently half-verified
+
+
+def test_a_method_that_checks_geometry_itself_is_verified_only_when_asked(tiny_route: dict[str, Any], tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    built = Map.build(method="voting", tours=[tiny_route["map"]], cache_dir=tmp_path / "cache")
+    m = Map.load(built.save(tmp_path / "voting.tlm"))
+    assert m.recognizer.tags.verifies_geometry
+    assert m.localizer().verifier is None
+    assert m.localizer(verify=True).verifier is not None
+    # bag of words does not: the same default verifies it.
+    assert not _saved(tiny_route, tmp_path).recognizer.tags.verifies_geometry
