@@ -350,10 +350,12 @@ class LocalizerNode:
                 return TriggerResponse(success=True, message=f"reloading {self.settings.map_file}")
 
             rospy.Service("~reload", Trigger, reload)
+        # queue_size None: rospy hands over every message it read (with a bound it drops the older ones of a
+        # batch read at once, uncounted); the callback only puts it into the buffer, which drops and counts.
         # buff_size: rospy reads a connection in chunks of it; smaller than a frame, messages queue up in the
         # socket and arrive late (a known rospy trap), so room for a few large raw frames.
-        rospy.Subscriber(self.settings.image_topic, rospy.AnyMsg, self._on_message,
-                         queue_size=max(self.settings.queue, 1), buff_size=1 << 26, tcp_nodelay=True)
+        rospy.Subscriber(self.settings.image_topic, rospy.AnyMsg, self._on_message, queue_size=None,
+                         buff_size=1 << 26, tcp_nodelay=True)
         holder: list[Any] = []
         watcher = threading.Thread(target=self._watch, args=(holder,), name="topoloc-watch", daemon=True)
         watcher.start()
