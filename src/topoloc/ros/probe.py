@@ -25,17 +25,16 @@ from topoloc.ros import import_rospy
 
 
 def _image_message(path: Path, encoding: str, seq: int) -> Any:
-    import cv2
     import numpy as np
     import sensor_msgs.msg
+
+    from topoloc.datasets.decode import read_image, to_bgr, to_gray
 
     if encoding == "jpeg":
         msg = sensor_msgs.msg.CompressedImage(format="jpeg", data=path.read_bytes())
     else:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if encoding == "mono8":
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        img = np.ascontiguousarray(img)
+        bgr = to_bgr(read_image(path, gray=False))
+        img = np.ascontiguousarray(to_gray(bgr) if encoding == "mono8" else bgr)
         msg = sensor_msgs.msg.Image(height=img.shape[0], width=img.shape[1], encoding=encoding, is_bigendian=0,
                                     step=img.strides[0], data=img.tobytes())
     msg.header.frame_id = "probe_camera"
