@@ -294,12 +294,41 @@ def test_a_map_rewritten_while_it_runs_is_reloaded(ros: Ros, route: dict[str, An
                                                 for d in _records(out, "diagnostics")), timeout=30)
     node.send_signal(signal.SIGHUP)
     _wait("the second reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 2, timeout=30)
+    # A file that is no map put in its place (atomically): one line, and the node keeps the map it has.
+    broken = route["root"] / "broken.tmp"
+    broken.write_bytes(b"not a map")
+    os.replace(broken, map_file)
+    _wait("the refusal", lambda: "map not reloaded, keeping the one loaded" in ros.err("topoloc_reload"), timeout=30)
+    assert node.poll() is None
     assert _stop(node, signal.SIGINT) == 0
     _stop(probe)
     err = ros.err("topoloc_reload")
     assert "Traceback" not in err and "stopped (SIGINT)" in err
     reloads = [d["values"]["map_reloads"] for d in _records(out, "diagnostics") if d["name"].startswith("/topoloc_re")]
     assert reloads and int(reloads[-1]) >= 1
+
+
+def test_the_shipped_launch_file_starts_the_node(ros: Ros, route: dict[str, Any]) -> None:
+    """docs/ros.md's roslaunch line, with the manifest-only package on ROS_PACKAGE_PATH."""
+    import topoloc.ros
+
+    share = Path(topoloc.ros.__file__).parent / "share"
+    env = {**ros.env, "ROS_PACKAGE_PATH": str(share), "TOPOLOC_PYTHON": sys.executable}
+    log = (ros.root / "roslaunch.out").open("w")
+    launch = subprocess.Popen(["roslaunch", "topoloc_ros", "localize.launch", f"map:={route['map']}",
+                               "image:=/cam/launched", "queue:=2"], env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        _wait("the launched node", lambda: "/topoloc" in ros.subscribers("/cam/launched") or
+              launch.poll() is not None, timeout=90)
+        assert launch.poll() is None, (ros.root / "roslaunch.out").read_text()
+        params = xmlrpc.client.ServerProxy(ros.uri).getParam("/test", "/topoloc/queue")
+        assert params[2] == 2
+    finally:
+        assert _stop(launch, signal.SIGINT, timeout=60) == 0
+        log.close()
+    out = (ros.root / "roslaunch.out").read_text()
+    assert "stopped (SIGINT)" in out or "stopped (SIGTERM)" in out, out
+    assert "Traceback" not in out
 
 
 def test_losing_the_master_is_one_line(route: dict[str, Any], tmp_path: Path) -> None:

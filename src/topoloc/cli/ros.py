@@ -15,7 +15,7 @@ from topoloc.cli.options import LocalizeSequenceOption, PrefetchOption
 @handle_errors
 def ros_node(
     ctx: typer.Context,
-    map_file: Annotated[Path | None, typer.Argument(
+    map_file: Annotated[str | None, typer.Argument(
         help="Map file (topoloc map build); default the private parameter ~map.")] = None,
     image_topic: Annotated[str | None, typer.Option(
         help="Image topic (sensor_msgs/Image or CompressedImage); default ~image_topic, else 'image' (remap "
@@ -41,19 +41,25 @@ def ros_node(
 
     Options given here win over the node's private parameters (~map, ~image_topic, ~sequence, ~queue,
     ~rate, ...). ROS arguments (remappings such as image:=/camera/image_raw, __name:=...) are passed to
-    ROS. Needs ROS 1's rospy from the system (docs/ros.md). Stops on SIGINT/SIGTERM (exit 0) or when the
+    ROS. --prefetch defaults to one frame per core here (each frame ahead adds a frame's time to the
+    latency). Needs ROS 1's rospy from the system (docs/ros.md). Stops on SIGINT/SIGTERM (exit 0) or when the
     ROS master is gone (exit 1), with one line.
     """
     from topoloc.errors import TopolocError
     from topoloc.ros.node import serve
 
-    ros_args = [a for a in ctx.args if ":=" in a]
-    unknown = [a for a in ctx.args if ":=" not in a]
+    args = list(ctx.args)
+    if map_file is not None and ":=" in map_file:  # no map given: the first ROS argument took its place
+        args.insert(0, map_file)
+        map_file = None
+    ros_args = [a for a in args if ":=" in a]
+    unknown = [a for a in args if ":=" not in a]
     if unknown:
         raise TopolocError(f"unknown argument {unknown[0]!r} (ROS remappings are NAME:=VALUE)")
-    given = {"map": map_file, "image_topic": image_topic, "sequence": sequence, "sequence_mode": sequence_mode,
-             "queue": queue, "rate": rate, "top_k": top_k, "map_frame": map_frame, "watch_map": watch_map,
-             "prefetch": None if getattr(ctx.get_parameter_source("prefetch"), "name", None) == "DEFAULT" else prefetch}
+    prefetch_given = getattr(ctx.get_parameter_source("prefetch"), "name", None) != "DEFAULT"
+    given = {"map": None if map_file is None else Path(map_file), "image_topic": image_topic, "sequence": sequence,
+             "sequence_mode": sequence_mode, "queue": queue, "rate": rate, "top_k": top_k, "map_frame": map_frame,
+             "watch_map": watch_map, "prefetch": prefetch if prefetch_given else None}
     status = serve(given, ros_args)
     if status:
         raise typer.Exit(code=status)

@@ -54,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from topoloc._parallel import n_workers
 from topoloc.datasets.sources.live import Newest
 from topoloc.errors import TopolocError
 from topoloc.ros import import_rospy
@@ -89,8 +90,12 @@ class NodeSettings:
         cores allow (``~rate``); the others are skipped.
     top_k : int
         Places listed per answer (``~top_k``).
-    prefetch : int
+    prefetch : int, optional
         Frames decoded and described ahead (``~prefetch``; as ``localize --prefetch``).
+        None: one per core, not ``localize``'s two: a frame taken from the
+        topic waits behind the ones already ahead of it, so every extra one
+        adds a frame's time to the latency without adding throughput once each
+        core describes one.
     map_frame : str
         ``frame_id`` of ``~position`` (``~map_frame``).
     watch_map : bool
@@ -104,7 +109,7 @@ class NodeSettings:
     queue: int = 1
     rate: float = 0.0
     top_k: int = 5
-    prefetch: int = -1
+    prefetch: int | None = None
     map_frame: str = "map"
     watch_map: bool = True
 
@@ -129,6 +134,8 @@ def settings_from(given: dict[str, Any], params: dict[str, Any]) -> NodeSettings
         value = given.get(name)
         if value is None:
             value = params.get(name)
+            if name == "sequence" and isinstance(value, int) and value < 0:
+                value = None  # a launch file's "not given": as the map was calibrated
         if value is not None:
             values["map_file" if name == "map" else name] = value
     if "map_file" not in values:
@@ -365,8 +372,9 @@ class LocalizerNode:
             if self._reload.is_set():
                 self._reload_map()
             seq = self._sequence(self.map)
+            prefetch = n_workers(-1) if self.settings.prefetch is None else self.settings.prefetch
             loc = self.map.localizer(top_k=self.settings.top_k, sequence=seq.length, sequence_mode=seq.mode,
-                                     prefetch=self.settings.prefetch)
+                                     prefetch=prefetch)
             holder[:] = [loc]
             self._in_flight.clear()
             for line in loc.stream(self._frames()):
