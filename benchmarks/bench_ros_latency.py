@@ -167,7 +167,15 @@ def page(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
     out.append(f"\nThe 1-minute load average before each run is given beside it ({os.cpu_count()} cores): "
                "where it is above the busy processes started, other processes shared the machine and the "
                "latencies are higher than on an otherwise idle one. A skipped frame is one that arrived while "
-               "the frames before it were being matched: the node answers the newest instead of falling behind.\n")
+               "the frames before it were being matched: the node answers the newest instead of falling behind.")
+    lost = [r for r in rows if r["published"] > r["frames_in"]]
+    if lost:
+        out.append(" Where fewer frames came in than were published, the publisher (the probe, a `rospy` publisher "
+                   "with a queue of 1 as camera drivers keep) dropped them before they were sent, because its "
+                   "own sending thread was not scheduled in time: "
+                   + ", ".join(f"{r['published'] - r['frames_in']} at {r['rate_hz']:.0f} Hz with {r['busy']} busy"
+                               for r in lost) + ".")
+    out.append("\n")
     return "".join(out)
 
 

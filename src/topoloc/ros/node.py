@@ -144,13 +144,33 @@ def settings_from(given: dict[str, Any], params: dict[str, Any]) -> NodeSettings
              "image_topic": str, "sequence_mode": str, "map_frame": str, "watch_map": bool}
     for key, kind in kinds.items():
         if key in values:
-            try:
-                values[key] = kind(values[key])
-            except (TypeError, ValueError):
-                raise TopolocError(f"{key} must be {kind.__name__}, got {values[key]!r}") from None
+            values[key] = _typed(key, kind, values[key])
     s = NodeSettings(**values)
     s.check()
     return s
+
+
+def _typed(key: str, kind: type, value: Any) -> Any:
+    """A setting as ``kind``: a parameter may come as text ("5", "false") or as a number; anything else refused."""
+    bad = TopolocError(f"{key} must be {kind.__name__}, got {value!r}")
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        text = str(value).strip().lower() if isinstance(value, str | int) else ""
+        if text not in ("true", "false", "1", "0"):
+            raise bad
+        return text in ("true", "1")
+    if kind in (int, float):
+        if isinstance(value, bool) or not isinstance(value, int | float | str):
+            raise bad
+        try:
+            number = float(value)
+        except ValueError:
+            raise bad from None
+        if kind is int and not number.is_integer():
+            raise bad
+        return int(number) if kind is int else number
+    return kind(value)
 
 
 def _stamp_s(header: Any) -> float:
