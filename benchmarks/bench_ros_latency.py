@@ -25,12 +25,9 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
-import time
-import xmlrpc.client
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -39,53 +36,12 @@ import numpy as np
 
 from benchmarks.bench_load import busy
 from benchmarks.common import GP, REPO, RESULTS, TOPOLOC, VOCAB_FOR_GP, machine_line, require_data
+from topoloc.ros.probe import LocalMaster, wait_for
 
 RATES = (10.0, 30.0)
 BUSY = (0, 3)
 #: Seconds of frames published per run (``--quick``: half).
 SECONDS = 20.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait(ok: Any, what: str, timeout: float = 60.0) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if ok():
-            return
-        time.sleep(0.1)
-    raise RuntimeError(f"timed out waiting for {what}")
-
-
-class Core:
-    """A roscore on a free loopback port, and the environment of the processes that use it."""
-
-    def __init__(self, root: Path) -> None:
-        self.uri = f"http://127.0.0.1:{_free_port()}"
-        self.env = {**os.environ, "ROS_MASTER_URI": self.uri, "ROS_HOME": str(root / "ros_home"),
-                    "ROS_LOG_DIR": str(root / "ros_log"), "ROS_IP": "127.0.0.1",
-                    "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
-        self.proc = subprocess.Popen(["roscore", "-p", self.uri.rsplit(":", 1)[1]], env=self.env,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        _wait(self.online, "roscore")
-
-    def online(self) -> bool:
-        try:
-            return bool(xmlrpc.client.ServerProxy(self.uri).getPid("/bench")[0] == 1)
-        except OSError:
-            return False
-
-    def subscribed(self, topic: str) -> bool:
-        state = xmlrpc.client.ServerProxy(self.uri).getSystemState("/bench")[2]
-        return any(name == topic and nodes for name, nodes in state[1])
-
-    def close(self) -> None:
-        os.killpg(self.proc.pid, signal.SIGINT)
-        self.proc.wait(timeout=30)
 
 
 def build_map(work: Path) -> Path:
@@ -100,7 +56,7 @@ def build_map(work: Path) -> Path:
     return map_file
 
 
-def run_one(core: Core, map_file: Path, rate: float, n_busy: int, seconds: float, work: Path) -> dict[str, Any]:
+def run_one(core: LocalMaster, map_file: Path, rate: float, n_busy: int, seconds: float, work: Path) -> dict[str, Any]:
     """One node and one probe at ``rate`` beside ``n_busy`` busy processes: latency, answered, skipped."""
     tag = f"{int(rate)}hz_{n_busy}busy"
     answers = work / f"{tag}.jsonl"
@@ -108,7 +64,7 @@ def run_one(core: Core, map_file: Path, rate: float, n_busy: int, seconds: float
     node = subprocess.Popen([sys.executable, "-m", "topoloc.ros", str(map_file), "--image-topic", "/bench/image",
                              "__name:=topoloc_bench"], env=core.env, stdout=subprocess.DEVNULL, stderr=err, text=True)
     try:
-        _wait(lambda: core.subscribed("/bench/image") or node.poll() is not None, "the node")
+        wait_for("the node", lambda: bool(core.subscribers("/bench/image")) or node.poll() is not None)
         count = round(rate * seconds)
         with busy(n_busy):
             load = os.getloadavg()[0]
@@ -195,7 +151,7 @@ def main() -> None:
     info = json.loads(subprocess.run([str(TOPOLOC), "map", "info", str(map_file), "--json"], check=True,
                                      capture_output=True, text=True).stdout)
     seconds = SECONDS / 2 if args.quick else SECONDS
-    core = Core(args.work)
+    core = LocalMaster(args.work, extra_path=REPO / "src")
     rows = []
     try:
         for rate in RATES:

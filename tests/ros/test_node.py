@@ -10,12 +10,9 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
-import time
-import xmlrpc.client
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +22,7 @@ import pytest
 from typer.testing import CliRunner
 
 from topoloc.cli.main import app
+from topoloc.ros.probe import LocalMaster, free_port, wait_for
 
 SRC = Path(__file__).resolve().parents[2] / "src"
 T0 = 1_700_000_000
@@ -46,48 +44,12 @@ _MISSING = _ros_missing()
 pytestmark = pytest.mark.skipif(_MISSING is not None, reason=f"ROS 1 is not installed: {_MISSING}")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait(what: str, ok: Callable[[], bool], timeout: float = 60.0) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if ok():
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
-class Ros:
+class Ros(LocalMaster):
     """A roscore on a loopback port, and the processes of one test beside it."""
 
     def __init__(self, root: Path) -> None:
-        self.root = root
-        self.port = _free_port()
-        self.uri = f"http://127.0.0.1:{self.port}"
-        self.env = {**os.environ, "ROS_MASTER_URI": self.uri, "ROS_HOME": str(root / "ros_home"),
-                    "ROS_LOG_DIR": str(root / "ros_log"), "ROS_IP": "127.0.0.1",
-                    "PYTHONPATH": os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]),
-                    "TOPOLOC_FEATURES": "sift"}
-        self.core = subprocess.Popen(["roscore", "-p", str(self.port)], env=self.env, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL, start_new_session=True)
-        _wait("roscore", self.online)
-
-    def online(self) -> bool:
-        try:
-            return bool(xmlrpc.client.ServerProxy(self.uri).getPid("/test")[0] == 1)
-        except OSError:
-            return False
-
-    def subscribers(self, topic: str) -> list[str]:
-        try:
-            state = xmlrpc.client.ServerProxy(self.uri).getSystemState("/test")[2]
-        except OSError:
-            return []
-        return next((nodes for name, nodes in state[1] if name == topic), [])
+        super().__init__(root, extra_path=SRC)
+        self.env["TOPOLOC_FEATURES"] = "sift"
 
     def start(self, args: list[str], name: str) -> subprocess.Popen[str]:
         out = (self.root / f"{name}.err").open("w")
@@ -97,7 +59,7 @@ class Ros:
         proc = self.start(["-m", "topoloc.ros", str(map_file), *extra, f"__name:={name}"], name)
         topic = next((extra[k + 1] for k, a in enumerate(extra) if a == "--image-topic"), None)
         if topic is not None:
-            _wait(f"{name} to subscribe to {topic}", lambda: f"/{name}" in self.subscribers(topic) or
+            wait_for(f"{name} to subscribe to {topic}", lambda: f"/{name}" in self.subscribers(topic) or
                   proc.poll() is not None)
             assert proc.poll() is None, self.err(name)
         return proc
@@ -105,7 +67,7 @@ class Ros:
     def probe(self, out: Path, *args: str) -> subprocess.Popen[str]:
         proc = self.start(["-m", "topoloc.ros.probe", "--out", str(out), *args], out.stem)
         for topic in [args[k + 1] for k, a in enumerate(args) if a == "--answers"]:
-            _wait(f"the probe to subscribe to {topic}", lambda t=topic: bool(self.subscribers(t)))
+            wait_for(f"the probe to subscribe to {topic}", lambda t=topic: bool(self.subscribers(t)))
         return proc
 
     def play(self, bag: Path, *args: str) -> None:
@@ -114,15 +76,6 @@ class Ros:
 
     def err(self, name: str) -> str:
         return (self.root / f"{name}.err").read_text()
-
-    def close(self) -> None:
-        if self.core.poll() is None:
-            os.killpg(self.core.pid, signal.SIGINT)
-            try:
-                self.core.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.core.pid, signal.SIGKILL)
-                self.core.wait()
 
 
 def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM, timeout: float = 30.0) -> int:
@@ -145,17 +98,14 @@ def _ok(args: list[str]) -> str:
 
 
 @pytest.fixture(scope="module")
-def route(tiny_route: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """A bag-of-words map of the noon tour, and the dusk tour as a bag with bgr8, mono8 and compressed topics."""
+def route(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: pytest.TempPathFactory,
+          ) -> dict[str, Any]:
+    """The tiny route's map, and the dusk tour as a bag with bgr8, mono8 and compressed topics."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
     root = tmp_path_factory.mktemp("ros_route")
-    voc = root / "vocab.tlv"
-    tiny_route["vocabulary"].save(voc)
-    map_file = root / "map.tlm"
-    _ok(["map", "build", "--method", "bow", "--map", str(tiny_route["map"].root), "--vocab", str(voc),
-         "--out", str(map_file), "--cache-dir", str(root / "cache"), "-q"])
+    map_file = tiny_route_map
     files = sorted(tiny_route["query"].root.glob("*.jpg"))
     ts = get_typestore(Stores.ROS1_NOETIC)
     t = ts.types
@@ -213,14 +163,14 @@ def test_answers_equal_localize_on_each_encoding_of_the_bag(ros: Ros, route: dic
     probe = ros.probe(out, *[a for k in TOPICS for a in ("--answers", f"/topoloc_{k}/answer")])
     ros.play(route["bag"], "-r", "2")
     n = route["n"]
-    _wait("every answer", lambda: all(sum(r["topic"] == f"/topoloc_{k}/answer" for r in _records(out, "answer"))
+    wait_for("every answer", lambda: all(sum(r["topic"] == f"/topoloc_{k}/answer" for r in _records(out, "answer"))
                                       >= n for k in TOPICS), timeout=90)
 
     def counted(k: str) -> bool:
         last = [d for d in _records(out, "diagnostics") if d["name"].startswith(f"/topoloc_{k}")]
         return bool(last) and int(last[-1]["values"]["frames_out"]) == n
 
-    _wait("diagnostics of every frame", lambda: all(counted(k) for k in TOPICS), timeout=30)
+    wait_for("diagnostics of every frame", lambda: all(counted(k) for k in TOPICS), timeout=30)
     for k in TOPICS:
         assert _stop(nodes[k]) == 0
         err = ros.err(f"topoloc_{k}")
@@ -260,7 +210,7 @@ def test_a_camera_faster_than_matching_leaves_no_backlog(ros: Ros, route: dict[s
     probe = ros.probe(out, "--answers", "/topoloc_fast/answer")
     ros.play(route["fast"], "-r", "4")  # 800 frames a second
     last_stamp = T0 + 0.005 * 399
-    _wait("the answer to the last frame",
+    wait_for("the answer to the last frame",
           lambda: any(abs(a["time"] - last_stamp) < 1e-6 for a in _records(out, "answer")), timeout=30)
     assert _stop(node) == 0
     _stop(probe)
@@ -289,16 +239,16 @@ def test_a_map_rewritten_while_it_runs_is_reloaded(ros: Ros, route: dict[str, An
     out = route["root"] / "reload.jsonl"
     probe = ros.probe(out)
     _ok(["map", "calibrate", str(map_file), "--query", str(route["query"].root), "--sequence", "0", "-q"])
-    _wait("the reload", lambda: "map reloaded" in ros.err("topoloc_reload"), timeout=30)
-    _wait("calibrated diagnostics", lambda: any(d["name"].startswith("/topoloc_reload") and d["level"] == 0
+    wait_for("the reload", lambda: "map reloaded" in ros.err("topoloc_reload"), timeout=30)
+    wait_for("calibrated diagnostics", lambda: any(d["name"].startswith("/topoloc_reload") and d["level"] == 0
                                                 for d in _records(out, "diagnostics")), timeout=30)
     node.send_signal(signal.SIGHUP)
-    _wait("the second reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 2, timeout=30)
+    wait_for("the second reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 2, timeout=30)
     # A file that is no map put in its place (atomically): one line, and the node keeps the map it has.
     broken = route["root"] / "broken.tmp"
     broken.write_bytes(b"not a map")
     os.replace(broken, map_file)
-    _wait("the refusal", lambda: "map not reloaded, keeping the one loaded" in ros.err("topoloc_reload"), timeout=30)
+    wait_for("the refusal", lambda: "map not reloaded, keeping the one loaded" in ros.err("topoloc_reload"), timeout=30)
     assert node.poll() is None
     assert _stop(node, signal.SIGINT) == 0
     _stop(probe)
@@ -318,11 +268,10 @@ def test_the_shipped_launch_file_starts_the_node(ros: Ros, route: dict[str, Any]
     launch = subprocess.Popen(["roslaunch", "topoloc_ros", "localize.launch", f"map:={route['map']}",
                                "image:=/cam/launched", "queue:=2"], env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
-        _wait("the launched node", lambda: "/topoloc" in ros.subscribers("/cam/launched") or
+        wait_for("the launched node", lambda: "/topoloc" in ros.subscribers("/cam/launched") or
               launch.poll() is not None, timeout=90)
         assert launch.poll() is None, (ros.root / "roslaunch.out").read_text()
-        params = xmlrpc.client.ServerProxy(ros.uri).getParam("/test", "/topoloc/queue")
-        assert params[2] == 2
+        assert ros.param("/topoloc/queue") == 2
     finally:
         assert _stop(launch, signal.SIGINT, timeout=60) == 0
         log.close()
@@ -343,7 +292,7 @@ def test_losing_the_master_is_one_line(route: dict[str, Any], tmp_path: Path) ->
 
 
 def test_no_master_and_bad_settings_are_one_line(ros: Ros, route: dict[str, Any], tmp_path: Path) -> None:
-    env = {**ros.env, "ROS_MASTER_URI": f"http://127.0.0.1:{_free_port()}"}
+    env = {**ros.env, "ROS_MASTER_URI": f"http://127.0.0.1:{free_port()}"}
     r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(route["map"])], env=env, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "no ROS master at" in r.stderr, r.stderr

@@ -8,20 +8,98 @@ the folder's images as a camera would (``sensor_msgs/Image``, ``bgr8`` or
 that each answer's ``publish_to_answer_ms`` is the time from a frame's
 publication to its answer's arrival.  The tests and ``benchmarks/bench_ros_latency.py``
 run it as its own process; it stops on SIGINT/SIGTERM or ``--linger`` seconds
-after its last frame.
+after its last frame.  :class:`LocalMaster` starts the private ``roscore`` they
+run beside.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
+import socket
+import subprocess
 import threading
 import time
+import xmlrpc.client
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from topoloc.ros import import_rospy
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(what: str, ok: Callable[[], bool], timeout: float = 60.0) -> None:
+    """Poll ``ok()`` every 0.1 s; an ``AssertionError`` naming ``what`` after ``timeout`` seconds."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if ok():
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+class LocalMaster:
+    """A private ``roscore`` on a free loopback port, logs under ``root``, and the environment to reach it.
+
+    ``env`` is this process's environment with ``ROS_MASTER_URI``, ``ROS_HOME``,
+    ``ROS_LOG_DIR`` and ``ROS_IP`` set, and ``extra_path`` (a source tree) first on
+    ``PYTHONPATH``: the processes started with it (the node, the probe, ``rosbag
+    play``) talk to this master only.
+    """
+
+    def __init__(self, root: Path, *, extra_path: str | Path | None = None) -> None:
+        self.root = root
+        self.port = free_port()
+        self.uri = f"http://127.0.0.1:{self.port}"
+        path = [str(extra_path)] if extra_path is not None else []
+        self.env = {**os.environ, "ROS_MASTER_URI": self.uri, "ROS_HOME": str(root / "ros_home"),
+                    "ROS_LOG_DIR": str(root / "ros_log"), "ROS_IP": "127.0.0.1",
+                    "PYTHONPATH": os.pathsep.join([*path, os.environ.get("PYTHONPATH", "")])}
+        self.core = subprocess.Popen(["roscore", "-p", str(self.port)], env=self.env, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL, start_new_session=True)
+        wait_for("roscore", self.online)
+
+    def _master(self) -> Any:
+        # Any: the master's XML-RPC replies are lists of lists, which xmlrpc's stubs do not describe.
+        return xmlrpc.client.ServerProxy(self.uri)
+
+    def online(self) -> bool:
+        """Whether the master answers."""
+        try:
+            return bool(self._master().getPid("/probe")[0] == 1)
+        except OSError:
+            return False
+
+    def subscribers(self, topic: str) -> list[str]:
+        """The nodes subscribed to ``topic`` (none when the master does not answer)."""
+        try:
+            state = self._master().getSystemState("/probe")[2]
+        except OSError:
+            return []
+        return list(next((nodes for name, nodes in state[1] if name == topic), []))
+
+    def param(self, name: str) -> Any:
+        """A parameter's value on the master."""
+        return self._master().getParam("/probe", name)[2]
+
+    def close(self) -> None:
+        """Stop the roscore (SIGINT to its process group, as Ctrl-C would; SIGKILL after 15 s)."""
+        if self.core.poll() is None:
+            os.killpg(self.core.pid, signal.SIGINT)
+            try:
+                self.core.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.core.pid, signal.SIGKILL)
+                self.core.wait()
 
 
 def _image_message(path: Path, encoding: str, seq: int) -> Any:

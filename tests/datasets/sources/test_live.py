@@ -185,14 +185,11 @@ def test_a_password_in_the_url_is_not_repeated() -> None:
 
 # -- topoloc localize MAP STREAM ----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def stream_map(tiny_route: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """A bag-of-words map of the noon tour; the dusk tour's JPEGs as a stream's frames and as a file of them."""
+def stream_map(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: pytest.TempPathFactory,
+               ) -> dict[str, Any]:
+    """The tiny route's map; the dusk tour's JPEGs as a stream's frames and as a file of them."""
     root = tmp_path_factory.mktemp("live_map")
-    voc = root / "vocab.tlv"
-    tiny_route["vocabulary"].save(voc)
-    map_file = root / "map.tlm"
-    _ok(["map", "build", "--method", "bow", "--map", str(tiny_route["map"].root), "--vocab", str(voc),
-         "--out", str(map_file), "--cache-dir", str(root / "cache"), "-q"])
+    map_file = tiny_route_map
     jpegs = [p.read_bytes() for p in sorted(tiny_route["query"].root.glob("*.jpg"))]
     video = root / "dusk.mjpeg"
     video.write_bytes(b"".join(jpegs))
