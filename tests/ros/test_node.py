@@ -30,7 +30,7 @@ TOPICS = {"bgr8": "/cam/bgr8", "mono8": "/cam/mono8", "compressed": "/cam/compre
 
 
 def _ros_missing() -> str | None:
-    for tool in ("roscore", "rosbag"):
+    for tool in ("roscore", "rosbag", "rosservice", "roslaunch"):
         if shutil.which(tool) is None:
             return f"{tool} is not on PATH (apt-get install ros-base python3-rosbag)"
     probe = subprocess.run([sys.executable, "-c", "from topoloc.ros import import_rospy; import_rospy()"],
@@ -232,7 +232,7 @@ def test_a_camera_faster_than_matching_leaves_no_backlog(ros: Ros, route: dict[s
 
 
 def test_a_map_rewritten_while_it_runs_is_reloaded(ros: Ros, route: dict[str, Any]) -> None:
-    """map calibrate rewrites the map file: the node loads it (watching the file), and again on SIGHUP."""
+    """map calibrate rewrites the map file: the node loads it (watching the file), again on SIGHUP and on ~reload."""
     map_file = route["root"] / "reloaded.tlm"
     shutil.copy(route["map"], map_file)
     node = ros.node(map_file, "topoloc_reload", "--image-topic", "/cam/mono8")
@@ -244,6 +244,10 @@ def test_a_map_rewritten_while_it_runs_is_reloaded(ros: Ros, route: dict[str, An
                                                 for d in _records(out, "diagnostics")), timeout=30)
     node.send_signal(signal.SIGHUP)
     wait_for("the second reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 2, timeout=30)
+    called = subprocess.run(["rosservice", "call", "/topoloc_reload/reload"], env=ros.env, capture_output=True,
+                            text=True, timeout=60)
+    assert "success: True" in called.stdout, called.stdout + called.stderr
+    wait_for("the third reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 3, timeout=30)
     # A file that is no map put in its place (atomically): one line, and the node keeps the map it has.
     broken = route["root"] / "broken.tmp"
     broken.write_bytes(b"not a map")
