@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from topoloc.cli.app import app, handle_errors
-from topoloc.cli.options import LocalizeSequenceOption, PrefetchOption
+from topoloc.cli.options import LocalizeSequenceOption, PrefetchOption, QuietOption
 
 
 @app.command("ros-node", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -33,9 +33,10 @@ def ros_node(
     prefetch: PrefetchOption = -1,
     map_frame: Annotated[str | None, typer.Option(
         help="frame_id of ~position (the map's coordinates); default ~map_frame, else 'map'.")] = None,
-    watch_map: Annotated[bool | None, typer.Option(
-        "--watch-map/--no-watch-map", help="Reload the map when its file changes (default ~watch_map, else "
-                                           "yes); SIGHUP and the ~reload service reload it too.")] = None,
+    no_watch_map: Annotated[bool, typer.Option(
+        "--no-watch-map", help="Do not reload the map when its file changes (default: ~watch_map, else reload); "
+                               "SIGHUP and the ~reload service still reload it.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Localise an image topic on a running ROS 1 graph: answers on ~answer, positions on ~position.
 
@@ -59,7 +60,7 @@ def ros_node(
     prefetch_given = getattr(ctx.get_parameter_source("prefetch"), "name", None) != "DEFAULT"
     given = {"map": None if map_file is None else Path(map_file), "image_topic": image_topic, "sequence": sequence,
              "sequence_mode": sequence_mode, "queue": queue, "rate": rate, "top_k": top_k, "map_frame": map_frame,
-             "watch_map": watch_map, "prefetch": prefetch if prefetch_given else None}
+             "watch_map": False if no_watch_map else None, "prefetch": prefetch if prefetch_given else None}
     status = serve(given, ros_args)
     if status:
         raise typer.Exit(code=status)
