@@ -53,6 +53,24 @@ def tiny_route(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 
 @pytest.fixture(scope="session")
+def tiny_route_map(tiny_route: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A bag-of-words map file of the tiny route's noon tour (its 300-word vocabulary), built once per session."""
+    from typer.testing import CliRunner
+
+    from topoloc.cli.main import app
+
+    root = tmp_path_factory.mktemp("tiny_route_map")
+    voc = root / "vocab.tlv"
+    tiny_route["vocabulary"].save(voc)
+    map_file = root / "map.tlm"
+    r = CliRunner().invoke(app, ["map", "build", "--method", "bow", "--map", str(tiny_route["map"].root),
+                                 "--vocab", str(voc), "--out", str(map_file), "--cache-dir", str(root / "cache"),
+                                 "-q"])
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    return map_file
+
+
+@pytest.fixture(scope="session")
 def xfeat_route(tiny_route: dict[str, Any]) -> dict[str, Any]:
     """The tiny route described with XFeat: ``tiny_route``'s entries, its ``features`` and an XFeat ``vocabulary``.
 

@@ -33,6 +33,8 @@ LAYERS: dict[str, int] = {
     "evaluation": 6, "bench": 6, "demo": 6, "maps": 6, "drawing": 6,
     # 7 the command line
     "cli": 7,
+    # 7 the ROS node: an adapter of the saved maps to a running ROS graph, beside the command line
+    "ros": 7,
 }
 ALGORITHMS = {name for name, layer in LAYERS.items() if layer == 2}
 

@@ -532,6 +532,7 @@ def _print_bench(res: dict[str, Any], as_json: bool) -> None:
 # The saved-map commands live in their own module; importing it registers them on `app`
 # (it imports topoloc.cli.app, not this module, so there is no import cycle).
 from topoloc.cli import maps as _maps  # noqa: E402, F401
+from topoloc.cli import ros as _ros  # noqa: E402, F401
 
 
 def main() -> None:

@@ -73,6 +73,9 @@ VerifyOption = Annotated[bool | None, typer.Option(
                                  "verification existed are not verified unless asked).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
+PrefetchOption = Annotated[int, typer.Option(
+    help="Frames read and described ahead while one is matched, on one thread per core (-1: two per "
+         "core; 0: one frame at a time); the lines are the same.")]
 PairsOutOption = Annotated[Path | None, typer.Option(
     "--pairs-out", help="Also write the retrieval pairs of the top K places, 'query_image map_image' a line, as "
                         "hloc and COLMAP read them (a place: its first map image; docs/protocol.md).")]

@@ -231,6 +231,9 @@ class LocalizeSpec(_ChecksOutputs):
     map_file : Path
     images : tuple of Path
         Image files or folders, ROS bags or videos, in order.
+    stream : str, optional
+        A camera (``/dev/video0`` or its index) or a network stream URL, read live
+        instead of ``images`` (:class:`~topoloc.datasets.sources.live.LiveSource`).
     out : Path
         The JSON-lines file.
     top_k : int
@@ -247,6 +250,7 @@ class LocalizeSpec(_ChecksOutputs):
 
     map_file: Path | None = None
     images: tuple[Path, ...] = ()
+    stream: str | None = None
     out: Path | None = None
     top_k: int = 5
     pairs_out: Path | None = None
@@ -263,8 +267,10 @@ class LocalizeSpec(_ChecksOutputs):
         object.__setattr__(self, "pairs_out", _opt_path(self.pairs_out))
         if self.map_file is None:
             raise ParameterError("map_file", "is needed: the map to localise against")
-        if not self.images:
-            raise ParameterError("images", "needs at least one image, folder or recording")
+        if self.stream is not None and self.images:
+            raise ParameterError("images", f"a camera or stream ({self.stream}) is read alone: give no other input")
+        if not self.images and self.stream is None:
+            raise ParameterError("images", "needs at least one image, folder or recording, or a camera or stream")
         if self.out is None:
             raise ParameterError("out", "is needed: the JSON-lines file to write")
         _whole("top_k", self.top_k, 1)
