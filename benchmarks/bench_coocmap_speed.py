@@ -36,6 +36,7 @@ from topoloc.bench.coocmap_speed import bench_coocmap, bench_coocmap_real
 from topoloc.coocmap.compiled import (
     _PAIRWISE_MAX,
     _PARTNERS_MAX,
+    _cell_tables,
     _column_bound,
     _match_location,
     _new_scratch,
@@ -113,7 +114,7 @@ def agreement(method: CoocMap, items: list[Any]) -> dict[str, int]:
 
 
 @njit(cache=True)
-def _phases(L, thr, tb_prune, bounds_only, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, cap):
+def _phases(L, thr, tb_prune, bounds_only, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, cap, shift, ctab):
     """Every location of the map in turn: its bounds from the translations only, or matched against ``thr``."""
     stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep = _new_scratch(len(qx), cap, gx, gy)
     total = 0.0
@@ -129,7 +130,7 @@ def _phases(L, thr, tb_prune, bounds_only, loc_ptr, word, xy, groups, qptr, qf, 
         else:
             total += _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, 0, loc,
                                      stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune,
-                                     _PAIRWISE_MAX, _PARTNERS_MAX)[0]
+                                     _PAIRWISE_MAX, _PARTNERS_MAX, shift, ctab)[0]
             keep[:] = False
     return total
 
@@ -142,7 +143,7 @@ def phase_split(method: CoocMap, items: list[Any]) -> dict[str, float]:
     for qi, (w, xy) in enumerate(items):
         qptr, qf, qx, qy = _query_table(m, np.asarray(w, np.int64), xy)
         args = (m.loc_ptr, m.word, m.xy, groups, qptr, qf, qx, qy, int(method.spatial_tolerance), int(m.grid_x),
-                int(m.grid_y), _triple_capacity(m.loc_ptr, qptr))
+                int(m.grid_y), _triple_capacity(m.loc_ptr, qptr), *_cell_tables(m))
         t0 = time.process_time()
         _phases(m.n_locations, 0.0, True, True, *args)
         t1 = time.process_time()

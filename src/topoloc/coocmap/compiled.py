@@ -66,6 +66,7 @@ Nothing here is approximate; :func:`match_compiled` only computes less.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -78,7 +79,7 @@ from topoloc._parallel import n_workers
 from topoloc.cluster import in_worker_task
 from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
-from topoloc.coocmap.spatial import NORM, NORM_BITS
+from topoloc.coocmap.spatial import NORM, NORM_BITS, signed_cells
 
 #: Locations (by candidate count) whose translation bound orders the start of the matching.
 SEED_FIRST = 8
@@ -366,10 +367,133 @@ def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r)
     return _h_index(n, cand, U, hist)
 
 
+#: :func:`_window_bound` is computed for a location with at least this many triples per candidate: there
+#: the translation bound, which counts every triple, is loosest.  With fewer (gardens_point's two-tour
+#: maps: 1.7 per candidate) it dropped 5 of 100 places a query and cost more than it saved
+#: (``benchmarks/bench_coocmap_speed.py``, part "tail").
+_WINDOW_MIN_TRIPLES = 2
+
+#: Peeling rounds of :func:`_window_bound` at most (each a valid bound; more only tighten it).
+_WINDOW_ROUNDS = 8
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _popcount(x):
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+@njit(cache=True, nogil=True)
+def _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, rounds):
+    """Upper bound on the final group from the *distinct* candidates near each candidate's translations.
+
+    ``J[f, g] = 1`` needs a triple of ``g`` at most ``r`` buckets from one of
+    ``f``'s in both directions (:func:`_translation_bound`), so ``f``'s row sum
+    of ``J`` is at most the number of other candidates with a triple in the
+    union of the ``(2r + 1)^2`` windows around ``f``'s triples.  Each bucket's
+    candidates are a bitset; the window's union is the bucket's bitsets
+    dilated by ``r`` along the rows, then along the columns (O(buckets x r x
+    n / 64) word operations), and ``f``'s count the population of the union
+    over its triples' windows.  Unlike :func:`_translation_bound` (which counts
+    triples, once per triple of ``f``) a candidate met through many triples
+    counts once: where a word recurs in the query and in the stored images
+    (tens of triples per candidate on textured scenes) this bound is several
+    times tighter, and it costs O(triples x n / 64), not the O(triples^2) of
+    :func:`_partner_bound` or of building ``J``.
+
+    Then peeling, while the bound is at least ``thr`` (at most ``rounds``
+    times): a candidate whose count + 1 is below ``thr`` cannot be in a group
+    of ``thr`` or more (every member of such a group has its other members
+    near it), so it is removed and the counts taken again without it; the
+    members of a group of size ``>= thr`` are never removed, so the h-index of
+    what remains still bounds such a group.  Returns an upper bound on the
+    final group when it is below ``thr`` (the h-index, or ``ceil(thr) - 1``
+    once peeling has shown the group smaller than ``thr``), else a value
+    ``>= thr``.
+    """
+    BX = 2 * gx
+    BY = 2 * gy
+    NB = BX * BY
+    nw = (n + 63) >> 6
+    # The triples' buckets grouped by candidate (a counting sort by candidate index).
+    start = np.zeros(n + 1, np.int64)
+    for t in range(nt):
+        start[cof[t_f[t]] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:n].copy()
+    byc = np.empty(nt, np.int64)
+    for t in range(nt):
+        c = cof[t_f[t]]
+        byc[fill[c]] = t_x[t] * BY + t_y[t]
+        fill[c] += 1
+    alive = np.ones(n, np.bool_)
+    B = np.empty((NB, nw), np.uint64)
+    R = np.empty((NB, nw), np.uint64)
+    acc = np.empty(nw, np.uint64)
+    h = n
+    for rnd in range(max(rounds, 1)):
+        B[:] = 0
+        for c in range(n):
+            if alive[c]:
+                bit = np.uint64(1) << np.uint64(c & 63)
+                k = c >> 6
+                for q in range(start[c], start[c + 1]):
+                    B[byc[q], k] |= bit
+        # Dilate along the rows (into R), then along the columns (back into B).
+        for bx in range(BX):
+            for by in range(BY):
+                o = bx * BY + by
+                for k in range(nw):
+                    R[o, k] = 0
+                for y in range(max(by - r, 0), min(by + r + 1, BY)):
+                    p = bx * BY + y
+                    for k in range(nw):
+                        R[o, k] |= B[p, k]
+        for bx in range(BX):
+            for by in range(BY):
+                o = bx * BY + by
+                for k in range(nw):
+                    B[o, k] = 0
+                for x in range(max(bx - r, 0), min(bx + r + 1, BX)):
+                    p = x * BY + by
+                    for k in range(nw):
+                        B[o, k] |= R[p, k]
+        for c in range(n):
+            if not alive[c]:
+                U[cand[c]] = 0
+                continue
+            for k in range(nw):
+                acc[k] = 0
+            for q in range(start[c], start[c + 1]):
+                b = byc[q]
+                for k in range(nw):
+                    acc[k] |= B[b, k]
+            cnt = 0
+            for k in range(nw):
+                cnt += _popcount(acc[k])
+            U[cand[c]] = cnt  # 1 + the others: its own bit is in its own window
+        hr = _h_index(n, cand, U, hist)
+        if rnd == 0:
+            h = hr
+        if hr < thr:
+            return min(h, int(np.ceil(thr)) - 1)
+        removed = False
+        for c in range(n):
+            if alive[c] and U[cand[c]] < thr:
+                alive[c] = False
+                removed = True
+        if not removed:
+            break
+    return h
+
+
 @njit(cache=True, nogil=True)
 def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed, tag,
                     stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune, pairwise_max,
-                    partners_max):
+                    partners_max, shift, ctab):
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
 
     Returns ``(score, exact, elimination steps, pair tests, dropped by the
@@ -398,6 +522,10 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     tb = _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, r, pairwise_max)
     if tb_prune and tb < thr:
         return float(tb), False, 0, 0, 1
+    if tb_prune and nt > partners_max and nt >= _WINDOW_MIN_TRIPLES * n and thr > 0:
+        wb = _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, _WINDOW_ROUNDS)
+        if wb < thr:
+            return float(wb), False, 0, 0, 1
     if tb_prune and nt <= partners_max:
         pb = _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r)
         if pb < thr:
@@ -429,6 +557,15 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
         tx[d] = qx[f] - sx[d]
         ty[d] = qy[f] - sy[d]
         sg[d] = groups[a]
+    # On a coarse position lattice (the method's default) an offset is one of few lattice steps, and
+    # its signed cells come from a table (:func:`_cell_tables`) instead of being computed per test.
+    lattice = ctab.shape[1] > 0
+    D1 = (1 << (NORM_BITS - shift)) - 1
+    W = 2 * D1 + 1
+    if lattice:
+        for d in range(nt):
+            sx[d] = sx[d] >> shift
+            sy[d] = sy[d] >> shift
     J = np.zeros((n, n), np.uint8)
     deg = np.zeros(n, np.int64)
     # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
@@ -456,26 +593,38 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
                     for i in range(a0, a1):
                         fi = sf[i]
                         ci = sc[i]
+                        txi = tx[i]
+                        tyi = ty[i]
                         j0 = i + 1 if same else bcount[bb]
                         for j in range(j0, b1):
+                            # Necessary: translations less than tol + 1 squares apart (the cheapest test first).
+                            if abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim:
+                                continue
                             cj = sc[j]
                             if ci == cj or J[ci, cj]:
-                                continue
-                            # Necessary: translations less than tol + 1 squares apart.
-                            if abs(tx[j] - tx[i]) * gx >= lim or abs(ty[j] - ty[i]) * gy >= lim:
                                 continue
                             if sa[i] == sa[j] or (sg[i] & sg[j]) == 0:
                                 continue
                             tests += 1
                             fj = sf[j]
                             # Evaluate in the direction f < g, as the reference does.
-                            if fi < fj:
-                                ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
-                                mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
+                            if lattice:
+                                if fi < fj:
+                                    ks = (sx[j] - sx[i] + D1) * W + sy[j] - sy[i] + D1
+                                    kq = (((qx[fj] - qx[fi]) >> shift) + D1) * W + ((qy[fj] - qy[fi]) >> shift) + D1
+                                else:
+                                    ks = (sx[i] - sx[j] + D1) * W + sy[i] - sy[j] + D1
+                                    kq = (((qx[fi] - qx[fj]) >> shift) + D1) * W + ((qy[fi] - qy[fj]) >> shift) + D1
+                                ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
                             else:
-                                ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
-                                mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
-                            if abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol:
+                                if fi < fj:
+                                    ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
+                                    mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
+                                else:
+                                    ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
+                                    mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
+                                ok = abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol
+                            if ok:
                                 J[ci, cj] = 1
                                 J[cj, ci] = 1
                                 deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
@@ -558,7 +707,8 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
 
 @njit(cache=True, nogil=True)
 def _match_chunk(order, p0, p1, seed_first, head, n_cand, top, n_fin, top_k, loc_ptr, word, xy, groups, qptr,
-                 qf_sorted, qx, qy, tol, gx, gy, seed, cap, out_score, out_exact, out_stats, best_keep):
+                 qf_sorted, qx, qy, tol, gx, gy, seed, cap, shift, ctab, out_score, out_exact, out_stats,
+                 best_keep):
     """Match the locations ``order[p0:p1]`` in turn (see :func:`_match_locations`), in one compiled loop.
 
     ``top`` (top_k,), ascending: the ``top_k`` best finished scores known when
@@ -593,7 +743,7 @@ def _match_chunk(order, p0, p1, seed_first, head, n_cand, top, n_fin, top_k, loc
             visited += 1
             res = _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed,
                                   p, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, True,
-                                  _PAIRWISE_MAX, _PARTNERS_MAX)
+                                  _PAIRWISE_MAX, _PARTNERS_MAX, shift, ctab)
         k = p - p0
         out_score[k] = res[0]
         out_exact[k] = res[1]
@@ -632,6 +782,36 @@ def _head_bounds(order, S, loc_ptr, word, xy, qptr, qf_sorted, qx, qy, tol, gx, 
     return head
 
 
+#: Position lattices of at most this many bits per axis get the signed-cell tables of :func:`_cell_tables`
+#: (``(2^bits - 1)^2`` offsets: 16,129 at the method's default of 6 bits).
+LATTICE_MAX_BITS = 8
+
+
+@functools.lru_cache(maxsize=16)
+def _lattice_cells(grid_x: int, grid_y: int, position_bits: int) -> tuple[int, np.ndarray]:
+    if position_bits > LATTICE_MAX_BITS:
+        return 16 - position_bits, np.zeros((2, 0), np.int8)
+    shift = 16 - position_bits
+    k = np.arange(-(1 << position_bits) + 1, 1 << position_bits, dtype=np.int64) << shift
+    dx, dy = np.meshgrid(k, k, indexing="ij")  # row-major: index (kx + D1) * W + ky + D1
+    cx, cy = signed_cells(dx.ravel(), dy.ravel(), grid_x, grid_y)
+    tab = np.stack([cx, cy])
+    tab.setflags(write=False)
+    return shift, tab
+
+
+def _cell_tables(model: CoocModel) -> tuple[int, np.ndarray]:
+    """``(shift, table)``: the signed cells (:func:`~topoloc.coocmap.spatial.signed_cells`) of every offset
+    between two points of the model's position lattice, ``table[:, (dx >> shift + D1) * W + dy >> shift + D1]``
+    with ``D1 = 2^bits - 1`` and ``W = 2 D1 + 1``; an empty table (``(2, 0)``) on a finer lattice (more than
+    :data:`LATTICE_MAX_BITS` bits), where the kernel computes the cells of each pair instead.
+
+    Exact: offsets between lattice points are multiples of ``2^shift``, so the table holds the very values
+    :func:`_cells` computes for them.
+    """
+    return _lattice_cells(int(model.grid_x), int(model.grid_y), int(model.position_bits))
+
+
 def _triple_capacity(loc_ptr: np.ndarray, qptr: np.ndarray) -> int:
     """Most triples any location can have with this query: its stored features times the most query
     features of one word."""
@@ -655,7 +835,7 @@ def _one_location(model: CoocModel, loc: int, thr: float, words: np.ndarray, xy:
     res = _match_location(int(loc), float(thr), model.loc_ptr, model.word, model.xy, model.group_masks(interpolate),
                           qptr, qf, qx, qy, int(tol), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
                           0, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, bool(tb_prune),
-                          int(pairwise_max), _PARTNERS_MAX)
+                          int(pairwise_max), _PARTNERS_MAX, *_cell_tables(model))
     return (*res, np.flatnonzero(keep))
 
 
@@ -753,14 +933,14 @@ class _Shared:
 
     def run(self, p0: int, p1: int, top: np.ndarray, n_fin: int) -> None:
         """Match the chunk (outside the lock) and record it, unless it was recorded meanwhile."""
-        loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap = self.kernel_args
+        loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, shift, ctab = self.kernel_args
         m = p1 - p0
         score, exact, stats = np.empty(m), np.zeros(m, bool), np.zeros((m, 3), np.int64)
         keep = np.zeros(self.F, np.bool_)
         order = self.order  # read once: the tail replaces it beyond ``head`` (never this chunk's positions)
         end, stopped, _, best_score, best_loc, visited = _match_chunk(
             order, p0, p1, self.seed_first, self.head, self.n_cand, top, n_fin, self.top_k, loc_ptr, word, xy,
-            groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, score, exact, stats, keep)
+            groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, shift, ctab, score, exact, stats, keep)
         k = end - p0
         with self.lock:
             if p0 in self.done:
@@ -840,7 +1020,7 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     location.  Returns the best location (-1 if none).
     """
     L = len(order)
-    loc_ptr, word, xy, _, qptr, qf, qx, qy, tol, gx, gy, _, cap = kernel_args
+    loc_ptr, word, xy, _, qptr, qf, qx, qy, tol, gx, gy, _, cap, _, _ = kernel_args
     S = min(seed_first, L)
     head = _head_bounds(order, S, loc_ptr, word, xy, qptr, qf, qx, qy, tol, gx, gy, cap)
     order = order.copy()
@@ -915,7 +1095,7 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     n_threads = 1 if not parallel or in_worker_task() else n_workers(-1 if threads is None else threads)
     kernel_args = (model.loc_ptr, model.word, model.xy, model.group_masks(interpolate), qptr, qf, qx, qy,
                    int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
-                   _triple_capacity(model.loc_ptr, qptr))
+                   _triple_capacity(model.loc_ptr, qptr), *_cell_tables(model))
     _match_locations(order, n_cand, kernel_args, int(top_k), SEED_FIRST, n_threads, len(words), scores, exact,
                      stats, keep)
     # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact
