@@ -535,8 +535,19 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     cand_feat = np.sort(cand[:n])
     for i in range(n):
         cof[cand_feat[i]] = i
-    # The triples in translation-bucket order, gathered into contiguous arrays.
-    bcount, perm = _counting_order(t_b, nt, NB)
+    # The triples in translation-bucket order and, within a bucket, by candidate (a counting sort by
+    # candidate, then a stable one by bucket), gathered into contiguous arrays.  A candidate's triples in
+    # a bucket are then one run (``run_end``), skipped at once once its pair with the other is known
+    # consistent: on a textured scene, tens of triples per candidate, that is most of the pairs.
+    key = np.empty(nt, np.int64)
+    for t in range(nt):
+        key[t] = cof[t_f[t]]
+    by_cand = _counting_order(key, nt, n)[1]
+    for t in range(nt):
+        key[t] = t_b[by_cand[t]]
+    bcount, perm = _counting_order(key, nt, NB)
+    for t in range(nt):
+        perm[t] = by_cand[perm[t]]
     sf = np.empty(nt, np.int64)
     sc = np.empty(nt, np.int64)
     sa = np.empty(nt, np.int64)
@@ -557,6 +568,10 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
         tx[d] = qx[f] - sx[d]
         ty[d] = qy[f] - sy[d]
         sg[d] = groups[a]
+    run_end = np.empty(nt, np.int64)
+    for d in range(nt - 1, -1, -1):
+        nxt = d + 1
+        run_end[d] = run_end[nxt] if nxt < nt and sc[nxt] == sc[d] and t_b[perm[nxt]] == t_b[perm[d]] else nxt
     # On a coarse position lattice (the method's default) an offset is one of few lattice steps, and
     # its signed cells come from a table (:func:`_cell_tables`) instead of being computed per test.
     lattice = ctab.shape[1] > 0
@@ -595,15 +610,16 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
                         ci = sc[i]
                         txi = tx[i]
                         tyi = ty[i]
-                        j0 = i + 1 if same else bcount[bb]
-                        for j in range(j0, b1):
-                            # Necessary: translations less than tol + 1 squares apart (the cheapest test first).
-                            if abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim:
-                                continue
+                        j = i + 1 if same else bcount[bb]
+                        while j < b1:
                             cj = sc[j]
                             if ci == cj or J[ci, cj]:
+                                j = run_end[j]  # nothing left to learn from cj's other triples here
                                 continue
-                            if sa[i] == sa[j] or (sg[i] & sg[j]) == 0:
+                            # Necessary: translations less than tol + 1 squares apart.
+                            if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim
+                                    or sa[i] == sa[j] or (sg[i] & sg[j]) == 0):
+                                j += 1
                                 continue
                             tests += 1
                             fj = sf[j]
@@ -629,6 +645,9 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
                                 J[cj, ci] = 1
                                 deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
                                 deg[cj] += 1
+                                j = run_end[j]
+                            else:
+                                j += 1
     # The h-index bound from the row sums.
     hist = np.zeros(n + 1, np.int64)
     for i in range(n):
