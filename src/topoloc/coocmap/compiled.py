@@ -585,69 +585,62 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     deg = np.zeros(n, np.int64)
     # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
     tests = 0
-    for bxa in range(2 * gx):
-        for bya in range(2 * gy):
-            ba = bxa * BYg + bya
-            a0 = bcount[ba]
-            a1 = bcount[ba + 1]
-            if a0 == a1:
-                continue
-            for ox in range(0, r + 1):
-                bxb = bxa + ox
-                if bxb >= 2 * gx:
-                    break
-                for oy in range(-r, r + 1):
-                    if ox == 0 and oy < 0:
-                        continue
-                    byb = bya + oy
-                    if byb < 0 or byb >= 2 * gy:
-                        continue
-                    bb = bxb * BYg + byb
-                    same = ox == 0 and oy == 0
-                    b1 = bcount[bb + 1]
-                    for i in range(a0, a1):
-                        fi = sf[i]
-                        ci = sc[i]
-                        txi = tx[i]
-                        tyi = ty[i]
-                        j = i + 1 if same else bcount[bb]
-                        while j < b1:
-                            cj = sc[j]
-                            if ci == cj or J[ci, cj]:
-                                j = run_end[j]  # nothing left to learn from cj's other triples here
-                                continue
-                            # Necessary: translations less than tol + 1 squares apart.
-                            if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim
-                                    or sa[i] == sa[j] or (sg[i] & sg[j]) == 0):
-                                j += 1
-                                continue
-                            tests += 1
-                            fj = sf[j]
-                            # Evaluate in the direction f < g, as the reference does.
-                            if lattice:
-                                if fi < fj:
-                                    ks = (sx[j] - sx[i] + D1) * W + sy[j] - sy[i] + D1
-                                    kq = (((qx[fj] - qx[fi]) >> shift) + D1) * W + ((qy[fj] - qy[fi]) >> shift) + D1
-                                else:
-                                    ks = (sx[i] - sx[j] + D1) * W + sy[i] - sy[j] + D1
-                                    kq = (((qx[fi] - qx[fj]) >> shift) + D1) * W + ((qy[fi] - qy[fj]) >> shift) + D1
-                                ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
-                            else:
-                                if fi < fj:
-                                    ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
-                                    mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
-                                else:
-                                    ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
-                                    mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
-                                ok = abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol
-                            if ok:
-                                J[ci, cj] = 1
-                                J[cj, ci] = 1
-                                deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
-                                deg[cj] += 1
-                                j = run_end[j]
-                            else:
-                                j += 1
+    # For a triple in bucket (bx, by), the buckets within r that come after it in bucket order are, in
+    # each of the columns bx .. bx + r, one range of rows: so its partners are r + 1 contiguous ranges of
+    # the sorted triples (in its own column, from the next triple on), each swept in one loop.
+    BX = 2 * gx
+    for i in range(nt):
+        fi = sf[i]
+        ci = sc[i]
+        txi = tx[i]
+        tyi = ty[i]
+        sai = sa[i]
+        sgi = sg[i]
+        bi = t_b[perm[i]]
+        bxi = bi // BYg
+        byi = bi - bxi * BYg
+        y0 = max(byi - r, 0)
+        y1 = min(byi + r, BYg - 1)
+        for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
+            j = i + 1 if bxb == bxi else bcount[bxb * BYg + y0]
+            j1 = bcount[bxb * BYg + y1 + 1]
+            while j < j1:
+                cj = sc[j]
+                if ci == cj or J[ci, cj]:
+                    j = run_end[j]  # nothing left to learn from cj's other triples in this bucket
+                    continue
+                # Necessary: translations less than tol + 1 squares apart.
+                if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim
+                        or sai == sa[j] or (sgi & sg[j]) == 0):
+                    j += 1
+                    continue
+                tests += 1
+                fj = sf[j]
+                # Evaluate in the direction f < g, as the reference does.
+                if lattice:
+                    if fi < fj:
+                        ks = (sx[j] - sx[i] + D1) * W + sy[j] - sy[i] + D1
+                        kq = (((qx[fj] - qx[fi]) >> shift) + D1) * W + ((qy[fj] - qy[fi]) >> shift) + D1
+                    else:
+                        ks = (sx[i] - sx[j] + D1) * W + sy[i] - sy[j] + D1
+                        kq = (((qx[fi] - qx[fj]) >> shift) + D1) * W + ((qy[fi] - qy[fj]) >> shift) + D1
+                    ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
+                else:
+                    if fi < fj:
+                        ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
+                        mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
+                    else:
+                        ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
+                        mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
+                    ok = abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol
+                if ok:
+                    J[ci, cj] = 1
+                    J[cj, ci] = 1
+                    deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
+                    deg[cj] += 1
+                    j = run_end[j]
+                else:
+                    j += 1
     # The h-index bound from the row sums.
     hist = np.zeros(n + 1, np.int64)
     for i in range(n):
