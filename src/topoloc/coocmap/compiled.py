@@ -33,11 +33,18 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   near-duplicate views the 2-D bound is within ~1.5x of the true score and
   drops almost every wrong location (``benchmarks/bench_coocmap_speed.py``,
   real-image rows of docs/results/coocmap_speed.md: J built for 2 of 2,200
-  locations, median); across day and night it prunes little.
+  locations, median); across day and night it prunes little.  Where a
+  word recurs in the query and in the stored images (texture: tens of
+  triples per candidate), counting triples is loose, and
+  :func:`_window_bound` counts the *distinct* candidates near each
+  candidate's translations instead (bitsets), then peels the candidates
+  that cannot be in a group as large as the threshold: the slowest 5 % of
+  the real benchmark's queries were such (its tail section).
 * ``J_i`` is filled as a dense 0/1 matrix by the same translation-bucketed
   enumeration of (query feature, stored feature) pairs as
   :func:`~topoloc.coocmap.matching.consistency_graphs` (exact), skipping the
-  spatial test of a pair of candidates already known to be consistent; no
+  spatial test of a pair of candidates already known to be consistent (a
+  candidate's triples in one bucket are one run, skipped at once); no
   edge list is formed, so nothing needs deduplicating.
 * Bounds of Sec. II-D before and during elimination: a mutually consistent
   group of ``k`` needs ``k`` candidates with at least ``k - 1`` consistent
