@@ -393,6 +393,25 @@ def _popcount(x):
 
 
 @njit(cache=True, nogil=True)
+def _dilate(src, dst, BX, BY, r, along_rows):
+    """``dst[b]`` = the union (OR) of the bitsets ``src`` of the buckets at most ``r`` from bucket ``b`` in the
+    same column (``along_rows``: rows ``by - r .. by + r``) or in the same row (columns ``bx - r .. bx + r``);
+    bucket ``(bx, by)`` is row ``bx * BY + by``."""
+    nw = src.shape[1]
+    for bx in range(BX):
+        for by in range(BY):
+            o = bx * BY + by
+            for k in range(nw):
+                dst[o, k] = 0
+            c = by if along_rows else bx
+            lim = BY if along_rows else BX
+            for v in range(max(c - r, 0), min(c + r + 1, lim)):
+                p = bx * BY + v if along_rows else v * BY + by
+                for k in range(nw):
+                    dst[o, k] |= src[p, k]
+
+
+@njit(cache=True, nogil=True)
 def _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, rounds):
     """Upper bound on the final group from the *distinct* candidates near each candidate's translations.
 
@@ -450,24 +469,8 @@ def _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, roun
                 for q in range(start[c], start[c + 1]):
                     B[byc[q], k] |= bit
         # Dilate along the rows (into R), then along the columns (back into B).
-        for bx in range(BX):
-            for by in range(BY):
-                o = bx * BY + by
-                for k in range(nw):
-                    R[o, k] = 0
-                for y in range(max(by - r, 0), min(by + r + 1, BY)):
-                    p = bx * BY + y
-                    for k in range(nw):
-                        R[o, k] |= B[p, k]
-        for bx in range(BX):
-            for by in range(BY):
-                o = bx * BY + by
-                for k in range(nw):
-                    B[o, k] = 0
-                for x in range(max(bx - r, 0), min(bx + r + 1, BX)):
-                    p = x * BY + by
-                    for k in range(nw):
-                        B[o, k] |= R[p, k]
+        _dilate(B, R, BX, BY, r, True)
+        _dilate(R, B, BX, BY, r, False)
         for c in range(n):
             if not alive[c]:
                 U[cand[c]] = 0
