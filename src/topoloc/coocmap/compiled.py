@@ -375,9 +375,10 @@ def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r)
 
 
 #: :func:`_window_bound` is computed for a location with at least this many triples per candidate: there
-#: the translation bound, which counts every triple, is loosest.  With fewer (gardens_point's two-tour
-#: maps: 1.7 per candidate) it dropped 5 of 100 places a query and cost more than it saved
-#: (``benchmarks/bench_coocmap_speed.py``, part "tail").
+#: the translation bound, which counts every triple, is loosest.  With fewer, the translation bound counts
+#: each candidate near another about once, the two bounds are close, and the pass over every bucket's
+#: bitsets costs about what it saves (the gardens_point rows of the tail section of
+#: docs/results/coocmap_speed.md, ``benchmarks/bench_coocmap_speed.py``, time the matcher there).
 _WINDOW_MIN_TRIPLES = 2
 
 #: Peeling rounds of :func:`_window_bound` at most (each a valid bound; more only tighten it).
