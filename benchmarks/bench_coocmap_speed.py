@@ -37,7 +37,6 @@ import platform
 import re
 import subprocess
 import sys
-import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -216,15 +215,24 @@ def patch_performance(real: dict[str, Any], synth: dict[str, Any]) -> None:
 def matcher_at(rev: str) -> ModuleType:
     """``topoloc.coocmap.compiled`` as it was at git revision ``rev``, imported as a module of its own.
 
-    Raises SystemExit (status 2) with a one-line message when the revision cannot be read.
+    The source is kept under the cache (``<cache>/bench/``), named by the commit, so that numba's cache of
+    its compiled kernels (beside it) serves the next run.  Exits (status 2) with a one-line message when
+    the revision cannot be read.
     """
+    from topoloc.features.cache import default_cache_dir
+
     rel = "src/topoloc/coocmap/compiled.py"
+    commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short=12", f"{rev}^{{commit}}"],
+                            capture_output=True, text=True)
     got = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:{rel}"], capture_output=True, text=True)
-    if got.returncode != 0:
-        sys.exit(f"bench_coocmap_speed: cannot read {rel} at revision {rev} (--before): {got.stderr.strip()}")
-    name = f"coocmap_compiled_{re.sub(r'[^0-9A-Za-z]', '_', rev)}"
-    path = Path(tempfile.mkdtemp(prefix="coocmap_before_")) / f"{name}.py"
-    path.write_text(got.stdout)
+    if commit.returncode != 0 or got.returncode != 0:
+        sys.exit(f"bench_coocmap_speed: cannot read {rel} at revision {rev} (--before): "
+                 f"{(commit.stderr or got.stderr).strip()}")
+    name = f"coocmap_compiled_{commit.stdout.strip()}"
+    path = default_cache_dir() / "bench" / f"{name}.py"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not path.is_file() or path.read_text() != got.stdout:
+        path.write_text(got.stdout)
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
@@ -286,10 +294,10 @@ def slowest_share(ms: list[float], profiles: list[dict[str, float]]) -> dict[str
 
 
 def tail_part(before: ModuleType, dirs: list[Path], vocab: list[Path], quick: bool, out_dir: Path,
-              rev: str) -> dict[str, Any]:
+              rev: str, locations: int = 2200, n_words: int = 10000) -> dict[str, Any]:
     """Part 5 (see the module docstring)."""
     n_q = 100 if quick else 500
-    model, data, _ = real_map(dirs, locations=2200, tours=5, n_queries=500, vocab_train=vocab)
+    model, data, _ = real_map(dirs, locations=locations, tours=5, n_queries=500, vocab_train=vocab, n_words=n_words)
     items = list(zip(data["query_words"], data["query_xy"], strict=True))[:n_q]
     kw: dict[str, Any] = {"top_k": 1, "seed": 0, "spatial_tolerance": 1}
     out: dict[str, Any] = {"before_rev": rev, "dirs": [str(d) for d in dirs], "vocab_train": [str(v) for v in vocab],
@@ -377,6 +385,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="part 5 on the images under these folders (default: gardens_point and rtabmap_loop)")
     ap.add_argument("--vocab-train", nargs="+", type=Path, default=None, metavar="DIR",
                     help="with --real: folders to train the vocabulary on (default: webcam_daynight/map)")
+    ap.add_argument("--locations", type=int, default=2200,
+                    help="with --tail-only: locations of part 5's map (default 2200, the paper's size)")
+    ap.add_argument("--words", type=int, default=10000, help="with --tail-only: vocabulary size (default 10000)")
     ap.add_argument("--before", default=BEFORE_REV, help=f"git revision of the matcher before (default {BEFORE_REV})")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the results (default docs/results)")
     args = ap.parse_args(argv)
@@ -386,12 +397,16 @@ def main(argv: list[str] | None = None) -> None:
     for d in (args.real or []) + (args.vocab_train or []):
         if not d.is_dir():
             sys.exit(f"bench_coocmap_speed: no such folder: {d}")
+    for flag, value in (("--locations", args.locations), ("--words", args.words)):
+        if value < 1:
+            sys.exit(f"bench_coocmap_speed: {flag} must be at least 1, got {value}")
     out_dir.mkdir(parents=True, exist_ok=True)
     details = out_dir / "coocmap_speed_details.json"
     if args.page_only or args.tail_only:
-        if not details.is_file():
+        if not details.is_file() and not args.tail_only:
             sys.exit(f"bench_coocmap_speed: {details} is missing: run the whole benchmark first")
-        out = json.loads(details.read_text())
+        # --tail-only into a folder without parts 1-4 (other images): a page of the tail section alone.
+        out = json.loads(details.read_text()) if details.is_file() else {"seconds": 0.0, "date": "?"}
         if "seconds" not in out:  # written before the JSON kept them: the date and duration the page states
             found = re.search(r"; ([0-9T:+-]+); (\d+) min\.", (out_dir / "coocmap_speed.md").read_text())
             out["date"], out["seconds"] = (found.group(1), 60.0 * int(found.group(2))) if found else ("?", float("nan"))
@@ -402,7 +417,7 @@ def main(argv: list[str] | None = None) -> None:
                 require_data()
             t0 = time.time()
             tail = tail_part(before, args.real or REAL_DIRS, args.vocab_train or VOCAB_FOR_GP, args.quick,
-                             out_dir, args.before)
+                             out_dir, args.before, args.locations, args.words)
             tail["seconds"] = time.time() - t0
             tail_file.write_text(json.dumps(tail, indent=1, default=float) + "\n")
         if tail_file.is_file():
@@ -543,6 +558,12 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
 
 
 def write_markdown(o: dict[str, Any], seconds: float, out_dir: Path = RESULTS) -> None:
+    if "real" not in o:  # the tail section alone (--tail-only on other images)
+        (out_dir / "coocmap_speed.md").write_text(
+            "# Cooc-Map localisation time: the tail\n\n"
+            f"Generated by `{COMMAND} --tail-only`; do not edit by hand. Machine: {platform.machine()}, "
+            f"{os.cpu_count()} cores, Python {platform.python_version()}.\n" + "".join(tail_markdown(o["tail"])))
+        return
     r, s, a, sp, gc = o["real"], o["synthetic"], o["agreement"], o["phase_split"], o["gardens_counters"]
     L = [
         "# Cooc-Map localisation time\n\n",

@@ -588,10 +588,15 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     lattice = ctab.shape[1] > 0
     D1 = (1 << (NORM_BITS - shift)) - 1
     W = 2 * D1 + 1
+    # A lattice point's index p = kx * W + ky is linear, so an offset's table index is p_b - p_a + C.
+    C = D1 * W + D1
+    ps = np.empty(nt if lattice else 0, np.int64)
+    pq = np.empty(nt if lattice else 0, np.int64)
     if lattice:
         for d in range(nt):
-            sx[d] = sx[d] >> shift
-            sy[d] = sy[d] >> shift
+            f = sf[d]
+            ps[d] = (sx[d] >> shift) * W + (sy[d] >> shift)
+            pq[d] = (qx[f] >> shift) * W + (qy[f] >> shift)
     J = np.zeros((n, n), np.uint8)
     deg = np.zeros(n, np.int64)
     # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
@@ -630,11 +635,11 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
                 # Evaluate in the direction f < g, as the reference does.
                 if lattice:
                     if fi < fj:
-                        ks = (sx[j] - sx[i] + D1) * W + sy[j] - sy[i] + D1
-                        kq = (((qx[fj] - qx[fi]) >> shift) + D1) * W + ((qy[fj] - qy[fi]) >> shift) + D1
+                        ks = ps[j] - ps[i] + C
+                        kq = pq[j] - pq[i] + C
                     else:
-                        ks = (sx[i] - sx[j] + D1) * W + sy[i] - sy[j] + D1
-                        kq = (((qx[fi] - qx[fj]) >> shift) + D1) * W + ((qy[fi] - qy[fj]) >> shift) + D1
+                        ks = ps[i] - ps[j] + C
+                        kq = pq[i] - pq[j] + C
                     ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
                 else:
                     if fi < fj:
