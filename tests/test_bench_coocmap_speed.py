@@ -24,7 +24,11 @@ def test_tail_only_on_other_images(bench: ModuleType, tmp_path: Path, monkeypatc
     monkeypatch.setattr(bench, "PACED_HZ", 50.0)
     monkeypatch.setattr(bench, "BUSY", 1)
     out = tmp_path / "out"
-    # HEAD as "before": any revision of the matcher is read from git and imported beside today's.
+    # Today's matcher as "before" too (its kernels compiled already; test_matcher_at_imports_a_revision reads one
+    # from git): same S by construction, so this checks the plumbing, the page and the picture.
+    from topoloc.coocmap import compiled
+
+    monkeypatch.setattr(bench, "matcher_at", lambda rev: compiled)
     bench.main(["--tail-only", "--quick", "--real", str(route), "--vocab-train", str(train), "--out", str(out),
                 "--locations", "12", "--words", "60", "--before", "HEAD"])
     tail = json.loads((out / "coocmap_speed_tail.json").read_text())
@@ -45,3 +49,14 @@ def test_bad_arguments_exit_with_a_message(bench: ModuleType, tmp_path: Path) ->
         bench.main(["--real", str(tmp_path), "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="cannot read"):
         bench.matcher_at("no-such-revision")
+
+
+def test_matcher_at_imports_a_revision(bench: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """compiled.py at a git revision, imported under a name of its own (numba compiles it on first use only)."""
+    from topoloc.coocmap import compiled
+
+    monkeypatch.setenv("TOPOLOC_CACHE_DIR", str(tmp_path))
+    mod = bench.matcher_at("HEAD")
+    assert mod is not compiled and mod.__name__.startswith("coocmap_compiled_")
+    assert callable(mod.match_compiled) and Path(mod.__file__).parent == tmp_path / "bench"
+    assert bench.matcher_at("HEAD").__file__ == mod.__file__  # kept, named by the commit
