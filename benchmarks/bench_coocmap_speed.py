@@ -296,6 +296,7 @@ def slowest_share(ms: list[float], profiles: list[dict[str, float]]) -> dict[str
 def tail_part(before: ModuleType, dirs: list[Path], vocab: list[Path], quick: bool, out_dir: Path,
               rev: str, locations: int = 2200, n_words: int = 10000) -> dict[str, Any]:
     """Part 5 (see the module docstring)."""
+    t0 = time.time()
     n_q = 100 if quick else 500
     model, data, _ = real_map(dirs, locations=locations, tours=5, n_queries=500, vocab_train=vocab, n_words=n_words)
     items = list(zip(data["query_words"], data["query_xy"], strict=True))[:n_q]
@@ -343,6 +344,7 @@ def tail_part(before: ModuleType, dirs: list[Path], vocab: list[Path], quick: bo
     out["gardens"] = gardens
     out["load_after"] = os.getloadavg()[0]
     out["date"] = datetime.now(UTC).isoformat(timespec="seconds")
+    out["seconds"] = time.time() - t0
     histogram(out, out_dir / "coocmap_speed_tail.png")
     return out
 
@@ -415,10 +417,8 @@ def main(argv: list[str] | None = None) -> None:
             before = matcher_at(args.before)
             if not args.real:
                 require_data()
-            t0 = time.time()
             tail = tail_part(before, args.real or REAL_DIRS, args.vocab_train or VOCAB_FOR_GP, args.quick,
                              out_dir, args.before, args.locations, args.words)
-            tail["seconds"] = time.time() - t0
             tail_file.write_text(json.dumps(tail, indent=1, default=float) + "\n")
         if tail_file.is_file():
             out["tail"] = json.loads(tail_file.read_text())
