@@ -257,6 +257,7 @@ def before_after(before: ModuleType, model: Any, items: list[tuple[np.ndarray, n
     before.match_compiled(model, *items[0], **kw)
     match_compiled(model, *items[0], **kw)
     ms: dict[str, list[float]] = {"before": [], "after": []}
+    cpu: dict[str, list[float]] = {"before": [], "after": []}
     prof: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
     same = same_top = 0
     best: list[int] = []
@@ -264,9 +265,10 @@ def before_after(before: ModuleType, model: Any, items: list[tuple[np.ndarray, n
         got = {}
         for name in (("before", "after") if qi % 2 == 0 else ("after", "before")):
             fn = before.match_compiled if name == "before" else match_compiled
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             got[name] = fn(model, w, xy, **kw)
             ms[name].append(1e3 * (time.perf_counter() - t))
+            cpu[name].append(1e3 * (time.process_time() - c))
             prof[name].append(query_profile(model, w, got[name][0]))
         best.append(int(got["after"][0].best))
         same += _same(got["before"], got["after"])
@@ -274,7 +276,8 @@ def before_after(before: ModuleType, model: Any, items: list[tuple[np.ndarray, n
         same_top += bool(np.array_equal(np.sort(got["before"][0].scores)[::-1][:k],
                                         np.sort(got["after"][0].scores)[::-1][:k])
                          and got["before"][0].best == got["after"][0].best)
-    return {"ms": ms, "profiles": prof, "same_S": same, "same_top_k": same_top, "n": len(items), "best": best}
+    return {"ms": ms, "cpu_ms": cpu, "profiles": prof, "same_S": same, "same_top_k": same_top, "n": len(items),
+            "best": best}
 
 
 def _summary(ms: list[float] | np.ndarray) -> dict[str, float]:
@@ -308,6 +311,7 @@ def tail_part(before: ModuleType, dirs: list[Path], vocab: list[Path], quick: bo
     out["real"] = {
         "n": ba["n"], "same_S": ba["same_S"], "same_top_k": ba["same_top_k"],
         "before": _summary(ba["ms"]["before"]), "after": _summary(ba["ms"]["after"]),
+        "cpu_before": _summary(ba["cpu_ms"]["before"]), "cpu_after": _summary(ba["cpu_ms"]["after"]),
         "recall_at_1": float(np.mean(np.asarray(ba["best"]) == correct)),
         "slowest_before": slowest_share(ba["ms"]["before"], ba["profiles"]["before"]),
         "slowest_after": slowest_share(ba["ms"]["after"], ba["profiles"]["after"]),
@@ -339,7 +343,8 @@ def tail_part(before: ModuleType, dirs: list[Path], vocab: list[Path], quick: bo
             g = before_after(before, method.model_, gitems, gkw)
             gardens.append({"maps": "+".join(maps), "query": q, "n": g["n"], "same_S": g["same_S"],
                             "same_top_k": g["same_top_k"], "before": _summary(g["ms"]["before"]),
-                            "after": _summary(g["ms"]["after"]),
+                            "after": _summary(g["ms"]["after"]), "cpu_before": _summary(g["cpu_ms"]["before"]),
+                            "cpu_after": _summary(g["cpu_ms"]["after"]),
                             "features_median": float(np.median([len(w) for w, _ in gitems]))})
     out["gardens"] = gardens
     out["load_after"] = os.getloadavg()[0]
@@ -501,11 +506,14 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
         f"Same S (every score, which are exact, the best location's group) bit for bit on "
         f"{r['same_S']}/{r['n']} queries, same best location and top-1 score on {r['same_top_k']}/{r['n']}; "
         f"R@1 {r['recall_at_1']:.3f}.\n\n",
-        "| matcher | ms median | ms p95 | ms p99 | ms max | ms mean |\n| --- | --- | --- | --- | --- | --- |\n",
+        "The CPU columns are the process's CPU time per query (all its threads): on a machine shared with other "
+        "work the wall clock also counts the time a query waited for a core.\n\n",
+        "| matcher | ms median | ms p95 | ms p99 | ms max | ms mean | CPU ms median | CPU ms p95 |\n"
+        "| --- | --- | --- | --- | --- | --- | --- | --- |\n",
         f"| before (`{t['before_rev']}`) | {b['median']:.1f} | {b['p95']:.1f} | {b['p99']:.1f} | {b['max']:.0f} | "
-        f"{b['mean']:.1f} |\n",
+        f"{b['mean']:.1f} | {r['cpu_before']['median']:.1f} | {r['cpu_before']['p95']:.1f} |\n",
         f"| after | **{a['median']:.1f}** | **{a['p95']:.1f}** | {a['p99']:.1f} | {a['max']:.0f} | "
-        f"{a['mean']:.1f} |\n\n",
+        f"{a['mean']:.1f} | {r['cpu_after']['median']:.1f} | {r['cpu_after']['p95']:.1f} |\n\n",
         "![per-query time before and after](coocmap_speed_tail.png)\n\n",
         f"**What the slowest 5 % have in common** (medians over the slowest {sb['n_slow']} queries of each matcher "
         "and over the rest; `topoloc.bench.coocmap_speed.query_profile`):\n\n",
@@ -515,15 +523,21 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
     for key, label, fmt in PROFILE_ROWS:
         L.append(f"| {label} | {fmt.format(sb['slow'][key])} | {fmt.format(sb['rest'][key])} | "
                  f"{fmt.format(sa['slow'][key])} | {fmt.format(sa['rest'][key])} |\n")
-    ratios = sorted(((sb["slow"][k] / max(sb["rest"][k], 1e-9), lab) for k, lab, _ in PROFILE_ROWS
-                     if k != "repeated_word_share"), reverse=True)
-    big = [f"{lab} {x:.1f}x" for x, lab in ratios if x >= 1.5]
-    L.append("\nBefore, the slowest 5 % differ from the rest most in (ratio of medians): " + "; ".join(big) +
+    def differ(sh: dict[str, Any]) -> str:
+        ratios = sorted(((sh["slow"][k] / max(sh["rest"][k], 1e-9), lab) for k, lab, _ in PROFILE_ROWS
+                         if k != "repeated_word_share"), reverse=True)
+        return "; ".join(f"{lab} {x:.1f}x" for x, lab in ratios if x >= 1.5)
+
+    L.append("\nBefore, the slowest 5 % differ from the rest most in (ratio of medians): " + differ(sb) +
              ". Their queries have more features and their best locations many triples per candidate (a word "
              "that recurs in the query and in the stored images: texture, foliage, repeated structure), so "
              "the translation bound, which counts every triple, stays above the best score for many "
              "locations whose J is then built; and each such J, of hundreds of candidates with tens of "
-             "triples each, costs millions of pair tests.\n\n")
+             "triples each, costs millions of pair tests. After: " + differ(sa) +
+             f". J is built for {sa['slow']['J_built']:.0f} locations (median of the slowest 5 %): what remains is "
+             f"the J of the best location itself ({sa['slow']['best_candidates']:.0f} candidates, "
+             f"{sa['slow']['best_triples_per_candidate']:.1f} triples each), which no bound may skip, and the "
+             f"bounds of the {sa['slow']['visited']:.0f} locations whose candidate count reached the threshold.\n\n")
     L.append(
         "What changed (`topoloc.coocmap.compiled`, exact: the same J and the same elimination wherever one is "
         "needed): (1) before a J is built, a bound from the *distinct* candidates near each candidate's "
@@ -532,7 +546,7 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
         "computed where a location has at least 2 triples per candidate, where the translation bound is "
         "loosest; (2) in J, a candidate's triples within a translation bucket are one run, skipped at once "
         "when its pair is already known consistent, and each triple's partners are swept as contiguous "
-        "ranges; (3) signed cells of lattice offsets from a table.\n\n")
+        "ranges; (3) the signed cells of an offset between two points of the position lattice from a table.\n\n")
     L += [
         f"**Beside busy processes** (today's matcher, {pc['n']} queries paced at {pc['hz']:.0f} Hz as "
         "`benchmarks.bench_load` paces them):\n\n",
@@ -548,12 +562,14 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
             "\n**gardens_point, two map tours** (100 places, the method as `topoloc evaluate` fits it: `top_k=10`, "
             "default preprocessing), before and after alternated query by query:\n\n",
             "| map tours -> query | features (median) | queries | before ms median / p95 | after ms median / p95 "
-            "| same S |\n| --- | --- | --- | --- | --- | --- |\n",
+            "| before CPU ms median / p95 | after CPU ms median / p95 | same S |\n"
+            "| --- | --- | --- | --- | --- | --- | --- | --- |\n",
         ]
         for g in t["gardens"]:
             L.append(f"| {g['maps']} -> {g['query']} | {g['features_median']:.0f} | {g['n']} | "
                      f"{g['before']['median']:.1f} / {g['before']['p95']:.1f} | **{g['after']['median']:.1f}** / "
-                     f"{g['after']['p95']:.1f} | {g['same_S']}/{g['n']} |\n")
+                     f"{g['after']['p95']:.1f} | {g['cpu_before']['median']:.1f} / {g['cpu_before']['p95']:.1f} | "
+                     f"{g['cpu_after']['median']:.1f} / {g['cpu_after']['p95']:.1f} | {g['same_S']}/{g['n']} |\n")
     return L
 
 
