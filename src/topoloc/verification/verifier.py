@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from topoloc.verification.pairs import check_pair, mutual_matches, prepare_descriptors
 from topoloc.verification.rerank import candidate_rows, verified_scores
@@ -33,6 +34,11 @@ DEFAULT_CANDIDATES = 3
 #: one frame's geometry checks it but does not overrule it (reranking among 3 peaks lowered R@1 of every method
 #: on gardens_point's night row with ``--sequence 10``: verification.md, part ``quality``).
 SEQUENCE_CANDIDATES = 1
+
+# The descriptor products are small (a few hundred to a thousand rows): OpenBLAS's thread team costs more than
+# it saves there, and on a busy machine it waits at its barriers for descheduled threads, so the stage runs them
+# on one thread (the ``speed`` part of benchmarks/bench_verification.py times the stage beside busy processes).
+_BLAS = ThreadpoolController()
 
 
 def default_candidates(sequence: int) -> int:
@@ -177,6 +183,10 @@ class Verifier:
         S = np.asarray(S)
         if S.ndim != 2 or S.shape[1] != len(queries):
             raise ValueError(f"S of shape {S.shape} needs one column per query; {len(queries)} queries given")
+        with _BLAS.limit(limits=1, user_api="blas"):
+            return self._verify(S, queries)
+
+    def _verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
         rows, lo, hi = candidate_rows(S, self.candidates)
         inl = np.zeros(rows.shape, np.int64)
         need = np.ones(rows.shape, np.int64)
