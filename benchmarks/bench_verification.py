@@ -60,7 +60,7 @@ from topoloc.evaluation.metrics import compute_metrics
 from topoloc.evaluation.timing import apply_sequence
 from topoloc.spec import FeatureSpec, VerificationSpec
 from topoloc.spec.setup import build_verifier, make_resources
-from topoloc.verification import Verifier
+from topoloc.verification import Verifier, confirmed, demote_unconfirmed
 
 FEATURES = "xfeat"
 SEQUENCE = 10
@@ -148,16 +148,6 @@ def _cli_check(method: str, row: str, runs: Path, S_bench: np.ndarray) -> bool:
     return bool(np.allclose(np.load(d / "S.npy"), S_bench, rtol=0, atol=1e-6))
 
 
-def confirmed(S: np.ndarray) -> np.ndarray:
-    """Whether each query's best place lies within the peak of the previous query's best (the first: no)."""
-    from topoloc.confidence import peak_extent
-
-    best, lo, hi = peak_extent(S)
-    ok = np.zeros(S.shape[1], bool)
-    ok[1:] = (best[:-1] >= lo[1:]) & (best[:-1] < hi[1:])
-    return ok
-
-
 def consistency(rows: Sequence[str], runs: Path) -> dict[str, Any]:
     """Temporal consistency on top of verification: unconfirmed answers below every confirmed one."""
     out: dict[str, Any] = {}
@@ -173,7 +163,7 @@ def consistency(rows: Sequence[str], runs: Path) -> dict[str, Any]:
             v, qf = _verifier(row, np.load(d / "places.npy"))
             Sv = v.verify(S, qf).S
             ok = confirmed(Sv)
-            Sc = Sv - np.where(ok, 0.0, 2.0)[None, :].astype(np.float32)
+            Sc = demote_unconfirmed(Sv, ok)
             out.setdefault(row, {})[method] = {"verified": _scores(Sv, gt), "verified_and_confirmed": _scores(Sc, gt),
                                                "confirmed_fraction": round(float(ok.mean()), 3)}
     return out

@@ -19,6 +19,7 @@ from topoloc.cli.options import (
     CacheDirOption,
     CalibrateSequenceOption,
     ConfigOption,
+    ConfirmOption,
     EveryMOption,
     EverySOption,
     FeaturesOption,
@@ -267,6 +268,7 @@ def localize(
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
+    confirm: ConfirmOption = False,
     quiet: QuietOption = False,
     topic: TopicOption = None,
     every_s: EverySOption = None,
@@ -306,7 +308,7 @@ def localize(
     warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
                       prefetch=spec.prefetch, verify=spec.verification.enabled,
-                      candidates=spec.verification.candidates)
+                      candidates=spec.verification.candidates, confirm=spec.verification.confirm)
     # Written line by line: a run that is stopped keeps every frame done so far.
     with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)
@@ -390,7 +392,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
     warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
                       prefetch=spec.prefetch, verify=spec.verification.enabled,
-                      candidates=spec.verification.candidates)
+                      candidates=spec.verification.candidates, confirm=spec.verification.confirm)
     stopped_by: list[str] = []
 
     def stop(signum: int, frame: object) -> None:
