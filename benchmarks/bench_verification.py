@@ -106,10 +106,11 @@ def _base_run(method: str, row: str, runs: Path) -> Path:
 
 
 def _verifier(row: str, place_ids: np.ndarray) -> tuple[Verifier, list[Any]]:
-    maps, query, _, _, _ = ROWS[row]
+    maps, query, _, seq, _ = ROWS[row]
     res, _ = make_resources(FeatureSpec(method=FEATURES).config(), None)
     tours = [load_traverse(m) for m in maps]
-    v = build_verifier(VerificationSpec(enabled=True), place_ids, tours, res)
+    # As evaluate builds it: the sequence row verifies each frame's best place only.
+    v = build_verifier(VerificationSpec(enabled=True), place_ids, tours, res, sequence=seq)
     assert v is not None
     return v, res.features(load_traverse(query))
 
@@ -228,14 +229,16 @@ def localize(tmp: Path) -> dict[str, Any]:
     return out
 
 
-def _drop_curves(part: dict[str, Any]) -> None:
-    """The PR curves are drawn, not kept in the JSON (thousands of points per webcam cell)."""
+def _thin_curves(part: dict[str, Any], points: int = 200) -> None:
+    """PR curves kept at most ``points`` points each (thousands per webcam cell), enough to draw them again."""
     for cells in part.values():
         for cell in cells.values():
             for scores in cell.values():
-                if isinstance(scores, dict):
-                    scores.pop("precision", None)
-                    scores.pop("recall", None)
+                if isinstance(scores, dict) and "recall" in scores:
+                    n = len(scores["recall"])
+                    keep = np.unique(np.linspace(0, n - 1, min(n, points)).round().astype(int)) if n else []
+                    for key in ("precision", "recall"):
+                        scores[key] = [round(float(scores[key][i]), 4) for i in keep]
 
 
 # --------------------------------------------------------------------------------------------- page
@@ -371,12 +374,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         t0 = time.perf_counter()
         if "quality" in parts:
-            res["quality"] = quality(rows, args.methods.split(","), runs)
+            fresh = quality(rows, args.methods.split(","), runs)
+            _thin_curves(fresh)
+            # Rows not run this time keep their last measurement; the figure needs every row's curves.
+            res["quality"] = {r: {**old.get("quality", {}).get(r, {}), **fresh.get(r, {})}
+                              for r in ROWS if r in fresh or r in old.get("quality", {})}
             pr_figure(res["quality"], OUT_PNG)
-            _drop_curves(res["quality"])
         if "consistency" in parts:
-            res["consistency"] = consistency(rows, runs)
-            _drop_curves(res["consistency"])
+            fresh = consistency(rows, runs)
+            _thin_curves(fresh)
+            res["consistency"] = {**old.get("consistency", {}), **fresh}
         if "slam" in parts:
             res["slam"] = slam(tmp)
         if "speed" in parts:
