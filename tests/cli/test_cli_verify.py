@@ -20,7 +20,8 @@ def _evaluate(cli: Cli, rf: dict[str, Path], out: Path, *extra: str) -> dict:
 def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: Cli, rf: dict[str, Path],
                                                                            tmp_path: Path) -> None:
     m = _evaluate(cli, rf, tmp_path / "v", "--verify")
-    assert m["params"]["verify"] is True and m["run"]["spec"]["verification"] == {"enabled": True, "candidates": None, "confirm": False}
+    assert m["params"]["verify"] is True
+    assert m["run"]["spec"]["verification"] == {"enabled": True, "candidates": None, "confirm": False}
     v = m["verification"]
     assert v["candidates"] == 3 and 0.5 <= v["verified_fraction"] <= 1 and v["ms_per_query"] > 0
     z = np.load(tmp_path / "v" / "verification.npz")
