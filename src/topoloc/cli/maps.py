@@ -384,7 +384,7 @@ def cache_info(
     quiet: QuietOption = False,
 ) -> None:
     """Files and bytes in each part of the cache, and the feature stores of each feature setting."""
-    from topoloc.features.cache import cache_usage, default_cache_dir
+    from topoloc.features.cache import cache_root, cache_usage
     from topoloc.features.store import store_usage
 
     usage = cache_usage(cache_dir)
@@ -396,10 +396,10 @@ def cache_info(
         agg["images"] += st["images"]
         agg["bytes"] += st["bytes"]
     if as_json:
-        typer.echo(json.dumps({"cache_dir": str(cache_dir or default_cache_dir()), **usage,
+        typer.echo(json.dumps({"cache_dir": str(cache_root(cache_dir)), **usage,
                                "feature_stores": per_setting, "stores": stores}))
         return
-    typer.echo(f"cache: {cache_dir or default_cache_dir()}")
+    typer.echo(f"cache: {cache_root(cache_dir)}")
     for part, u in usage.items():
         typer.echo(f"  {part}: {u['files']} files, {u['bytes'] / 2**20:.1f} MiB")
     if per_setting:

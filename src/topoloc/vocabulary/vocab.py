@@ -964,7 +964,9 @@ def cached_vocabulary(
         images, feature_key=extractor.config.key(), n_words=n_words, seed=seed, n_iter=n_iter,
         max_descriptors=max_descriptors,
     )
-    root = Path(cache_dir).expanduser() if cache_dir is not None else extractor.cache_dir
+    from topoloc.features.cache import cache_root
+
+    root = cache_root(cache_dir) if cache_dir is not None else extractor.cache_dir
     file = root / "vocab" / f"{key}.tlv"
     if file.is_file():
         try:
