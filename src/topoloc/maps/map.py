@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -70,6 +71,8 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
         rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
     if tour.source is not None:
         rec["source"] = dict(tour.source)  # a recording: its file and frame selection
+        if "file" in rec["source"]:
+            rec["source"]["file"] = os.path.abspath(rec["source"]["file"])
     return rec
 
 
@@ -94,8 +97,11 @@ def reload_tour(rec: dict[str, Any]) -> Traverse:
                        every_m=src.get("every_m"), pose_topic=src.get("pose_topic"))
     else:
         if not Path(root).is_dir():
+            where = ("" if Path(root).is_absolute() else
+                     f" (the map recorded it relative to the folder it was built in; run from there, or build "
+                     f"it again) from {Path.cwd()}")
             raise input_error(f"tour {rec.get('name')!r} of the map is needed again to add a tour, but its "
-                              "folder is gone", root)
+                              f"folder is not found{where}", root)
         t = load_traverse(root)
     if t.fingerprint() != rec["fingerprint"]:
         raise input_error(f"tour {rec.get('name')!r} has changed since the map was built (other images or "
@@ -105,10 +111,11 @@ def reload_tour(rec: dict[str, Any]) -> Traverse:
 
 def _tour_root(tour: Traverse) -> str:
     """A tour's folder, the recording it was read from, or ``<images in memory>``."""
+    # Absolute: ``map add`` may run from another folder than ``map build`` (issue #41).
     if tour.kind == "files":
-        return str(tour.root)
+        return os.path.abspath(tour.root)
     if tour.source is not None and "file" in tour.source:
-        return str(tour.source["file"])
+        return os.path.abspath(tour.source["file"])
     return f"<{tour.kind} in memory>"
 
 
@@ -385,7 +392,7 @@ class Map:
         to finish, up to ``timeout`` seconds (default ``$TOPOLOC_LOCK_TIMEOUT``, else
         an hour), then replaces it.
         """
-        path = Path(path)
+        path = _through_link(Path(path))
         if path.is_dir():
             raise input_error("map output is a folder, not a file", path)
         with file_lock(path, timeout=timeout):
@@ -445,7 +452,7 @@ class Map:
         TopolocError
             What :meth:`load` refuses, or another process still holds the file after ``timeout``.
         """
-        path = Path(path)
+        path = _through_link(Path(path))
         if not path.is_file():
             read_map_file(path)  # the one-line error of a missing map, before any lock
         # Large intermediates of the change (a tour merged into the map, its inverted files) as scratch
@@ -777,6 +784,11 @@ class Map:
         if vocabulary is not None and (self.vocabulary is None or vocabulary_fingerprint(vocabulary)
                                        != vocabulary_fingerprint(self.vocabulary)):
             raise ParameterError("vocabulary", f"is not the one this map was built with{where}")
+
+
+def _through_link(path: Path) -> Path:
+    """The file a link named as the map points at: it is replaced there, and the link kept (issue #41)."""
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
 class Localizer:
