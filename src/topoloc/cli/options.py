@@ -15,7 +15,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 
-from topoloc.errors import TopolocError
+from topoloc.errors import ParameterError, TopolocError
 
 S = TypeVar("S")
 
@@ -149,6 +149,7 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
     the command line (or in the environment) override the file's settings.
     """
     from topoloc.spec import load_config, merge, nest, spec_from_dict
+    from topoloc.spec.config import typed_config
 
     flat: dict[str, Any] = {}
     for key, value in values.items():
@@ -165,5 +166,42 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
         elif isinstance(value, list):
             value = tuple(value)
         flat[_CLI_TO_FLAT.get(key, key)] = value
-    base = load_config(config) if config is not None else {}
-    return spec_from_dict(cls, merge(base, nest(flat, names=names)), source=config)
+    given = nest(flat, names=names)
+    base: dict[str, Any] = {}
+    if config is not None:
+        base = drop_alternatives(typed_config(cls, load_config(config), source=config), given)
+        out = given.get("out")
+        if out is not None and Path(config).resolve().is_relative_to(Path(out).resolve()):
+            raise ParameterError("out", f"would replace the configuration file it is read from: {config}")
+    return spec_from_dict(cls, merge(base, given), source=config)
+
+
+#: Settings that are alternatives to one another: a flag giving one replaces a file's other (issue #41).
+ALTERNATIVES = (("ground_truth.tolerance", "ground_truth.tolerance_m"), ("vocabulary.file", "vocabulary.train"),
+                ("maps", "map_file"))
+
+
+def _dotted(nested: Mapping[str, Any], name: str) -> Any:
+    head, _, tail = name.partition(".")
+    value = nested.get(head)
+    return (value.get(tail) if isinstance(value, Mapping) else None) if tail else value
+
+
+def drop_alternatives(base: dict[str, Any], given: Mapping[str, Any]) -> dict[str, Any]:
+    """A file's settings less those that a setting given as a flag replaces (flags always win).
+
+    Settings of :data:`ALTERNATIVES` exclude each other; given one of a group
+    on the command line, the file's others of the group are left out.
+    """
+    out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in base.items()}
+    for group in ALTERNATIVES:
+        if not any(_dotted(given, name) not in (None, (), [], "") for name in group):
+            continue
+        for name in group:
+            if _dotted(given, name) in (None, (), [], ""):
+                head, _, tail = name.partition(".")
+                if tail and isinstance(out.get(head), dict):
+                    out[head].pop(tail, None)
+                elif not tail:
+                    out.pop(head, None)
+    return out
