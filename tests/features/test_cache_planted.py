@@ -41,7 +41,7 @@ def test_a_planted_per_user_folder_is_refused_in_one_line(tmp_path: Path) -> Non
     shared.mkdir()
     shared.chmod(0o777)
     (shared / f"user-{os.geteuid()}").symlink_to(_victim(tmp_path))
-    with pytest.raises(TopolocError, match="per-user folder.*not a private folder") as e:
+    with pytest.raises(TopolocError, match=r"per-user folder.*not a private folder") as e:
         cache_root(shared)
     assert "\n" not in str(e.value) and str(shared / f"user-{os.geteuid()}") in str(e.value)
 
