@@ -58,3 +58,100 @@ def test_map_add_from_another_folder_finds_a_tour_named_relative(cli: Cli, rf: d
                              str(rf["cache"]), "--quiet"]))
     assert res["tours"] == ["noon", "morning"]
     assert os.path.isabs(json.loads(cli.ok(["map", "info", str(work / "m.tlm"), "--json"]))["tours"][0]["root"])
+
+
+def _plain_copy(src: Path, dst: Path, rename: dict[int, str] | None = None) -> list[Path]:
+    """The images of ``src`` in ``dst`` without places.csv (natural order), some renamed."""
+    dst.mkdir(parents=True)
+    out = []
+    for k, p in enumerate(sorted(src.glob("*.jpg"))):
+        out.append(dst / (rename or {}).get(k, p.name))
+        shutil.copy(p, out[-1])
+    return out
+
+
+def test_a_file_name_that_is_not_utf8_works_everywhere(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    """``cv2.haveImageReader`` crashed the process (exit 139) on such a name; evaluate and map build gave
+    a UnicodeEncodeError traceback (issue #41)."""
+    odd = os.fsdecode(b"latin1 \xe9t\xe9 3.jpg")
+    q = tmp_path / "q"
+    _plain_copy(rf["query"], q, {3: odd})
+    tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
+    lines = tmp_path / "l.jsonl"
+    cli.ok(["localize", str(tlm), str(q), "--out", str(lines), "--quiet"])
+    assert len(lines.read_text().splitlines()) == len(list(q.iterdir()))
+    cli.ok(["evaluate", "--map", str(rf["map"]), "--query", str(q), "--method", "bow", "--vocab", str(rf["vocab"]),
+            "--tolerance", "0:20", "--out", str(tmp_path / "run"), "--html", str(tmp_path / "p.html"),
+            "--cache-dir", str(rf["cache"]), "--quiet"])
+    assert (tmp_path / "p.html").read_bytes().count(b"data:image/jpeg") >= len(list(q.iterdir()))
+    cli.ok(["map", "build", "--method", "bow", "--map", str(q), "--vocab", str(rf["vocab"]), "--out",
+            str(tmp_path / "odd.tlm"), "--cache-dir", str(rf["cache"]), "--quiet"])
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device", "dangling"])
+def test_a_special_file_named_as_an_image_is_refused_not_skipped(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                                kind: str) -> None:
+    """Skipped without a word, it moved every later image down one place id (issue #41)."""
+    q = tmp_path / "q"
+    _plain_copy(rf["query"], q)
+    bad = q / "Image005.jpg"
+    if kind == "fifo":
+        os.mkfifo(bad)
+    elif kind == "device":
+        bad.symlink_to("/dev/zero")
+    else:
+        bad.symlink_to(tmp_path / "nothing.jpg")
+    tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
+    cli.error(["localize", str(tlm), str(q), "--out", str(tmp_path / "l.jsonl"), "--quiet"], str(bad))
+    cli.error(["evaluate", "--map", str(rf["map"]), "--query", str(q), "--method", "bow", "--vocab",
+               str(rf["vocab"]), "--out", str(tmp_path / "run"), "--quiet"], "not a regular file")
+    cli.error(["map", "build", "--method", "bow", "--map", str(q), "--vocab", str(rf["vocab"]), "--out",
+               str(tmp_path / "x.tlm"), "--quiet"], str(bad))
+
+
+@pytest.mark.parametrize("name", ["../outside.jpg", "ABSOLUTE", "sub/../../outside.jpg"])
+def test_places_csv_names_stay_inside_the_traverse_folder(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                         name: str) -> None:
+    """evaluate --html embedded a private photo from outside the query folder in a page meant to be shared."""
+    private = tmp_path / "outside.jpg"
+    shutil.copy(sorted(rf["query"].glob("*.jpg"))[0], private)
+    q = tmp_path / "q"
+    files = _plain_copy(rf["query"], q)
+    (q / "sub").mkdir()
+    name = str(private) if name == "ABSOLUTE" else name
+    (q / "places.csv").write_text("image,place\n" + "".join(f"{p.name},{k}\n" for k, p in enumerate(files[1:], 1))
+                                  + f"{name},0\n")
+    cli.error(["evaluate", "--map", str(rf["map"]), "--query", str(q), "--method", "bow", "--vocab",
+               str(rf["vocab"]), "--out", str(tmp_path / "run"), "--html", str(tmp_path / "p.html"), "--quiet"],
+              "outside the traverse's folder")
+    assert not (tmp_path / "p.html").exists()
+
+
+def test_a_gif_is_read_in_a_folder_as_when_named(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    import cv2
+
+    q = tmp_path / "q"
+    files = _plain_copy(rf["query"], q)
+    gif = files[2].with_suffix(".gif")
+    from PIL import Image
+
+    Image.fromarray(cv2.cvtColor(cv2.imread(str(files[2])), cv2.COLOR_BGR2RGB)).save(gif)
+    files[2].unlink()
+    tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
+    cli.ok(["localize", str(tlm), str(q), "--out", str(tmp_path / "a.jsonl"), "--quiet"])
+    cli.ok(["localize", str(tlm), str(gif), "--out", str(tmp_path / "b.jsonl"), "--quiet"])
+    a = [json.loads(ln) for ln in (tmp_path / "a.jsonl").read_text().splitlines()]
+    b = json.loads((tmp_path / "b.jsonl").read_text().splitlines()[0])
+    assert len(a) == len(files) and a[2]["image"] == gif.name
+    assert (a[2]["place"], a[2]["score"]) == (b["place"], b["score"])
+
+
+def test_pairs_out_refuses_a_name_with_white_space_before_any_frame(cli: Cli, rf: dict[str, Path],
+                                                                   tmp_path: Path) -> None:
+    q = tmp_path / "q"
+    _plain_copy(rf["query"], q, {4: "with space.jpg"})
+    tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
+    out = tmp_path / "l.jsonl"
+    cli.error(["localize", str(tlm), str(q), "--out", str(out), "--top-k", "2", "--pairs-out",
+               str(tmp_path / "pairs.txt"), "--quiet"], "with space.jpg")
+    assert not out.exists()  # refused before the first frame: no line written

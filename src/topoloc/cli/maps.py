@@ -287,7 +287,15 @@ def localize(
         spec = dataclasses.replace(spec, sequence=m.calibrated_sequence)
     assert spec.out is not None
     names: deque[str] = deque()  # the pairs name of each frame read and not yet written (lines keep its order)
-    total, frames = spec.inputs.frames(spec.images, on_frame=names.append if spec.pairs_out else None)
+    check_name = None
+    if spec.pairs_out is not None:
+        from topoloc.evaluation.pairs import check_pair_name
+
+        for name in m.place_image_names():
+            check_pair_name(name, spec.map_file)
+        check_name = check_pair_name
+    total, frames = spec.inputs.frames(spec.images, on_frame=names.append if spec.pairs_out else None,
+                                       check_name=check_name)
     # The map file is memory-mapped while the lines are written: truncating it would kill the run.
     spec.check_outputs()
     if m.threshold is None:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
+from topoloc.errors import TopolocError, input_error
 from topoloc.io.container import atomic_write_bytes
 
 
@@ -66,14 +66,23 @@ def retrieval_pairs(query_names: Sequence[str], rows: np.ndarray, row_names: Seq
     return [(q, row_names[int(r)]) for q, rs in zip(query_names, rows.tolist(), strict=True) for r in rs]
 
 
+def check_pair_name(name: str, where: str | Path | None = None) -> None:
+    """Refuse a name a pairs file cannot hold (empty, or holding white space: hloc splits on it), naming the file.
+
+    Called on every name known before any work (``localize --pairs-out``: the map's place images and
+    the input images), so that a run is not refused after every frame was localised (issue #41).
+    """
+    if not name or any(c.isspace() for c in name):
+        raise input_error(f"image name {name!r} is empty or holds white space, which a pairs file (--pairs-out) "
+                          "cannot hold: rename the image", where)
+
+
 def format_pairs(pairs: Iterable[tuple[str, str]]) -> bytes:
     """The text of a pairs file: ``query map`` a line.  A name holding white space is refused (hloc splits on it)."""
     lines = []
     for q, m in pairs:
         for name in (q, m):
-            if not name or any(c.isspace() for c in name):
-                raise TopolocError(f"image name {name!r} is empty or holds white space, which a pairs file "
-                                   "cannot hold: rename the image")
+            check_pair_name(name)
         lines.append(f"{q} {m}\n")
     return "".join(lines).encode("utf-8")
 

@@ -317,6 +317,6 @@ def write_outputs(
     label = f"{metrics['method']} (AUC {metrics['auc']:.2f})"
     plot_pr_curves([(label, scores.precision, scores.recall)], out / "pr.png",
                    title=run_title(metrics))
-    atomic_write_bytes(out / "report.md", render_run_report(metrics).encode())
+    atomic_write_bytes(out / "report.md", render_run_report(metrics).encode("utf-8", "surrogateescape"))
 
 

@@ -194,6 +194,6 @@ def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Pat
               for i, (label, (m, p, r)) in enumerate(zip(labels, runs, strict=True))]
     plot_pr_curves(curves, out / "pr_curves.png", title=title)
     path = out / "report.md"
-    atomic_write_bytes(path, "".join(md).encode())
+    atomic_write_bytes(path, "".join(md).encode("utf-8", "surrogateescape"))
     return path
 

@@ -85,9 +85,9 @@ STORE_DIR = "store"
 def store_id(root: Path, names: Sequence[str], block_size: int) -> str:
     """Identifier of the store of a traverse: hash of its folder, its file names in order and the block size."""
     h = hashlib.sha1()
-    h.update(f"{STORE_SCHEMA}\0{Path(root).resolve()}\0{block_size}\n".encode())
+    h.update(f"{STORE_SCHEMA}\0{Path(root).resolve()}\0{block_size}\n".encode("utf-8", "surrogateescape"))
     for name in names:
-        h.update(name.encode() + b"\n")
+        h.update(name.encode("utf-8", "surrogateescape") + b"\n")
     return h.hexdigest()[:16]
 
 

@@ -910,7 +910,7 @@ def vocabulary_cache_key(
     h = hashlib.sha1()
     for p in sorted(str(p.resolve()) for p in images):
         st = os.stat(p)
-        h.update(f"{p}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        h.update(f"{p}\0{st.st_size}\0{st.st_mtime_ns}\n".encode("utf-8", "surrogateescape"))
     h.update(
         json.dumps(
             {"schema": VOCAB_SCHEMA, "features": feature_key, "n_words": n_words, "seed": seed,
