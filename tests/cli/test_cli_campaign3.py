@@ -155,3 +155,17 @@ def test_pairs_out_refuses_a_name_with_white_space_before_any_frame(cli: Cli, rf
     cli.error(["localize", str(tlm), str(q), "--out", str(out), "--top-k", "2", "--pairs-out",
                str(tmp_path / "pairs.txt"), "--quiet"], "with space.jpg")
     assert not out.exists()  # refused before the first frame: no line written
+
+
+def test_localize_out_dash_writes_the_lines_to_standard_output(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from topoloc.cli.main import app
+
+    tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
+    cli.ok(["localize", str(tlm), str(rf["query"]), "--out", str(tmp_path / "l.jsonl"), "--quiet"])
+    r = CliRunner().invoke(app, ["localize", str(tlm), str(rf["query"]), "--out", "-", "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert r.stdout == (tmp_path / "l.jsonl").read_text()  # only the lines: `| jq` reads them
+    assert json.loads(r.stderr.strip().splitlines()[-1])["out"] == "-"
+    assert not (Path.cwd() / "-").exists()

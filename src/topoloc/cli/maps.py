@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -250,7 +251,9 @@ def localize(
     map_file: Annotated[Path | None, typer.Argument(help="Map file (topoloc map build).")] = None,
     inputs: Annotated[list[Path] | None, typer.Argument(
         help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order.")] = None,
-    out: Annotated[Path | None, typer.Option(help="JSON lines file, one line per frame, written as it goes.")] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="JSON lines file, one line per frame, written as it goes (-: standard output, the summary then on "
+             "standard error).")] = None,
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
     pairs_out: PairsOutOption = None,
     prefetch: Annotated[int, typer.Option(
@@ -317,7 +320,9 @@ def localize(
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
                       prefetch=spec.prefetch)
     # Written line by line: a run that is stopped keeps every frame done so far.
-    with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
+    # ``--out -``: the lines on standard output (the Unix convention, for `| jq`), the summary on standard error.
+    lines_to = _LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)
+    with spec.execution.connect() as executor, lines_to as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)
         pairs: list[tuple[str, str]] = []
         place_images = dict(zip(m.place_ids.tolist(), m.place_image_names(), strict=True)) if spec.pairs_out else {}
@@ -332,7 +337,7 @@ def localize(
 
         write_pairs(spec.pairs_out, pairs)
     typer.echo(json.dumps({"out": str(spec.out), **({"pairs": str(spec.pairs_out)} if spec.pairs_out else {}),
-                           **loc.summary()}))
+                           **loc.summary()}), err=spec.to_stdout)
 
 
 def _sequence_words(length: int, mode: str) -> str:
@@ -346,11 +351,14 @@ class _LineFile:
     the file is cut back to its last whole line, so what is there still reads.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, stream: Any = None) -> None:
         from topoloc.errors import WriteError
 
         self.path = path
         self.size = 0
+        self.stream = stream  # standard output: each line written and flushed, never cut back or closed
+        if stream is not None:
+            return
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
@@ -360,6 +368,13 @@ class _LineFile:
     def write(self, text: str) -> None:
         from topoloc.errors import WriteError
 
+        if self.stream is not None:
+            try:
+                self.stream.write(text)
+                self.stream.flush()
+            except OSError as exc:
+                raise WriteError.of(self.path, exc) from None
+            return
         raw = text.encode("utf-8")
         data = memoryview(raw)
         try:
@@ -377,7 +392,8 @@ class _LineFile:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        os.close(self.fd)
+        if self.stream is None:
+            os.close(self.fd)
 
 
 cache_app = command_group(help="The feature and vocabulary cache (~/.cache/topoloc or TOPOLOC_CACHE_DIR).")
