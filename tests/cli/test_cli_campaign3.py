@@ -169,3 +169,22 @@ def test_localize_out_dash_writes_the_lines_to_standard_output(cli: Cli, rf: dic
     assert r.stdout == (tmp_path / "l.jsonl").read_text()  # only the lines: `| jq` reads them
     assert json.loads(r.stderr.strip().splitlines()[-1])["out"] == "-"
     assert not (Path.cwd() / "-").exists()
+
+
+def test_a_ground_truth_of_the_wrong_shape_is_refused_before_the_fit(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The error came after SeqSLAM's fit had printed its progress (issue #41)."""
+    import numpy as np
+
+    from topoloc.methods.seq_slam import SeqSLAM
+
+    gt = tmp_path / "gt.npy"
+    np.save(gt, np.ones((3, 3), bool))
+
+    def no_fit(*args: object, **kwargs: object) -> None:
+        raise AssertionError("fit ran before the ground truth was checked")
+
+    monkeypatch.setattr(SeqSLAM, "fit", no_fit)
+    err = cli.error(["evaluate", "--map", str(rf["map"]), "--query", str(rf["query"]), "--method", "seqslam",
+                     "--ground-truth", str(gt), "--out", str(tmp_path / "run")], str(gt))
+    assert "shape" in err

@@ -46,7 +46,7 @@ from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
 from topoloc.io.dirs import staged_dir
-from topoloc.methods.base import PlaceRecognizer
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
 from topoloc.resources import CachedResources
@@ -121,6 +121,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     map_xy = None
     place_images: list[str] | None = None
     calibration: dict[str, Any] | None = None
+    early_gt: GroundTruth | None = None
+    early_ids = np.zeros(0, np.int64)
     if spec.map_file is not None:
         method, resources, vocab_info, map_xy, place_images, calibration = _saved_map(
             spec, progress, executor, query_fingerprint=query_fingerprint)
@@ -128,6 +130,10 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         map_labels = [str(spec.map_file)]
     else:
         method = build_method(spec.method, spec.params)
+        # The ground truth (a file of the wrong shape...) is checked before the fit's work (issue #41); the
+        # rows of S are the maps' sorted place ids whatever the method.
+        early_ids = map_place_ids(maps)
+        early_gt = spec.ground_truth.make(early_ids, query, maps=maps, map_xy=map_xy)
         if not method.uses_vocabulary and spec.vocabulary.given:
             log.warning("method %s uses no visual vocabulary: the vocabulary given is ignored", method.name)
         config = spec.features.config()
@@ -144,7 +150,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         fit_s = time.perf_counter() - t0 - float(vocab_info.get("seconds_this_run", 0.0))
         map_labels = [str(m) for m in spec.maps]
     place_ids = method.place_ids_
-    gt = spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy)
+    gt = (early_gt if early_gt is not None and np.array_equal(place_ids, early_ids)
+          else spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy))
     check_overlap(gt, query, place_ids)
     items = method.encode(query, resources=resources)
     top: TopK | None = None
