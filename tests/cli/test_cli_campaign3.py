@@ -188,3 +188,18 @@ def test_a_ground_truth_of_the_wrong_shape_is_refused_before_the_fit(cli: Cli, r
     err = cli.error(["evaluate", "--map", str(rf["map"]), "--query", str(rf["query"]), "--method", "seqslam",
                      "--ground-truth", str(gt), "--out", str(tmp_path / "run")], str(gt))
     assert "shape" in err
+
+
+def test_report_of_a_run_without_recorded_settings_says_unknown(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    """An older version's run showed vocabulary "none", preprocessing "none" and "full size" (issue #41)."""
+    run = tmp_path / "run"
+    cli.ok(["evaluate", "--map", str(rf["map"]), "--query", str(rf["query"]), "--method", "bow", "--vocab",
+            str(rf["vocab"]), "--out", str(run), "--cache-dir", str(rf["cache"]), "--quiet"])
+    metrics = json.loads((run / "metrics.json").read_text())
+    for key in ("features", "vocabulary", "spec"):
+        metrics["run"].pop(key, None)
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    cli.ok(["report", str(run), "--out", str(tmp_path / "rep")])
+    text = "".join(p.read_text() for p in (tmp_path / "rep").glob("*.md"))
+    assert "unknown" in text
+    assert "full size" not in text and "preprocessing none" not in text and "| none |" not in text
