@@ -40,7 +40,7 @@ from topoloc.maps.place_images import PlaceImages
 from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
-from topoloc.methods.shards import build_from_shards
+from topoloc.methods.shard_build import build_from_shards
 from topoloc.progress import ProgressFactory
 from topoloc.ranking import threshold_sweep, top_rows
 from topoloc.resources import CachedResources, InMemoryResources, Resources
@@ -412,7 +412,7 @@ class Map:
                         "descriptor_kind": self.vocabulary.descriptor_kind_,
                         "provenance": self.vocabulary.provenance_,
                         "index": self.vocabulary.index, "ef_search": self.vocabulary.ef_search}
-        from topoloc import __version__
+        from topoloc._version import __version__
 
         for k, tour in enumerate(self.tours):
             pairs = tour.get("place_images")
@@ -547,7 +547,7 @@ class Map:
         The first image of the place in the first tour recording one; ``place-<id>`` for a
         place no tour record names (maps saved before tours recorded ``place_images``).
         """
-        from topoloc.evaluation.pairs import place_names
+        from topoloc.datasets.image_names import place_names
 
         return place_names(self.place_ids, (t.get("place_images") or {} for t in self.tours))
 

@@ -61,7 +61,7 @@ class PlaceImages(Mapping[int, str]):
     @classmethod
     def of_tour(cls, tour: Traverse) -> PlaceImages:
         """The first image of each place of ``tour`` (:func:`topoloc.evaluation.pairs.first_images`)."""
-        from topoloc.evaluation.pairs import first_images
+        from topoloc.datasets.image_names import first_images
 
         return cls.of(first_images(tour))
 

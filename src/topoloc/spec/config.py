@@ -118,7 +118,7 @@ def typed_config(cls: type, data: Mapping[str, Any], *, source: str | Path) -> d
     lists (one string for a list of one), floats as integers too.
     """
     where = f" ({source})"
-    fields = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    fields = {f.name for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     out: dict[str, Any] = {}
     for key, value in data.items():
