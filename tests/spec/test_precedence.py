@@ -148,3 +148,26 @@ def test_a_flag_replaces_the_files_alternative(cls: type, in_file: str, flag: st
     spec = spec_from_cli(cls, _Ctx({key}), {key: SAMPLES[flag][1]}, config=config)  # type: ignore[arg-type]
     alone = spec_from_cli(cls, _Ctx({key}), {key: SAMPLES[flag][1]}, config=plain)  # type: ignore[arg-type]
     assert spec == alone
+
+
+def test_a_map_file_flag_replaces_what_the_map_fixes(tmp_path: Path) -> None:
+    """A file's method, parameters and vocabulary were for building from its maps; --map-file fixes them."""
+    from topoloc.cli.options import FIXES
+
+    config = tmp_path / "run.json"
+    config.write_text(json.dumps({**BASE[EvaluateSpec], "params": {"a": "1"},
+                                  "vocabulary": {"train": ["t"], "words": 100}}))
+    key = "map_file"
+    spec = spec_from_cli(EvaluateSpec, _Ctx({key}), {key: Path("m.tlm")}, config=config)  # type: ignore[arg-type]
+    assert spec.map_file == Path("m.tlm") and spec.maps == () and spec.method == "" and spec.params == {}
+    assert spec.vocabulary.train == () and "method" in FIXES["map_file"]
+
+
+def test_a_bad_value_from_the_file_says_it_came_from_the_file(tmp_path: Path) -> None:
+    from topoloc.errors import ParameterError
+
+    config = tmp_path / "run.json"
+    config.write_text(json.dumps({**BASE[EvaluateSpec], "sequence": {"length": -1}}))
+    with pytest.raises(ParameterError) as e:
+        spec_from_cli(EvaluateSpec, _Ctx(set()), {}, config=config)  # type: ignore[arg-type]
+    assert f"(set in {config})" in str(e.value)

@@ -173,12 +173,21 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
         out = given.get("out")
         if out is not None and Path(config).resolve().is_relative_to(Path(out).resolve()):
             raise ParameterError("out", f"would replace the configuration file it is read from: {config}")
-    return spec_from_dict(cls, merge(base, given), source=config)
+    try:
+        return spec_from_dict(cls, merge(base, given), source=config)
+    except ParameterError as exc:
+        if config is None or any(_dotted(given, p) not in (None, (), [], "") for p in exc.param.split("/")):
+            raise
+        # A value the file set, not a flag: say where it came from.
+        raise ParameterError(exc.param, f"{exc.detail} (set in {config})") from None
 
 
 #: Settings that are alternatives to one another: a flag giving one replaces a file's other (issue #41).
 ALTERNATIVES = (("ground_truth.tolerance", "ground_truth.tolerance_m"), ("vocabulary.file", "vocabulary.train"),
                 ("maps", "map_file"))
+#: A flag giving the first replaces the file's settings it fixes: a saved map fixes the method, its
+#: parameters and its vocabulary (a file's ``method = "bow"`` is for building from ``maps``).
+FIXES = {"map_file": ("method", "params", "vocabulary.file", "vocabulary.train", "vocabulary.words")}
 
 
 def _dotted(nested: Mapping[str, Any], name: str) -> Any:
@@ -194,14 +203,25 @@ def drop_alternatives(base: dict[str, Any], given: Mapping[str, Any]) -> dict[st
     on the command line, the file's others of the group are left out.
     """
     out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in base.items()}
+
+    def given_here(name: str) -> bool:
+        return _dotted(given, name) not in (None, (), [], "", {})
+
+    def drop(name: str) -> None:
+        head, _, tail = name.partition(".")
+        if tail and isinstance(out.get(head), dict):
+            out[head].pop(tail, None)
+        elif not tail:
+            out.pop(head, None)
+
     for group in ALTERNATIVES:
-        if not any(_dotted(given, name) not in (None, (), [], "") for name in group):
-            continue
-        for name in group:
-            if _dotted(given, name) in (None, (), [], ""):
-                head, _, tail = name.partition(".")
-                if tail and isinstance(out.get(head), dict):
-                    out[head].pop(tail, None)
-                elif not tail:
-                    out.pop(head, None)
+        if any(given_here(name) for name in group):
+            for name in group:
+                if not given_here(name):
+                    drop(name)
+    for flag, fixed in FIXES.items():
+        if given_here(flag):
+            for name in fixed:
+                if not given_here(name):
+                    drop(name)
     return out
