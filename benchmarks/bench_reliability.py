@@ -692,6 +692,40 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
     case("configuration", "--map-file over a file's maps: runs, no error about flags not given",
          alternative_flag(["--map-file", str(cooc)], "maps"))
 
+    # -- data loss, hangs, tracebacks: more cases of the same kinds --
+    def config_out_holds_config() -> str:
+        run = work / "dl_runs" / "seq"
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(run), *seq], env)
+        before = (run / "S.npy").read_bytes()
+        rc, _, err, _ = _run(["evaluate", "--config", str(run / "metrics.json"), "--out", str(run.parent),
+                              "--tolerance", "0:3"], env)
+        if not (run / "S.npy").is_file() or (run / "S.npy").read_bytes() != before:
+            return f"exit {rc}: the run holding the configuration was replaced"
+        return _one_line_error(rc, err, "--out would replace the configuration file")
+
+    def fifo_config() -> str:
+        fifo = work / "hang_config.yaml"
+        os.mkfifo(fifo)
+        rc, _, err, _ = _run(["evaluate", "--config", str(fifo)], env, timeout=60)
+        return _one_line_error(rc, err, str(fifo), "not a regular file")
+
+    def dash_outputs() -> str:
+        bad = []
+        for args, needle in ((["localize", str(tlm), str(dusk), "--out", "-", "--top-k", "2", "--pairs-out", "-"],
+                              "standard output"),
+                             (["map", "build", "--map", str(noon), "--out", "-", *seq], "standard output"),
+                             (["evaluate", "--config", str(work / "absent.toml")], "not found")):
+            rc, _, err, _ = _run(args, env)
+            problem = _one_line_error(rc, err, needle)
+            if problem:
+                bad.append(f"{args[0]}: {problem}")
+        return "; ".join(bad)
+
+    case("data loss", "evaluate --config RUN/metrics.json --out RUN's parent: refused, RUN kept",
+         config_out_holds_config)
+    case("hangs", "a named pipe as --config: one line, no wait", fifo_config)
+    case("tracebacks", "'-' as a pairs file or a map, a missing --config: one line each", dash_outputs)
+
     # -- bombs, silent wrong, names: more cases of issue #41 --
     case("bombs", "441-byte YAML alias bomb in params.grid_x: one short line within 10 s (2 GiB limit)",
          config_error("bomb.yaml", ALIAS_BOMB + "params:\n  grid_x: *i\n", "aliases"))

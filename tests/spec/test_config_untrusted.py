@@ -90,3 +90,11 @@ def test_a_runs_metrics_json_never_names_the_outputs(tmp_path: Path) -> None:
     err = _error(["evaluate", "--config", str(run / "metrics.json"), "--out", str(tmp_path / "runs")])
     assert "--out would replace the configuration file" in err
     assert (run / "S.npy").read_bytes() == b"the earlier run"
+
+
+def test_a_named_pipe_as_configuration_is_one_line_without_waiting(tmp_path: Path) -> None:
+    import os
+
+    fifo = tmp_path / "run.yaml"
+    os.mkfifo(fifo)
+    assert "not a regular file" in _error(["evaluate", "--config", str(fifo)])

@@ -297,7 +297,9 @@ def load_config(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     if not path.is_file():
-        raise input_error("configuration file not found", path)
+        # A named pipe or a device is never opened: reading one would wait, or never end.
+        raise input_error("configuration file is not a regular file" if path.exists() else
+                          "configuration file not found", path)
     suffix = path.suffix.lower()
     if suffix not in (".toml", ".yaml", ".yml", ".json"):
         raise input_error("configuration file must be .toml, .yaml, .yml or .json", path)
