@@ -63,14 +63,18 @@ def _stale_thresholds(mp: pytest.MonkeyPatch) -> Iterator[None]:
     yield
 
 
-def _outputs(m: Map, query: Any, frames: list[tuple[str, None, np.ndarray]], *, sequence: int,
+def _outputs(m: Map, query: Any, frames: list[tuple[str, None, np.ndarray]], *, sequence: tuple[int, str],
              prefetch: int) -> tuple[list[str], bytes]:
     lines = []
     if m.recognizer.name != "descriptors":  # it reads descriptors computed elsewhere: it cannot describe a camera frame
-        loc = m.localizer(top_k=4, sequence=sequence, prefetch=prefetch)
+        loc = m.localizer(top_k=4, sequence=sequence[0], sequence_mode=sequence[1], prefetch=prefetch)
         lines = [json.dumps(line) for line in loc.stream(iter(frames))]
-    S = np.ascontiguousarray(m.similarity(query), np.float32)
-    return lines, S.tobytes()
+    S = m.similarity(query)
+    if sequence[0]:  # evaluate --sequence: the search over the whole S, its tiles on n_jobs threads
+        from topoloc.sequence import sequence_similarity
+
+        S = sequence_similarity(S, ds=sequence[0], mode=sequence[1])  # type: ignore[arg-type]
+    return lines, np.ascontiguousarray(S, np.float32).tobytes()
 
 
 @pytest.mark.parametrize("method", available_methods())
@@ -81,7 +85,9 @@ def test_lines_and_S_are_identical_whatever_the_threads_and_the_load(method: str
                   cache_dir=tmp_path / "cache")
     frames = [(f"q{k}.jpg", None, f) for k, f in enumerate(tiny_route["query_frames"])]
     query = tiny_route["query"]
-    sequences = (0,) if m.recognizer.scores_whole_sequence else (0, 3)
+    # Single images, and both sequence searches (constant velocity, Cooc-Map's forward paths).
+    sequences = [(0, "constant")] if m.recognizer.scores_whole_sequence else [
+        (0, "constant"), (3, "constant"), (3, "acceleration")]
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(os, "cpu_count", lambda: 1)
         reference = {s: _outputs(m, query, frames, sequence=s, prefetch=0) for s in sequences}
