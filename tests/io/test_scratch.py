@@ -189,8 +189,14 @@ def test_a_planted_scratch_leftover_link_is_never_followed(tmp_path: Path) -> No
     name = f".topoloc-scratch-4194999-{writer_tag().split('-')[1]}-abcdefgh"  # a writer that is gone
     (folder / name).symlink_to(victim)
     (folder / (name[:-1] + "x")).mkdir()  # a real leftover of this user is still removed
+    others = folder / (name[:-1] + "o")  # another user's leftover: theirs to remove, not ours
+    others.mkdir()
+    (others / "their.raw").write_text("theirs")
+    if os.geteuid() == 0:
+        os.chown(others, 65534, 65534)
     with spill_to(folder):
         pass
     assert (victim / "keep.txt").read_text() == "mine"
     assert os.path.islink(folder / name)
     assert not (folder / (name[:-1] + "x")).exists()
+    assert (others / "their.raw").is_file() or os.geteuid() != 0
