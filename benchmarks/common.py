@@ -20,6 +20,9 @@ from topoloc.evaluation.report import build_report, run_title
 # measuring SIFT unless TOPOLOC_FEATURES says otherwise (e.g. TOPOLOC_FEATURES=xfeat to redo a page with XFeat).
 # benchmarks.bench_learned_features names its features on every run and is not affected.
 os.environ.setdefault("TOPOLOC_FEATURES", "sift")
+# Likewise the pages written before verification (issue #40) measure unverified answers unless TOPOLOC_VERIFY=1;
+# benchmarks.bench_verification says --verify or --no-verify on every run.
+os.environ.setdefault("TOPOLOC_VERIFY", "0")
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TOPOLOC_DATA", REPO.parent / "shared" / "data")).resolve()

@@ -20,6 +20,9 @@ if TYPE_CHECKING:
 # the learned extra is installed) are pinned to SIFT for every test, subprocesses included. The learned default is
 # tested on its own (tests/spec/test_feature_default.py), XFeat explicitly (tests/features/test_learned.py).
 os.environ["TOPOLOC_FEATURES"] = "sift"
+# Likewise their expected scores are unverified ones: verification (on by default, issue 40) is off unless a test
+# asks for it (tests/verification/, and the tests that unset TOPOLOC_VERIFY to check the default).
+os.environ["TOPOLOC_VERIFY"] = "0"
 
 
 @pytest.fixture(scope="session")
@@ -47,6 +50,24 @@ def tiny_route(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     for trav in (noon, dusk, morning):  # global descriptors "computed elsewhere", for --method descriptors
         np.save(trav.root / "descriptors.npy", np.stack([thumbnail_descriptor(trav.read(i)) for i in range(len(trav))]))
     return {"map": noon, "query": dusk, "training": morning, "query_frames": frames, "vocabulary": voc}
+
+
+@pytest.fixture(scope="session")
+def tiny_route_map(tiny_route: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A bag-of-words map file of the tiny route's noon tour (its 300-word vocabulary), built once per session."""
+    from typer.testing import CliRunner
+
+    from topoloc.cli.main import app
+
+    root = tmp_path_factory.mktemp("tiny_route_map")
+    voc = root / "vocab.tlv"
+    tiny_route["vocabulary"].save(voc)
+    map_file = root / "map.tlm"
+    r = CliRunner().invoke(app, ["map", "build", "--method", "bow", "--map", str(tiny_route["map"].root),
+                                 "--vocab", str(voc), "--out", str(map_file), "--cache-dir", str(root / "cache"),
+                                 "-q"])
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    return map_file
 
 
 @pytest.fixture(scope="session")

@@ -62,7 +62,8 @@ def test_every_command_takes_q_and_shows_flags_as_flags(command: str) -> None:
     for p in flags:
         long = next(o for o in p.opts if o.startswith("--"))
         # "  -q, --quiet   No progress bars." : the flag, then its help, with no value between.
-        assert re.search(rf"^\s+(-\w, )?{re.escape(long)}(\s{{2,}}|$)", r.output, re.M), (long, r.output)
+        # An on/off pair shows as "--verify / --no-verify".
+        assert re.search(rf"^\s+(-\w, )?{re.escape(long)}( / --[\w-]+)?(\s{{2,}}|$)", r.output, re.M), (long, r.output)
 
 
 def test_q_is_accepted_where_there_is_nothing_to_show(tmp_path: Path) -> None:

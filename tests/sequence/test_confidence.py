@@ -42,14 +42,30 @@ def test_both_modes_give_the_margin_and_keep_each_column_order(mode: str) -> Non
     S = _route(np.random.default_rng(0))
     raw = sequence_similarity(S, ds=5, mode=mode, confidence="raw")  # type: ignore[arg-type]
     conf = sequence_similarity(S, ds=5, mode=mode)  # type: ignore[arg-type]
-    shift = conf - raw
+    # Queries 5.. have their whole window: a shift per column.
+    shift = (conf - raw)[:, 5:]
     np.testing.assert_allclose(shift, np.broadcast_to(shift[:1], shift.shape), atol=1e-5)  # per column
     assert np.array_equal(conf.argmax(axis=0), raw.argmax(axis=0))
     assert (conf.max(axis=0) >= 0).all()
-    # The default equals the margin of the raw scores over the trajectory's stretch (5 frames at up to 1.2).
-    np.testing.assert_allclose(conf, stretch_margin(raw, stretch=6), atol=1e-5)
+    # The default equals the margin of the raw scores over the trajectory's stretch (5 frames at up to 1.2),
+    # weighted by the share of the window each query has: k / 6 for the k frames up to query k - 1.
+    weight = (np.minimum(np.arange(S.shape[1]), 5) + 1) / 6.0
+    np.testing.assert_allclose(conf, stretch_margin(raw, stretch=6) * weight, atol=1e-5)
     with pytest.raises(ValueError, match="confidence"):
         sequence_similarity(S, ds=5, mode=mode, confidence="ratio")  # type: ignore[arg-type]
+
+
+def test_a_short_window_is_not_confident() -> None:
+    """Issue 40: the first frame of a stream was scored as if it had ten frames behind it."""
+    S = _route(np.random.default_rng(1))
+    S[:, 0] = np.random.default_rng(2).normal(0.0, 0.6, S.shape[0])
+    S[3, 0] += 4.0  # one lone frame that points far from the route with a large single-image margin
+    conf = sequence_similarity(S, ds=10)
+    unweighted = sequence_similarity(S, ds=10, confidence="raw")
+    full = conf[:, 10:].max(axis=0)
+    # Alone, its margin would top the list; as a 1/11 share of the window it ranks below every full window.
+    assert stretch_margin(unweighted, stretch=12)[:, 0].max() > np.median(full)
+    assert conf[:, 0].max() < full.min()
 
 
 @pytest.mark.parametrize("mode", ["constant", "acceleration"])

@@ -35,6 +35,7 @@ from topoloc.cli.options import (
     ToleranceMOption,
     ToleranceOption,
     TopicOption,
+    VerifyOption,
     VocabOption,
     VocabTrainOption,
     VocabWordsOption,
@@ -68,6 +69,7 @@ def evaluate(
     ] = None,
     sequence: SequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
+    verify: VerifyOption = None,
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
     ] = "1,5,10",
@@ -530,6 +532,7 @@ def _print_bench(res: dict[str, Any], as_json: bool) -> None:
 # The saved-map commands live in their own module; importing it registers them on `app`
 # (it imports topoloc.cli.app, not this module, so there is no import cycle).
 from topoloc.cli import maps as _maps  # noqa: E402, F401
+from topoloc.cli import ros as _ros  # noqa: E402, F401
 
 
 def main() -> None:

@@ -11,7 +11,7 @@ import sys
 import time
 from collections import deque
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -31,12 +31,14 @@ from topoloc.cli.options import (
     PairsOutOption,
     ParamOption,
     PoseTopicOption,
+    PrefetchOption,
     PreprocessOption,
     QuietOption,
     SchedulerOption,
     SchedulerTimeoutOption,
     SequenceModeOption,
     TopicOption,
+    VerifyOption,
     VocabOption,
     VocabTrainOption,
     VocabWordsOption,
@@ -46,7 +48,12 @@ from topoloc.cli.options import (
 from topoloc.cli.progress import rich_progress
 from topoloc.errors import TopolocError
 from topoloc.io.scratch import spill_to
+from topoloc.maps.acceptance import warn_before_localizing
 from topoloc.spec.parts import STREAM_SEQUENCE_MODE, stream_sequence_for
+
+if TYPE_CHECKING:
+    from topoloc.maps import Map
+    from topoloc.spec import LocalizeSpec
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +84,7 @@ def map_build(
     shards: Annotated[int, typer.Option(
         help="Build the map as this many partial models of place ranges, one task each, merged into the "
              "same map as a one-piece build (docs/map_shards.md).")] = 1,
+    verify: VerifyOption = None,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
     config: ConfigOption = None,
@@ -216,6 +224,7 @@ def map_calibrate(
     pose_topic: PoseTopicOption = None,
     sequence: CalibrateSequenceOption = None,
     sequence_mode: SequenceModeOption = STREAM_SEQUENCE_MODE,
+    verify: VerifyOption = None,
 ) -> None:
     """Choose the score threshold that reaches --precision on a labelled tour and store it in the map.
 
@@ -240,7 +249,7 @@ def map_calibrate(
                 seq = SequenceSpec(length=seq.length, mode=sequence_mode)
         with rich_progress(not quiet) as progress:
             cal = m.calibrate_on(q, ground_truth=gt, precision=precision, label=str(query), cache_dir=cache_dir,
-                                 progress=progress, sequence=seq)
+                                 progress=progress, sequence=seq, verify=verify)
     typer.echo(json.dumps(cal))
 
 
@@ -249,18 +258,19 @@ def map_calibrate(
 def localize(
     ctx: typer.Context,
     map_file: Annotated[Path | None, typer.Argument(help="Map file (topoloc map build).")] = None,
-    inputs: Annotated[list[Path] | None, typer.Argument(
-        help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order.")] = None,
+    inputs: Annotated[list[str] | None, typer.Argument(
+        help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order; or one "
+             "camera (/dev/video0 or its index) or network stream (rtsp://, http:// MJPEG), read live: the "
+             "newest frame is matched, the ones that arrive meanwhile are skipped (counted), Ctrl-C stops.")] = None,
     out: Annotated[Path | None, typer.Option(
         help="JSON lines file, one line per frame, written as it goes (-: standard output, the summary then on "
              "standard error).")] = None,
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
     pairs_out: PairsOutOption = None,
-    prefetch: Annotated[int, typer.Option(
-        help="Frames read and described ahead while one is matched, on one thread per core (-1: two per "
-             "core; 0: one frame at a time); the lines are the same.")] = -1,
+    prefetch: PrefetchOption = -1,
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
+    verify: VerifyOption = None,
     quiet: QuietOption = False,
     topic: TopicOption = None,
     every_s: EverySOption = None,
@@ -279,7 +289,7 @@ def localize(
     from topoloc.maps import Map
     from topoloc.spec import LocalizeSpec
 
-    values["images"] = values.pop("inputs")
+    values["images"], values["stream"] = _split_inputs(values.pop("inputs") or [])
     single = values["sequence"] == 0  # --sequence 0: single images, whatever the map was calibrated with
     if single:
         values["sequence"] = None
@@ -289,6 +299,9 @@ def localize(
     if not single and not spec.sequence.length:  # not given: match as the threshold was calibrated
         spec = dataclasses.replace(spec, sequence=m.calibrated_sequence)
     assert spec.out is not None
+    if spec.stream is not None:
+        _localize_live(spec, m)
+        return
     names: deque[str] = deque()  # the pairs name of each frame read and not yet written (lines keep its order)
     check_name = None
     if spec.pairs_out is not None:
@@ -301,24 +314,11 @@ def localize(
                                        check_name=check_name)
     # The map file is memory-mapped while the lines are written: truncating it would kill the run.
     spec.check_outputs()
-    if m.threshold is None:
-        # For loop closure an accepted false match breaks the map: say so before the first frame
-        # (and after the inputs are checked, so that an input error stays the only line).
-        log.warning("%s is not calibrated: every frame is marked accepted; run `topoloc map calibrate %s "
-                    "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
-                    spec.map_file, spec.map_file)
-    elif m.calibration_stale:
-        assert m.calibration is not None
-        log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
-                    "`topoloc map calibrate %s --query FOLDER` again", spec.map_file,
-                    ", ".join(m.calibration.get("tours_added_since", [])), spec.map_file)
-    if m.threshold is not None and spec.sequence != m.calibrated_sequence:
-        cal = m.calibrated_sequence
-        log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
-                    "hold; run `topoloc map calibrate` with the same --sequence", spec.map_file,
-                    _sequence_words(cal.length, cal.mode), _sequence_words(spec.sequence.length, spec.sequence.mode))
+    # After the inputs are checked, so that an input error stays the only line.
+    warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
-                      prefetch=spec.prefetch)
+                      prefetch=spec.prefetch, verify=spec.verification.enabled,
+                      candidates=spec.verification.candidates)
     # Written line by line: a run that is stopped keeps every frame done so far.
     # ``--out -``: the lines on standard output (the Unix convention, for `| jq`), the summary on standard error.
     lines_to = _LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)
@@ -340,8 +340,67 @@ def localize(
                            **loc.summary()}), err=spec.to_stdout)
 
 
-def _sequence_words(length: int, mode: str) -> str:
-    return f"sequences of {length + 1} frames ({mode})" if length else "single images"
+def _split_inputs(inputs: list[str]) -> tuple[list[Path], str | None]:
+    """The command line's inputs as files, folders and recordings, or the one camera or stream among them."""
+    from topoloc.datasets.sources.live import is_live_source
+
+    live = [s for s in inputs if is_live_source(s)]
+    if not live:
+        return [Path(s) for s in inputs], None
+    if len(inputs) > 1:
+        raise TopolocError(f"a camera or stream is read alone, give no other input: {live[0]}")
+    return [], live[0]
+
+
+def _localize_live(spec: LocalizeSpec, m: Map) -> None:
+    """``localize`` of a camera or network stream: the newest frame each time, until Ctrl-C or the stream ends.
+
+    The lines are those of a recording, ``time`` the wall-clock time the frame
+    was captured (Unix seconds); the last line adds what the stream gave:
+    frames read, skipped (arrived while others were matched) and how it ended.
+    Ctrl-C (SIGINT) or SIGTERM stops the reading: the frames already read are
+    answered, then the summary; a second one stops at once.
+    """
+    import signal
+
+    from topoloc.datasets.sources.live import LiveSource
+
+    assert spec.stream is not None and spec.out is not None and spec.map_file is not None
+    given = [flag for flag, v in (("--topic", spec.inputs.topic), ("--every-s", spec.inputs.every_s),
+                                  ("--every-m", spec.inputs.every_m), ("--pose-topic", spec.inputs.pose_topic),
+                                  ("--pairs-out", spec.pairs_out), ("--scheduler", spec.execution.scheduler))
+             if v is not None]
+    if given:
+        raise TopolocError(f"{'/'.join(given)} does not apply to a camera or stream: {spec.stream}")
+    spec.check_outputs()
+    source = LiveSource(spec.stream)
+    warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
+    loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
+                      prefetch=spec.prefetch, verify=spec.verification.enabled,
+                      candidates=spec.verification.candidates)
+    stopped_by: list[str] = []
+
+    def stop(signum: int, frame: object) -> None:
+        if stopped_by:
+            raise KeyboardInterrupt  # the second one: at once
+        stopped_by.append(signal.Signals(signum).name)
+        source.stop()
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with (_LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)) as fh:
+            for line in loc.stream(source.frames()):
+                fh.write(json.dumps(line) + "\n")
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        source.close()
+    if not stopped_by:
+        # One line naming the stream: whether it was over or broke off, OpenCV cannot tell.
+        log.warning("the stream ended after %d frames: %s", source.frames_read, source.name)
+    typer.echo(json.dumps({"out": str(spec.out), "stream": source.name, "ended": stopped_by[0] if stopped_by
+                           else "stream", "frames_read": source.frames_read, "frames_skipped": source.buffer.skipped,
+                           **loc.summary()}), err=spec.to_stdout)
 
 
 class _LineFile:

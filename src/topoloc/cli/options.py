@@ -66,8 +66,16 @@ CalibrateSequenceOption = Annotated[int | None, typer.Option(
     "--sequence", help="Calibrate the confidence of sequence matching over each frame and the N before it, as "
                        "`localize` then matches by default; 0 = single images. Default: 10 where the tour "
                        "moves along the route (half its steps advance 1-3 places), else 0 (docs/protocol.md).")]
+VerifyOption = Annotated[bool | None, typer.Option(
+    "--verify/--no-verify", help="Check each answer's candidates by local matches and epipolar geometry and score "
+                                 "it by its inliers (docs/protocol.md, Verification). Default: wherever the map's "
+                                 "images can be read (a saved map: as it was calibrated or built; maps saved before "
+                                 "verification existed are not verified unless asked).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
+PrefetchOption = Annotated[int, typer.Option(
+    help="Frames read and described ahead while one is matched, on one thread per core (-1: two per "
+         "core; 0: one frame at a time); the lines are the same.")]
 PairsOutOption = Annotated[Path | None, typer.Option(
     "--pairs-out", help="Also write the retrieval pairs of the top K places, 'query_image map_image' a line, as "
                         "hloc and COLMAP read them (a place: its first map image; docs/protocol.md).")]

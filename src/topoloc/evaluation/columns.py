@@ -26,6 +26,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("preprocess", "preprocessing"),
     ("features", "features"),
     ("sequence", "sequence"),
+    ("verification", "verification"),
 )
 
 
@@ -36,7 +37,7 @@ def _short(path: str) -> str:
 
 def _params_text(m: dict[str, Any]) -> str:
     """The method with the parameters that differ from its defaults (all of them for an unknown method)."""
-    params = {k: v for k, v in m.get("params", {}).items() if k != "sequence"}
+    params = {k: v for k, v in m.get("params", {}).items() if k not in ("sequence", "verify")}
     try:
         cls = get_method(str(m.get("method")))
         defaults = keyword_defaults(cls)
@@ -120,6 +121,8 @@ def run_columns(m: dict[str, Any]) -> dict[str, str]:
         "preprocess": str(feats.get("preprocess", UNKNOWN)) if local else NOT_USED,
         "features": _features_text(feats) if local else NOT_USED,
         "sequence": str(seq) if seq > 1 else "off",
+        # Runs written before verification existed were not verified.
+        "verification": "on" if m.get("params", {}).get("verify") else "off",
     }
 
 
@@ -149,7 +152,8 @@ def shown_columns(runs: list[dict[str, Any]]) -> list[tuple[str, str]]:
 
     The feature and preprocessing columns are left out when no run's method
     reads local features (a table of SeqSLAM runs), the vocabulary column when
-    no run used a vocabulary; in a mixed table the rows of the other methods
+    no run used a vocabulary, the verification column when no run was
+    verified; in a mixed table the rows of the other methods
     show :data:`NOT_USED` there ("none" for the vocabulary).
     """
     hidden: set[str] = set()
@@ -157,6 +161,8 @@ def shown_columns(runs: list[dict[str, Any]]) -> list[tuple[str, str]]:
         hidden |= {"features", "preprocess"}
     if not any(uses_vocabulary(m) for m in runs):
         hidden.add("vocabulary")
+    if not any(m.get("params", {}).get("verify") for m in runs):
+        hidden.add("verification")
     return [(k, h) for k, h in COLUMNS if k not in hidden]
 
 

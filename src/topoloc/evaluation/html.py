@@ -12,7 +12,10 @@ once).  It shows
   similarity matrix with the ground truth and the accepted best matches drawn
   over it; and the list of queries (filter: correct / wrong / rejected /
   no correct place) with the query, its best map image and its correct map
-  image as thumbnails, the score and the rank of the correct place.
+  image as thumbnails, the score and the rank of the correct place; for a
+  verified run (``verification.npz``), whether each answer was verified, with
+  its inliers, and its inlier matches drawn between the query and the map image
+  they were found in on demand (a button; at most :data:`MAX_MATCH_LINES` lines).
 
 A query's best match, correctness and the PR curve follow the metrics of
 ``docs/protocol.md`` exactly (soft-only cells are masked; a query is accepted
@@ -54,6 +57,36 @@ MATRIX_MAX_SIDE = 1000
 MAX_GT_CELLS = 200_000
 #: At most this many points of each PR curve are embedded.
 MAX_PR_POINTS = 600
+#: At most this many inlier matches of each verified answer are embedded (evenly chosen).
+MAX_MATCH_LINES = 60
+
+
+def _verification(run_dir: Path, n_queries: int, thumbs: _Thumbs) -> list[dict[str, Any]] | None:
+    """Per query: verified, inliers and the inlier matches (coordinates as fractions of each image's size)."""
+    path = run_dir / "verification.npz"
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            verified, inliers = z["verified"], z["inliers"]
+            xy, offsets = z["match_xy"], z["match_offsets"]
+            names, shapes = z["match_image"], z["match_shapes"]
+    except (ValueError, OSError, KeyError) as exc:
+        raise TopolocError(f"corrupt verification.npz ({exc.__class__.__name__}): {run_dir}") from None
+    if len(verified) != n_queries or len(offsets) != n_queries + 1:
+        raise TopolocError(f"verification.npz does not match S.npy's {n_queries} queries: {run_dir}")
+    out = []
+    for j in range(n_queries):
+        entry: dict[str, Any] = {"verified": bool(verified[j]), "inliers": int(inliers[j])}
+        pairs = xy[offsets[j]:offsets[j + 1]]
+        hq, wq, hm, wm = (int(x) for x in shapes[j])
+        if len(pairs) and min(hq, wq, hm, wm) > 0 and str(names[j]):
+            pick = np.unique(np.linspace(0, len(pairs) - 1, min(len(pairs), MAX_MATCH_LINES)).round().astype(int))
+            rel = pairs[pick] / np.array([wq, hq, wm, hm], np.float32)
+            entry["match"] = {"img": thumbs.key(Path(str(names[j]))), "file": Path(str(names[j])).name,
+                              "xy": np.round(rel, 4).tolist(), "aspect": [hq / wq, hm / wm]}
+        out.append(entry)
+    return out
 
 
 def _asset(name: str) -> str:
@@ -271,6 +304,7 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
         return {"place": pid, "file": found[0].name if found else None, "tour": found[1] if found else None,
                 "img": thumbs.key(found[0]) if found else None}
 
+    checks = _verification(run_dir, S.shape[1], thumbs)
     items = []
     for j in range(S.shape[1]):
         q: dict[str, Any] = {"place": int(queries[j]), "file": None, "img": None, "time": None}
@@ -281,7 +315,7 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
                 q["time"] = str(query_trav.times[j])
         items.append({
             "q": q, "best": place_entry(int(idx[j])), "correct": place_entry(int(correct_row[j])),
-            "rank": int(rank[j]),
+            "rank": int(rank[j]), **({"check": checks[j]} if checks is not None else {}),
         })
     n_cells = int(hard.sum())
     rows, qcols = np.nonzero(hard)

@@ -51,7 +51,9 @@ from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
 from topoloc.resources import CachedResources
 from topoloc.spec import EvaluateSpec, FeatureSpec, parse_recall_at, spec_from_flat, spec_to_dict
-from topoloc.spec.setup import build_method, make_resources
+from topoloc.spec.parts import verify_from_env
+from topoloc.spec.setup import build_method, build_verifier, make_resources
+from topoloc.verification import VerifiedBlock, Verifier
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +125,9 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     calibration: dict[str, Any] | None = None
     early_gt: GroundTruth | None = None
     early_ids = np.zeros(0, np.int64)
+    tour_records: list[dict[str, Any]] = []
     if spec.map_file is not None:
-        method, resources, vocab_info, map_xy, place_images, calibration = _saved_map(
+        method, resources, vocab_info, map_xy, place_images, calibration, tour_records = _saved_map(
             spec, progress, executor, query_fingerprint=query_fingerprint)
         max_side, fit_s = resources.extractor.config.max_side, 0.0
         map_labels = [str(spec.map_file)]
@@ -153,10 +156,12 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     gt = (early_gt if early_gt is not None and np.array_equal(place_ids, early_ids)
           else spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy))
     check_overlap(gt, query, place_ids)
+    verifier = _verifier(spec, method, maps, tour_records, resources)
     items = method.encode(query, resources=resources)
     top: TopK | None = None
     S: np.ndarray | None = None
-    if spec.top_k and not seq.length:
+    ver: VerifiedBlock | None = None
+    if spec.top_k and not seq.length and verifier is None:
         top, ms_each = score_top_k(method, items, spec.top_k, prog)
         del items
     else:
@@ -165,6 +170,11 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
             S, seq_ms = apply_sequence(S, seq.length, seq.mode)
             ms_each = ms_each + seq_ms
         S = np.asarray(S, dtype=np.float32)
+        if verifier is not None:
+            with progress_stage(prog, f"verify {S.shape[1]} queries"):
+                ver = verifier.verify(S, resources.features(query, timed=False))
+            S = ver.S
+            ms_each = ms_each + ver.ms
         if spec.top_k:  # sequence matching needs neighbouring columns: the dense S is formed first
             top = TopK(*top_k_of(S, spec.top_k), n_places=S.shape[0])
             S = None
@@ -186,7 +196,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         "n_queries": int(shape[1]),
         **({"top_k": top.k} if top is not None else {}),
         "params": {**method.get_params(), "sequence": seq.length,
-                   **({"sequence_mode": seq.mode} if seq.length else {})},
+                   **({"sequence_mode": seq.mode} if seq.length else {}), "verify": ver is not None},
+        **({"verification": verification_record(ver, verifier)} if ver is not None and verifier is not None else {}),
         "run": {
             "map": map_labels,
             "query": str(spec.query),
@@ -212,6 +223,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     # All files of the run appear together, replacing an earlier run's whole (never a mixture).
     with staged_dir(out) as stage:
         write_outputs(stage, S, place_ids, query.places, metrics, scores, None if top is not None else gt, top=top)
+        if ver is not None and verifier is not None:
+            atomic_write_bytes(stage / "verification.npz", _npz(**verification_arrays(ver, verifier)))
     if spec.pairs_out is not None:
         assert top is not None  # EvaluateSpec refuses pairs_out without top_k
         if place_images is None:
@@ -222,6 +235,69 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
 
         build_html_report([out], Path(spec.html), progress=prog)
     return metrics
+
+
+def _npz(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, allow_pickle=False, **arrays)
+    return buf.getvalue()
+
+
+def verification_arrays(ver: VerifiedBlock, verifier: Verifier) -> dict[str, np.ndarray]:
+    """``verification.npz``: per query whether it verified, its inliers, the candidates' rows and inliers, the
+    stage's ms, and the inlier matches of each verified answer (``match_xy`` rows ``match_offsets[j]`` ..
+    ``match_offsets[j + 1]``: query x, y, map x, y in pixels) with the map image they are in (``match_image``)
+    and both images' (height, width) (``match_shapes``)."""
+    pairs = [m if m is not None else np.zeros((0, 4), np.float32) for m in ver.matches]
+    offsets = np.zeros(len(pairs) + 1, np.int64)
+    offsets[1:] = np.cumsum([len(p) for p in pairs])
+    best = ver.S.argmax(axis=0)
+    names = [verifier.match_image_name(int(best[j]), ver.match_images[j]) for j in range(len(pairs))]
+    return {"verified": ver.verified, "inliers": ver.inliers, "candidates": ver.candidates,
+            "candidate_inliers": ver.candidate_inliers, "ms": ver.ms,
+            "match_xy": np.concatenate(pairs) if pairs else np.zeros((0, 4), np.float32),
+            "match_offsets": offsets, "match_image": np.array(names, dtype=str), "match_shapes": ver.match_shapes}
+
+
+def verification_record(ver: VerifiedBlock, verifier: Verifier) -> dict[str, Any]:
+    """What ``metrics.json`` says of the verification stage: its settings, how many answers passed, its time."""
+    return {"candidates": verifier.candidates, "max_iters": verifier.max_iters,
+            "verified_fraction": float(ver.verified.mean()) if len(ver.verified) else 0.0,
+            "ms_per_query": float(np.median(ver.ms)) if len(ver.ms) else 0.0,
+            "ms_per_query_p95": float(np.percentile(ver.ms, 95)) if len(ver.ms) else 0.0}
+
+
+def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traverse],
+              tour_records: Sequence[dict[str, Any]], resources: CachedResources) -> Verifier | None:
+    """The run's verification stage; a saved map's tours are read again from their folders (their features cached).
+
+    Not given (``None``), it is left out, with one line, where it cannot run: a run of the K best places
+    only (``top_k``: verification needs each query's whole column), or a saved map whose tours are gone;
+    and for a method that checks geometry itself (``verifies_geometry``).
+    """
+    ask = spec.verification.enabled if spec.verification.enabled is not None else verify_from_env()
+    if ask is False:
+        return None
+    if ask is None and method.tags.verifies_geometry:
+        log.info("%s checks the geometry of its candidates itself: answers are not verified again (--verify "
+                 "does)", method.name)
+        return None
+    if spec.top_k and not spec.sequence.length and ask is None:
+        log.info("top_k: answers are not verified (verification needs each query's whole column; --verify forms it)")
+        return None
+    what = f"the map {spec.map_file}" if spec.map_file is not None else "the map"
+    tours: Sequence[Traverse] = maps
+    if spec.map_file is not None:
+        from topoloc.maps.map import reload_tour
+
+        try:
+            tours = [reload_tour(rec, purpose="to verify answers") for rec in tour_records]
+        except TopolocError as exc:
+            if ask:
+                raise
+            log.warning("%s; answers are not verified", exc)
+            return None
+    return build_verifier(spec.verification, method.place_ids_, tours, resources, what=what)
 
 
 def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> None:
@@ -265,8 +341,9 @@ def _warn_if_trained_on_query(spec: EvaluateSpec, query_fingerprint: str, maps: 
 def _saved_map(
     spec: EvaluateSpec, progress: ProgressFactory | None, executor: Executor | None = None, *,
     query_fingerprint: str = "",
-) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray, list[str], dict[str, Any] | None]:
-    """The recogniser, resources, vocabulary record, place positions, place images and calibration of ``spec.map_file``.
+) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray, list[str], dict[str, Any] | None,
+           list[dict[str, Any]]]:
+    """The recogniser, resources, vocabulary record, place positions, place images, calibration and tours of a map file.
 
     A saved map fixes the method, its parameters, the features and the
     vocabulary: options that would change them are refused, not ignored.
@@ -294,7 +371,7 @@ def _saved_map(
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
         voc.update({"file": f"embedded in {spec.map_file}", **saved.vocabulary.provenance_})
-    return rec, res, voc, saved.place_xy, saved.place_image_names(), saved.calibration
+    return rec, res, voc, saved.place_xy, saved.place_image_names(), saved.calibration, list(saved.tours)
 
 
 def write_outputs(

@@ -42,6 +42,7 @@ def _method_label(m: dict[str, Any]) -> str:
     """Method name with the parameters that differ from its defaults, e.g. ``seqslam (search=acceleration)``."""
     params = dict(m.get("params", {}))
     seq = params.pop("sequence", 0)
+    verified = params.pop("verify", False)
     tags = []
     try:
         cls = get_method(m["method"])
@@ -59,6 +60,8 @@ def _method_label(m: dict[str, Any]) -> str:
     mode = params.pop("sequence_mode", "constant")
     if seq:
         tags.append(f"seq {seq}" + (f" {mode}" if mode != "constant" else ""))
+    if verified:
+        tags.append("verified")
     return m["method"] + (f" ({', '.join(tags)})" if tags else "")
 
 
@@ -135,6 +138,13 @@ def render_run_report(m: dict[str, Any]) -> str:
            if "vocabulary_seconds" in run else "")
         + f"; ms/query median {m['ms_per_query']:.2f}, "
         f"95th percentile {run['ms_per_query_p95']:.2f} (feature extraction excluded)\n",
+    ]
+    ver = m.get("verification")
+    if isinstance(ver, dict):
+        lines.append(f"- verification: {ver['verified_fraction']:.0%} of the answers verified (the best places of "
+                     f"{ver['candidates']} distinct peaks per query checked); its ms/query median "
+                     f"{ver['ms_per_query']:.2f}, 95th percentile {ver['ms_per_query_p95']:.2f}, included above\n")
+    lines += [
         f"- machine: {run['machine']}; date {run['date']}\n",
     ]
     return "".join(lines)

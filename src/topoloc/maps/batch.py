@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
@@ -28,6 +28,8 @@ from topoloc.cluster import Executor
 from topoloc.errors import TopolocError
 from topoloc.maps.frame_resources import FrameResources, describe
 
+if TYPE_CHECKING:
+    from topoloc.features import FeatureSet
 
 # What this module needs of a map and its localiser, as protocols: the map module calls this one, so this one
 # does not import it, not even for annotations (an import circle, issue #41); the map class travels with each
@@ -60,13 +62,17 @@ class Localizer(Protocol):
     @property
     def map(self) -> Map: ...
 
+    @property
+    def verifier(self) -> Any: ...
+
     workers: int
     ms_overlap: float
 
     def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]: ...
 
     def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
-                    ms_features: float = 0.0, ms_matching: float = 0.0) -> dict[str, Any]: ...
+                    ms_features: float = 0.0, ms_matching: float = 0.0,
+                    features: FeatureSet | None = None) -> dict[str, Any]: ...
 
 BATCH_FRAMES = 16
 """Frames per task: SIFT describes 15.5 frames of 640 x 480 per second and thread
@@ -78,7 +84,8 @@ and the frames held in memory at once stay at ``2 x worker threads x 16``."""
 class FrameBatch:
     """Frames to score on a worker: the map file (with its size and mtime, so a rewritten map is refused).
 
-    ``map_type`` is the class whose ``load`` opens the file (:class:`~topoloc.maps.map.Map`).
+    ``map_type`` is the class whose ``load`` opens the file (:class:`~topoloc.maps.map.Map`);
+    ``keep_features``: also send back each frame's local features (the localiser verifies).
     """
 
     map_file: str
@@ -86,6 +93,7 @@ class FrameBatch:
     first: int
     frames: tuple[np.ndarray, ...]
     map_type: MapType
+    keep_features: bool = False
 
 
 _maps: dict[tuple[str, tuple[int, int]], Map] = {}
@@ -108,8 +116,8 @@ def _worker_map(path: str, stamp: tuple[int, int], map_type: MapType) -> Map:
     return m
 
 
-def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float]]:
-    """``(score column of shape (n_places,), ms features, ms matching)`` of each frame of a batch.
+def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float, FeatureSet | None]]:
+    """``(score column of shape (n_places,), ms features, ms matching, features)`` of each frame of a batch.
 
     The same computation as :meth:`Localizer.step` before its sequence
     search: features of the frame in memory, ``encode``, ``score``.
@@ -120,10 +128,10 @@ def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float]]:
     out = []
     for k, image in enumerate(batch.frames):
         t0 = time.perf_counter()
-        items, _, _ = describe(rec, res, image, f"frame{batch.first + k}")
+        items, _, _, feats = describe(rec, res, image, f"frame{batch.first + k}", keep_features=batch.keep_features)
         t1 = time.perf_counter()
         col = np.asarray(rec.score(items)[:, 0])
-        out.append((col, 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1)))
+        out.append((col, 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1), feats))
     return out
 
 
@@ -171,15 +179,16 @@ def localize_on(executor: Executor, loc: Localizer,
         if not chunk:
             return
         map_type = cast(MapType, type(m))
-        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]), map_type)
+        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]), map_type,
+                              keep_features=loc.verifier is not None)
                    for a in range(0, len(chunk), batch_frames)]
         first += len(chunk)
         scored = [c for part in executor.map(score_frames, batches) for c in part]
         # The batches ran side by side: the wall clock saw only 1/parallel of their summed times.
         parallel = min(threads, len(batches))
-        loc.ms_overlap += sum(ms_f + ms_m for _, ms_f, ms_m in scored) * (1.0 - 1.0 / parallel)
-        for k, ((name, time_s, _), (col, ms_f, ms_m)) in enumerate(zip(chunk, scored, strict=True)):
-            line = loc.step_scores(col, name=name, time_s=time_s, ms_features=ms_f, ms_matching=ms_m)
+        loc.ms_overlap += sum(ms_f + ms_m for _, ms_f, ms_m, _ in scored) * (1.0 - 1.0 / parallel)
+        for k, ((name, time_s, _), (col, ms_f, ms_m, feats)) in enumerate(zip(chunk, scored, strict=True)):
+            line = loc.step_scores(col, name=name, time_s=time_s, ms_features=ms_f, ms_matching=ms_m, features=feats)
             yield line, decode_s if k == 0 else 0.0
 
 

@@ -73,14 +73,25 @@ class FrameResources(InMemoryResources):
             self.ms_quantise += 1e3 * (time.perf_counter() - t0) - (self.ms_features - before)
 
 
-def describe(recognizer: Any, res: FrameResources, image: np.ndarray, name: str) -> tuple[list[Any], float, float]:
-    """``(items, ms features, ms quantisation)`` of one frame: ``recognizer.encode`` with ``res``."""
+#: ``(items, ms features, ms quantisation, local features or None)`` of one described frame.
+Described = tuple[list[Any], float, float, "FeatureSet | None"]
+
+
+def describe(recognizer: Any, res: FrameResources, image: np.ndarray, name: str, *,
+             keep_features: bool = False) -> Described:
+    """``(items, ms features, ms quantisation, features)`` of one frame: ``recognizer.encode`` with ``res``.
+
+    ``keep_features``: also the frame's local features (extracted once, with the
+    method's if it uses them; timed as features), for verification; else None.
+    """
     res.next_frame()
     try:
-        items = recognizer.encode(Traverse.from_images([image], name=name), resources=res)
-        return items, res.ms_features, res.ms_quantise
+        traverse = Traverse.from_images([image], name=name)
+        items = recognizer.encode(traverse, resources=res)
+        feats = res.features(traverse)[0] if keep_features else None
+        return items, res.ms_features, res.ms_quantise, feats
     finally:
         res._frame = None  # the frame's features are not kept past its description
 
 
-__all__ = ["FrameResources", "describe"]
+__all__ = ["Described", "FrameResources", "describe"]

@@ -31,10 +31,10 @@ from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
-from topoloc.features import FeatureConfig
+from topoloc.features import FeatureConfig, FeatureSet
 from topoloc.io.lock import file_lock
 from topoloc.io.scratch import spill_to
-from topoloc.maps.frame_resources import FrameResources, describe
+from topoloc.maps.frame_resources import Described, FrameResources, describe
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.maps.place_images import PlaceImages
 from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
@@ -44,10 +44,19 @@ from topoloc.methods.shard_build import build_from_shards
 from topoloc.progress import ProgressFactory
 from topoloc.ranking import threshold_sweep, top_rows
 from topoloc.resources import CachedResources, InMemoryResources, Resources
-from topoloc.spec import FeatureSpec, GroundTruthSpec, MapBuildSpec, SequenceSpec, VocabularySpec, spec_to_dict
-from topoloc.spec.parts import NOT_BOTH
+from topoloc.spec import (
+    FeatureSpec,
+    GroundTruthSpec,
+    MapBuildSpec,
+    SequenceSpec,
+    VerificationSpec,
+    VocabularySpec,
+    spec_to_dict,
+)
+from topoloc.spec.parts import NOT_BOTH, verify_from_env
 from topoloc.spec.runs import check_prefetch
-from topoloc.spec.setup import build_method, make_resources
+from topoloc.spec.setup import build_method, build_verifier, make_resources
+from topoloc.verification import DEFAULT_CANDIDATES, Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
@@ -76,7 +85,7 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
     return rec
 
 
-def reload_tour(rec: dict[str, Any]) -> Traverse:
+def reload_tour(rec: dict[str, Any], *, purpose: str = "to add a tour") -> Traverse:
     """The tour a map's tour record names, read again from its folder or recording.
 
     Raises
@@ -88,7 +97,7 @@ def reload_tour(rec: dict[str, Any]) -> Traverse:
     root = str(rec.get("root", ""))
     if root.startswith("<"):
         raise TopolocError(f"tour {rec.get('name')!r} of the map was built from images in memory, which cannot "
-                           "be read again to add a tour: build the map from all tours")
+                           f"be read again {purpose}: build the map from all tours")
     src = rec.get("source") or {}
     if src:
         from topoloc.datasets.sources import load_input
@@ -100,7 +109,7 @@ def reload_tour(rec: dict[str, Any]) -> Traverse:
             where = ("" if Path(root).is_absolute() else
                      f" (the map recorded it relative to the folder it was built in; run from there, or build "
                      f"it again) from {Path.cwd()}")
-            raise input_error(f"tour {rec.get('name')!r} of the map is needed again to add a tour, but its "
+            raise input_error(f"tour {rec.get('name')!r} of the map is needed again {purpose}, but its "
                               f"folder is not found{where}", root)
         t = load_traverse(root)
     if t.fingerprint() != rec["fingerprint"]:
@@ -572,6 +581,7 @@ class Map:
             "tours": [{k: v for k, v in t.items() if k != "place_images"} for t in self.tours],
             "vocabulary": voc, "features": asdict(self.features),
             "calibration": self.calibration or "none: every localisation is accepted (run `topoloc map calibrate`)",
+            "verification": self.verification_info(),
             "created": self.created, "spec": self.spec,
         }
 
@@ -590,6 +600,77 @@ class Map:
         check_feature_kind(q, self.features, self.path)
         return self.recognizer.similarity(q, resources=resources or self.resources(cache_dir=cache_dir))
 
+    # -- verification -----------------------------------------------------------------------
+    def verification_blocker(self) -> str:
+        """Why answers against this map cannot be verified, or "" when they can.
+
+        Verification matches a query's local features against the map images of
+        its candidate places, which the map reaches through its tours' folders
+        or recordings (their features come from the feature cache, extracted once).
+        """
+        for rec in self.tours:
+            root = str(rec.get("root", ""))
+            src = rec.get("source") or {}
+            if root.startswith("<"):
+                return f"tour {rec.get('name')!r} was built from images in memory, which cannot be read again"
+            where = Path(src["file"]) if src else Path(root)
+            if not where.exists():
+                return f"tour {rec.get('name')!r} is gone: {where}"
+        return ""
+
+    @property
+    def default_verify(self) -> bool | None:
+        """Whether answers are verified when no one says: as the threshold was calibrated, else as the map was built.
+
+        A map calibrated with verification recorded keeps that setting (the
+        threshold holds for those scores only); a map built before verification
+        existed, or calibrated before it was recorded, scores as it always did
+        (False); else None: wherever it can.
+        """
+        cal = self.calibration or {}
+        if "verify" in cal:
+            return bool(cal["verify"])
+        if self.calibration is not None or not self.spec or "verification" not in self.spec:
+            return False
+        return (self.spec.get("verification") or {}).get("enabled")
+
+    def verifier(self, *, candidates: int = DEFAULT_CANDIDATES, resources: Resources | None = None,
+                 cache_dir: str | Path | None = None) -> Verifier:
+        """The verification stage against this map (:mod:`topoloc.verification`).
+
+        The tours are read again from their folders or recordings (checked
+        against their fingerprints) and each tour's features are taken from the
+        feature cache when a candidate first needs them: in memory, about
+        ``n_images * max_features * (20 + descriptor bytes)`` once every tour has been
+        needed (``map info``'s ``verification``).
+
+        Raises
+        ------
+        TopolocError
+            One line naming the tour that cannot be read again.
+        """
+        why = self.verification_blocker()
+        where = f"the map {self.path}" if self.path is not None else "the map"
+        if why:
+            raise TopolocError(f"{where} cannot verify answers: {why} (use --no-verify)")
+        tours = [reload_tour(rec, purpose="to verify answers") for rec in self.tours]
+        res = resources if resources is not None else self.resources(cache_dir=cache_dir)
+        v = build_verifier(VerificationSpec(enabled=True, candidates=candidates), self.place_ids, tours, res,
+                           what=where)
+        assert v is not None
+        return v
+
+    def verification_info(self) -> dict[str, Any]:
+        """Whether the map can verify answers, and the memory its map images' features then take."""
+        why = self.verification_blocker()
+        n_images = sum(int(t.get("n_images", 0) or 0) for t in self.tours)
+        _, dim, dtype = self.features.descriptor_kind.rsplit("-", 2)
+        # keypoints: 5 float32 columns; descriptors: dim columns of dtype
+        per_image = int(self.features.max_features) * (20 + int(dim) * np.dtype(dtype).itemsize)
+        return {"can_verify": not why, **({"why_not": why} if why else {}),
+                "default": self.default_verify, "map_images": n_images,
+                "features_bytes_at_most": n_images * per_image}
+
     @property
     def calibrated_sequence(self) -> SequenceSpec:
         """The sequence matching the threshold was calibrated with (single images: length 0).
@@ -601,17 +682,41 @@ class Map:
         return SequenceSpec(length=int(seq.get("length", 0)), mode=str(seq.get("mode", "constant")))
 
     def localizer(self, *, top_k: int = 5, sequence: int | None = None,
-                  sequence_mode: str | None = None, prefetch: int = -1) -> Localizer:
+                  sequence_mode: str | None = None, prefetch: int = -1, verify: bool | None = None,
+                  candidates: int = DEFAULT_CANDIDATES) -> Localizer:
         """An online localiser: feed it frames one at a time (:meth:`Localizer.step`).
 
         ``sequence`` / ``sequence_mode`` None: those of :attr:`calibrated_sequence`,
         whose scores the stored threshold applies to.  ``prefetch``: frames
         :meth:`Localizer.stream` reads and describes ahead (:class:`Localizer`).
+        ``verify`` None: :attr:`default_verify` (and where that is None, wherever
+        the map can verify); True where it cannot is a one-line error.
         """
         cal = self.calibrated_sequence
         return Localizer(self, top_k=top_k, sequence=cal.length if sequence is None else sequence,
                          sequence_mode=(cal.mode if sequence is None else "constant")
-                         if sequence_mode is None else sequence_mode, prefetch=prefetch)
+                         if sequence_mode is None else sequence_mode, prefetch=prefetch,
+                         verify=self.resolve_verify(verify), candidates=candidates)
+
+    def resolve_verify(self, verify: bool | None) -> bool:
+        """Whether to verify: as asked; else as the threshold was calibrated; else ``$TOPOLOC_VERIFY``; else
+        :attr:`default_verify`; else whether the map can verify.  A calibration's record comes before the
+        environment: its threshold holds for the scores it was chosen on only."""
+        if verify is None and "verify" in (self.calibration or {}):
+            verify = bool((self.calibration or {})["verify"])
+        if verify is None:
+            verify = verify_from_env()
+        if verify is not None:
+            return verify
+        default = self.default_verify
+        if default is not None:
+            return default
+        if self.recognizer.tags.verifies_geometry:
+            return False
+        why = self.verification_blocker()
+        if why:
+            log.info("%s cannot verify answers (%s): they are not verified", self.path or "the map", why)
+        return not why
 
     def localize(self, image: np.ndarray, *, top_k: int = 5) -> dict[str, Any]:
         """The place one camera frame shows.
@@ -720,7 +825,7 @@ class Map:
     def calibrate_on(self, tour: Traverse | str | Path, *, ground_truth: GroundTruthSpec | None = None,
                      precision: float = 0.99, label: str = "", cache_dir: str | Path | None = None,
                      progress: ProgressFactory | None = None, executor: Executor | None = None,
-                     sequence: SequenceSpec | None = None) -> dict[str, Any]:
+                     sequence: SequenceSpec | None = None, verify: bool | None = None) -> dict[str, Any]:
         """Score a labelled tour against the map and :meth:`calibrate` on it.
 
         Parameters
@@ -738,6 +843,10 @@ class Map:
         sequence : SequenceSpec, optional
             Match the tour's frames in sequences (in its order), as
             :meth:`localizer` will; default none (single images).
+        verify : bool, optional
+            Verify the answers (:mod:`topoloc.verification`) before the
+            threshold is chosen, as :meth:`localizer` then does by default
+            (recorded); None: :meth:`resolve_verify`.
 
         Raises
         ------
@@ -760,15 +869,21 @@ class Map:
         if not gt.hard.any():
             raise input_error("calibration tour has no ground truth in this map (no query place is a map place)",
                               q.root)
-        S = self.recognizer.similarity(q, resources=self.resources(cache_dir=cache_dir, progress=progress,
-                                                                   executor=executor))
+        verify = self.resolve_verify(verify)  # not told: as localize would match (recorded with the threshold)
+        res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
+        verifier = self.verifier(resources=res) if verify else None  # fails before the tour is scored
+        S = self.recognizer.similarity(q, resources=res)
         if sequence is not None and sequence.length:
             from topoloc.sequence import sequence_similarity
 
             sequence.check_memory(S.shape[0])
             S = sequence_similarity(S, ds=sequence.length, mode=sequence.mode)  # type: ignore[arg-type]
-        return self.calibrate(S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
-                              query=label or (str(q.root) if q.kind == "files" else q.name))
+        if verifier is not None:
+            S = verifier.verify(S, res.features(q, timed=False)).S
+        cal = self.calibrate(S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
+                             query=label or (str(q.root) if q.kind == "files" else q.name))
+        cal["verify"] = bool(verify)
+        return cal
 
     def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:
         """Refuse feature settings or a vocabulary other than the map's (one line naming the parameter and map).
@@ -810,6 +925,12 @@ class Localizer:
         Places listed per frame.
     sequence, sequence_mode
         Online sequence matching (off with 0).
+    verify : bool
+        Verify each frame's candidates against the map images (:mod:`topoloc.verification`):
+        its line then says ``verified`` and ``inliers``, and its score is the
+        verified confidence.
+    candidates : int
+        Distinct peaks verified per frame.
     prefetch : int
         Frames :meth:`stream` reads and describes ahead of the one being
         matched, on a pool of one thread per core (at most ``prefetch``): the
@@ -821,7 +942,7 @@ class Localizer:
     """
 
     def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant",
-                 prefetch: int = -1) -> None:
+                 prefetch: int = -1, verify: bool = False, candidates: int = DEFAULT_CANDIDATES) -> None:
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
         check_prefetch(prefetch)
@@ -833,6 +954,10 @@ class Localizer:
         self.sequence_mode = sequence_mode
         self.prefetch = prefetch
         self.frames = 0
+        # Built before the first frame: a map whose tours cannot be read again fails here, in one line.
+        self.verifier: Verifier | None = m.verifier(candidates=candidates) if verify else None
+        self.ms_verify = 0.0
+        self.n_verified = 0
         rec = m.recognizer
         self._items: deque[Any] = deque(maxlen=int(rec.get_params().get("ds", 0)) + 1)
         self._columns: deque[np.ndarray] = deque(maxlen=sequence + 1)
@@ -850,12 +975,16 @@ class Localizer:
         self.ms_overlap = 0.0
         self._tls = threading.local()
 
-    def describe(self, image: np.ndarray, *, name: str = "") -> tuple[list[Any], float, float]:
-        """``(items, ms features, ms quantisation)`` of one frame: the recogniser's ``encode``, safe on any thread."""
+    def describe(self, image: np.ndarray, *, name: str = "") -> Described:
+        """``(items, ms features, ms quantisation, features)`` of one frame: the recogniser's ``encode``.
+
+        ``features`` (the frame's local features, for verification) is None when
+        the localiser does not verify.  Safe on any thread.
+        """
         res: FrameResources | None = getattr(self._tls, "res", None)
         if res is None:  # one per thread: a feature detector is not shared between threads
             res = self._tls.res = FrameResources(self.map.features, self.map.vocabulary)
-        return describe(self.map.recognizer, res, image, name)
+        return describe(self.map.recognizer, res, image, name, keep_features=self.verifier is not None)
 
     def stream(self, frames: Iterable[tuple[str, float | None, np.ndarray]], *,
                executor: Executor | None = None) -> Iterator[dict[str, Any]]:
@@ -892,7 +1021,7 @@ class Localizer:
                 return
             first = self.frames
 
-            def work(k: int, item: tuple[str, float | None, np.ndarray]) -> tuple[list[Any], float, float]:
+            def work(k: int, item: tuple[str, float | None, np.ndarray]) -> Described:
                 return self.describe(item[2], name=item[0] or f"frame{first + k}")
 
             done = ahead(it, work, depth=depth)
@@ -900,10 +1029,10 @@ class Localizer:
             with single_threaded_libraries():
                 try:
                     for a in done:
-                        (name, time_s, _), (items, ms_f, ms_q) = a.item, a.result
+                        (name, time_s, _), (items, ms_f, ms_q, feats) = a.item, a.result
                         self.ms_wait += a.wait_ms
                         yield self._match(items, name=name, time_s=time_s, ms_decode=a.decode_ms,
-                                          ms_features=ms_f, ms_quantise=ms_q)
+                                          ms_features=ms_f, ms_quantise=ms_q, features=feats)
                 finally:
                     done.close()  # stops the reader and the pool before OpenCV's threads come back
         finally:
@@ -918,10 +1047,10 @@ class Localizer:
             if item is None:
                 return
             name, time_s, frame = item
-            items, ms_f, ms_q = self.describe(frame, name=name or f"frame{self.frames}")
+            items, ms_f, ms_q, feats = self.describe(frame, name=name or f"frame{self.frames}")
             self.ms_wait += 1e3 * (time.perf_counter() - t0)
             yield self._match(items, name=name, time_s=time_s, ms_decode=decode_ms, ms_features=ms_f,
-                              ms_quantise=ms_q)
+                              ms_quantise=ms_q, features=feats)
 
     def summary(self) -> dict[str, Any]:
         """Frames, frames per second and mean milliseconds per frame of each stage.
@@ -967,6 +1096,9 @@ class Localizer:
                # Clock readings of different threads and machines: a few hundredths below zero is noise.
                "ms_overhead_mean": round(max(overhead, 0.0), 2),
                "calibrated": self.map.threshold is not None, "s_start": round(self.start_s, 3)}
+        if self.verifier is not None:
+            out["ms_verify_mean"] = round(self.ms_verify / n, 2)
+            out["verified"] = self.n_verified
         if self.workers > 1:
             out["workers"] = self.workers
         else:
@@ -977,11 +1109,12 @@ class Localizer:
 
     def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]:
         """Localise the next frame (a NumPy image) and return its result line (see :meth:`Map.localize`)."""
-        items, ms_f, ms_q = self.describe(image, name=name or f"frame{self.frames}")
-        return self._match(items, name=name, time_s=time_s, ms_decode=0.0, ms_features=ms_f, ms_quantise=ms_q)
+        items, ms_f, ms_q, feats = self.describe(image, name=name or f"frame{self.frames}")
+        return self._match(items, name=name, time_s=time_s, ms_decode=0.0, ms_features=ms_f, ms_quantise=ms_q,
+                           features=feats)
 
     def _match(self, items: list[Any], *, name: str, time_s: float | None, ms_decode: float, ms_features: float,
-               ms_quantise: float) -> dict[str, Any]:
+               ms_quantise: float, features: FeatureSet | None = None) -> dict[str, Any]:
         """The result line of the next frame from its described ``items``, in frame order."""
         rec = self.map.recognizer
         t1 = time.perf_counter()
@@ -993,10 +1126,11 @@ class Localizer:
         self.ms_decode += ms_decode
         self.ms_quantise += ms_quantise
         return self.step_scores(col, name=name, time_s=time_s, ms_features=ms_features,
-                                ms_matching=1e3 * (time.perf_counter() - t1))
+                                ms_matching=1e3 * (time.perf_counter() - t1), features=features)
 
     def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
-                    ms_features: float = 0.0, ms_matching: float = 0.0) -> dict[str, Any]:
+                    ms_features: float = 0.0, ms_matching: float = 0.0,
+                    features: FeatureSet | None = None) -> dict[str, Any]:
         """The result line of the next frame from its score column, shape (n_places,), computed elsewhere.
 
         What :meth:`step` does after scoring (the sequence search over the last
@@ -1013,7 +1147,18 @@ class Localizer:
             col = sequence_similarity(window, ds=self.sequence, mode=self.sequence_mode)[:, -1]  # type: ignore[arg-type]
         self.ms_features += ms_features
         self.ms_matching += ms_matching + 1e3 * (time.perf_counter() - t2)
+        block = None
+        if self.verifier is not None:
+            if features is None:
+                raise ValueError("this localiser verifies: give the frame's local features")
+            block = self.verifier.verify(np.asarray(col)[:, None], [features])
+            col = block.S[:, 0]
+            self.ms_verify += float(block.ms[0])
+            self.n_verified += int(block.verified[0])
         out = self._result(np.asarray(col, np.float64), name, time_s)
+        if block is not None:
+            out["verified"] = bool(block.verified[0])
+            out["inliers"] = int(block.inliers[0])
         self.frames += 1
         return out
 

@@ -83,6 +83,11 @@ class RecognizerTags:
     scores_whole_sequence : bool
         A column of ``S`` depends on the queries before it, so ``score`` is
         given the whole query sequence (class attribute ``scores_whole_sequence``).
+    verifies_geometry : bool
+        The method's own score already counts the inliers of a geometric check
+        of its candidates (class attribute ``verifies_geometry``): the
+        verification stage (:mod:`topoloc.verification`) is then not added by
+        default, only when asked.
     saves_state : bool
         ``get_state``/``from_state`` restore the fitted model (a saved map);
         the default ``_get_state`` saves every learned attribute that is JSON,
@@ -106,6 +111,7 @@ class RecognizerTags:
     uses_vocabulary: bool = False
     uses_local_features: bool = True
     scores_whole_sequence: bool = False
+    verifies_geometry: bool = False
     saves_state: bool = True
     adds_tours: bool = False
     adds_places: bool = False
@@ -115,7 +121,7 @@ class RecognizerTags:
 
 
 # Tags that only a class attribute declares, so that there is one way to say each.
-_ATTRIBUTE_TAGS = ("uses_vocabulary", "uses_local_features", "scores_whole_sequence")
+_ATTRIBUTE_TAGS = ("uses_vocabulary", "uses_local_features", "scores_whole_sequence", "verifies_geometry")
 
 
 class PlaceRecognizer(Configurable, ABC):
@@ -127,6 +133,8 @@ class PlaceRecognizer(Configurable, ABC):
     #: False for a method that never reads local features (its own per-image work, or descriptors from elsewhere).
     uses_local_features: ClassVar[bool] = True
     scores_whole_sequence: ClassVar[bool] = False
+    #: True for a method whose score already counts RANSAC inliers of its candidates (see :class:`RecognizerTags`).
+    verifies_geometry: ClassVar[bool] = False
     #: The class's abilities, derived when it is defined (see :class:`RecognizerTags`).
     tags: ClassVar[RecognizerTags] = RecognizerTags()
     #: Tags the hooks cannot show, e.g. an ``add_tour`` that refuses new places.
@@ -423,6 +431,7 @@ def _derive_tags(cls: type[PlaceRecognizer]) -> RecognizerTags:
                         "(uses_vocabulary needs uses_local_features)")
     derived = {"uses_vocabulary": bool(cls.uses_vocabulary), "uses_local_features": bool(cls.uses_local_features),
                "scores_whole_sequence": bool(cls.scores_whole_sequence),
+               "verifies_geometry": bool(cls.verifies_geometry),
                "saves_state": True, "adds_tours": adds, "adds_places": adds, "adds_tours_exactly": adds,
                "builds_shards": shards, "scores_top_k": top_k}
     names = {f.name for f in fields(RecognizerTags)}

@@ -938,7 +938,9 @@ def sequence_similarity(
         ``"margin"`` (default): each column minus its best value more than
         :func:`~topoloc.sequence.confidence.sequence_stretch` places from its
         best place (the best score is the margin, the order of the column is
-        kept); ``"raw"``: the negated cost.
+        kept), times ``k / (ds + 1)`` for a query with ``k <= ds + 1`` frames
+        up to it (the first ``ds`` queries: a short window is not evidence);
+        ``"raw"``: the negated cost.
 
     Returns
     -------
@@ -961,7 +963,14 @@ def sequence_similarity(
     stretch = sequence_stretch(ds, v_max)
     if mode == "acceleration":  # a path advances at most max_skip + 1 places a frame
         stretch = min(stretch, ds * (int(max_skip) + 1))
-    return stretch_margin(cost, stretch=stretch)
+    margin = stretch_margin(cost, stretch=stretch)
+    # A query with fewer than ds frames behind it (the start of a stream) has a path of fewer real
+    # frames, whose mean difference is as noisy as that of fewer frames: its margin counts the missing
+    # frames as giving no evidence, (k / (ds + 1)) x margin for k real frames, so that no answer is
+    # confident merely because its window is short (issue 40; online and batch scale alike).
+    if ds:
+        margin *= (_frames_used(0, margin.shape[1], ds) / np.float32(ds + 1))[None, :]
+    return margin
 
 
 def sequence_search(

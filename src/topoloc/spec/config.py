@@ -41,6 +41,7 @@ FLAT_NAMES: dict[str, str] = {
     "tolerance": "ground_truth.tolerance", "tolerance_m": "ground_truth.tolerance_m",
     "ground_truth": "ground_truth.file",
     "sequence": "sequence.length", "sequence_mode": "sequence.mode",
+    "verify": "verification.enabled", "verify_candidates": "verification.candidates",
     "scheduler": "execution.scheduler", "scheduler_timeout": "execution.scheduler_timeout",
     "cache_dir": "execution.cache_dir",
 }

@@ -534,9 +534,56 @@ class ExecutionSpec:
         return connect(self.scheduler, timeout_s=self.scheduler_timeout)
 
 
+def verify_from_env() -> bool | None:
+    """``$TOPOLOC_VERIFY`` (``1``/``0``): whether answers are verified where no option says; None when unset.
+
+    It stands where a run gives no ``--verify/--no-verify`` (before a saved
+    map's recorded default): ``0`` for a site that keeps scoring as before
+    (the test suite sets it so and tests verification on its own).
+    """
+    import os
+
+    value = os.environ.get("TOPOLOC_VERIFY", "").strip().lower()
+    if not value or value == "auto":
+        return None
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise ParameterError("verification.enabled", f"from TOPOLOC_VERIFY must be 1, 0 or auto, got {value!r}")
+
+
+@dataclass(frozen=True)
+class VerificationSpec:
+    """Geometric verification of each answer's candidates (:mod:`topoloc.verification`).
+
+    Parameters
+    ----------
+    enabled : bool or None
+        Re-check the best places of each query's highest distinct peaks by
+        local matches and epipolar geometry, and score the answer by its
+        inliers (``docs/protocol.md``, "Verification").  None (the default):
+        wherever the map's images can be verified, which on the development
+        data raises R@100P by day and at night (``docs/results/verification.md``);
+        True: verify, or a one-line error where the map cannot be; False: never.
+    candidates : int
+        Distinct peaks checked per query.
+    """
+
+    enabled: bool | None = None
+    candidates: int = 3
+
+    def __post_init__(self) -> None:
+        if self.enabled is not None and not isinstance(self.enabled, bool):
+            raise ParameterError("verification.enabled", f"must be true or false, got {self.enabled!r}")
+        if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or self.candidates < 1:
+            raise ParameterError("verification.candidates", f"must be a whole number >= 1, got {self.candidates!r}")
+
+
 PARTS: dict[str, type] = {
     "features": FeatureSpec, "vocabulary": VocabularySpec, "inputs": InputSpec, "ground_truth": GroundTruthSpec,
     "sequence": SequenceSpec, "execution": ExecutionSpec,
+    "verification": VerificationSpec,
 }
 
 
@@ -549,9 +596,11 @@ __all__ = [
     "GroundTruthSpec",
     "InputSpec",
     "SequenceSpec",
+    "VerificationSpec",
     "VocabularySpec",
     "parse_max_side",
     "parse_recall_at",
     "stream_sequence_for",
     "travels_the_route",
+    "verify_from_env",
 ]

@@ -22,6 +22,7 @@ from topoloc.spec.parts import (
     GroundTruthSpec,
     InputSpec,
     SequenceSpec,
+    VerificationSpec,
     VocabularySpec,
     _opt_path,
     _paths,
@@ -108,7 +109,7 @@ class EvaluateSpec(_ChecksOutputs):
     pairs_out : Path, optional
         Also write the ``top_k`` retrieval pairs of each query in hloc's format
         (:mod:`topoloc.evaluation.pairs`); needs ``top_k``.
-    features, vocabulary, inputs, ground_truth, sequence, execution
+    features, vocabulary, inputs, ground_truth, sequence, execution, verification
         The parts (:mod:`topoloc.spec.parts`).
     """
 
@@ -128,6 +129,7 @@ class EvaluateSpec(_ChecksOutputs):
     ground_truth: GroundTruthSpec = field(default_factory=GroundTruthSpec)
     sequence: SequenceSpec = field(default_factory=SequenceSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "maps", _paths(self.maps))
@@ -184,8 +186,9 @@ class MapBuildSpec(_ChecksOutputs):
         The map file to write (None: a map built from Python, not yet saved).
     shards : int
         Partial models of place ranges, one task each, merged (``docs/map_shards.md``).
-    features, vocabulary, inputs, execution
-        The parts (:mod:`topoloc.spec.parts`).
+    features, vocabulary, inputs, execution, verification
+        The parts (:mod:`topoloc.spec.parts`); ``verification`` is recorded in
+        the map as the default of ``localize`` and ``evaluate --map-file``.
     """
 
     method: str = ""
@@ -197,6 +200,7 @@ class MapBuildSpec(_ChecksOutputs):
     vocabulary: VocabularySpec = field(default_factory=VocabularySpec)
     inputs: InputSpec = field(default_factory=InputSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "maps", _paths(self.maps))
@@ -227,6 +231,9 @@ class LocalizeSpec(_ChecksOutputs):
     map_file : Path
     images : tuple of Path
         Image files or folders, ROS bags or videos, in order.
+    stream : str, optional
+        A camera (``/dev/video0`` or its index) or a network stream URL, read live
+        instead of ``images`` (:class:`~topoloc.datasets.sources.live.LiveSource`).
     out : Path
         The JSON-lines file.
     top_k : int
@@ -237,12 +244,13 @@ class LocalizeSpec(_ChecksOutputs):
     prefetch : int
         Frames read and described ahead of the one being matched, on one thread
         per core (-1: two per core; 0: one frame at a time); the lines are the same.
-    sequence, inputs, execution
+    sequence, inputs, execution, verification
         The parts (:mod:`topoloc.spec.parts`).
     """
 
     map_file: Path | None = None
     images: tuple[Path, ...] = ()
+    stream: str | None = None
     out: Path | None = None
     top_k: int = 5
     pairs_out: Path | None = None
@@ -250,6 +258,7 @@ class LocalizeSpec(_ChecksOutputs):
     sequence: SequenceSpec = field(default_factory=SequenceSpec)
     inputs: InputSpec = field(default_factory=InputSpec)
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "images", _paths(self.images))
@@ -258,8 +267,10 @@ class LocalizeSpec(_ChecksOutputs):
         object.__setattr__(self, "pairs_out", _opt_path(self.pairs_out))
         if self.map_file is None:
             raise ParameterError("map_file", "is needed: the map to localise against")
-        if not self.images:
-            raise ParameterError("images", "needs at least one image, folder or recording")
+        if self.stream is not None and self.images:
+            raise ParameterError("images", f"a camera or stream ({self.stream}) is read alone: give no other input")
+        if not self.images and self.stream is None:
+            raise ParameterError("images", "needs at least one image, folder or recording, or a camera or stream")
         if self.out is None:
             raise ParameterError("out", "is needed: the JSON-lines file to write")
         _whole("top_k", self.top_k, 1)

@@ -35,8 +35,9 @@ from topoloc.features.cache import cache_root
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
-from topoloc.resources import CachedResources
-from topoloc.spec.parts import VocabularySpec
+from topoloc.resources import CachedResources, Resources
+from topoloc.spec.parts import VerificationSpec, VocabularySpec, verify_from_env
+from topoloc.verification import Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import VOCAB_SCHEMA
 
@@ -232,4 +233,64 @@ def tours_vocabulary(
     return voc, file
 
 
-__all__ = ["build_method", "make_resources", "tours_vocabulary"]
+
+def unverifiable(tours: Sequence[Traverse]) -> str:
+    """Why map images of ``tours`` cannot be verified ("" when they can): verification matches their local features."""
+    for t in tours:
+        if t.kind == "words":
+            return f"tour {t.name!r} holds visual words, not images or local features"
+    return ""
+
+
+def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequence[Traverse],
+                   resources: Resources, *, what: str = "the map") -> Verifier | None:
+    """The verification stage of a run (:mod:`topoloc.verification`), or None when it is off.
+
+    ``spec.enabled`` None (the default) verifies where the map's images can
+    be (unless ``$TOPOLOC_VERIFY`` says otherwise, :func:`verify_from_env`);
+    True where they cannot is a one-line error naming why; False never.
+
+    Parameters
+    ----------
+    spec : VerificationSpec
+    place_ids : ndarray of int64, shape (n_places,)
+        The recogniser's place of each row of S (sorted).
+    tours : sequence of Traverse
+        The map's tours: the images of each place.
+    resources : Resources
+        Where their local features come from (the run's feature settings and cache).
+    what : str
+        Named in the error.
+    """
+    enabled = spec.enabled if spec.enabled is not None else verify_from_env()
+    if enabled is False:
+        return None
+    why = unverifiable(tours)
+    if why:
+        if enabled:
+            raise ParameterError("verification.enabled", f"{what} cannot be verified: {why} (use --no-verify)")
+        log.info("%s cannot be verified (%s): answers are not verified", what, why)
+        return None
+    rows_of: list[list[tuple[int, int]]] = [[] for _ in range(len(place_ids))]
+    for ti, t in enumerate(tours):
+        rows = np.searchsorted(place_ids, t.places)
+        for k, r in enumerate(rows.tolist()):
+            if r < len(place_ids) and place_ids[r] == t.places[k]:
+                rows_of[r].append((ti, k))
+    feats: dict[int, list[Any]] = {}
+
+    def place_images(row: int) -> list[Any]:
+        out = []
+        for ti, k in rows_of[row]:
+            if ti not in feats:  # a tour's features at its first candidate: from the feature store, extracted once
+                feats[ti] = resources.features(tours[ti], timed=False)
+            out.append(feats[ti][k])
+        return out
+
+    def image_names(row: int) -> list[str]:
+        return [str(tours[ti].images[k]) for ti, k in rows_of[row]]
+
+    return Verifier(place_images, candidates=spec.candidates, image_names=image_names)
+
+
+__all__ = ["build_method", "build_verifier", "make_resources", "tours_vocabulary", "unverifiable"]

@@ -279,14 +279,9 @@ def test_memory_does_not_grow_with_length(tmp_path: Path, recordings: dict[str, 
 
 # -- command line ---------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def route_map(tiny_route: dict[str, Any], tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("bag_route")
-    voc = root / "vocab.tlv"
-    tiny_route["vocabulary"].save(voc)
-    tlm = root / "route.tlm"
-    _cli_ok(["map", "build", "--method", "bow", "--map", str(tiny_route["map"].root), "--vocab", str(voc),
-             "--out", str(tlm), "--cache-dir", str(root / "cache"), "--quiet"])
-    return tlm
+def route_map(tiny_route_map: Path) -> Path:
+    """The tiny route's bag-of-words map (its vocabulary file beside it)."""
+    return tiny_route_map
 
 
 @pytest.mark.usefixtures("rosbags_installed")

@@ -128,6 +128,38 @@
       return el(i === 0 ? "b" : "div", {text: t});
     }))]);
   }
+  // The inlier matches of a verified answer: the query and the map image side by side, one line a match.
+  function matchesView(q, m) {
+    const W = 180, gap = 8, hq = W * m.aspect[0], hm = W * m.aspect[1], H = Math.max(hq, hm);
+    const ns = "http://www.w3.org/2000/svg", svg = document.createElementNS(ns, "svg");
+    svg.setAttribute("width", 2 * W + gap); svg.setAttribute("height", H); svg.setAttribute("class", "matches");
+    [[q.img, 0, hq], [m.img, W + gap, hm]].forEach(function (p) {
+      if (!p[0] || !D.thumbs[p[0]]) return;
+      const im = document.createElementNS(ns, "image");
+      im.setAttribute("href", D.thumbs[p[0]]); im.setAttribute("x", p[1]); im.setAttribute("y", 0);
+      im.setAttribute("width", W); im.setAttribute("height", p[2]); svg.appendChild(im);
+    });
+    m.xy.forEach(function (r) {
+      const ln = document.createElementNS(ns, "line");
+      ln.setAttribute("x1", r[0] * W); ln.setAttribute("y1", r[1] * hq);
+      ln.setAttribute("x2", W + gap + r[2] * W); ln.setAttribute("y2", r[3] * hm); svg.appendChild(ln);
+    });
+    return svg;
+  }
+  function checkLine(it) {
+    if (!it.check) return [];
+    const c = it.check, parts = [el("span", {cls: "badge " + (c.verified ? "verified" : "unverified"),
+                                             text: c.verified ? "verified · " + c.inliers + " inliers" : "not verified"})];
+    if (c.match) {
+      const box = el("div", {cls: "matchbox"}), btn = el("button", {text: "inlier matches (" + c.match.file + ")"});
+      btn.addEventListener("click", function () {
+        if (box.firstChild) { box.textContent = ""; return; }
+        box.appendChild(matchesView(it.q, c.match));
+      });
+      parts.push(btn, box);
+    }
+    return [el("div", {cls: "check"}, parts)];
+  }
   function card(run, j, thr) {
     const it = run.items[j], st = status(run, j, thr);
     const q = it.q, b = it.best, c = it.correct;
@@ -141,7 +173,8 @@
                                     "score " + score(run, run.score[j])]));
     if (c) figs.push(figure(c.img, ["correct: place " + c.place, (c.tour ? c.tour + "/" : "") + (c.file || ""),
                                     "rank " + it.rank]));
-    return el("div", {cls: "card " + st, "data-query": String(j)}, [head, el("div", {cls: "imgs"}, figs)]);
+    return el("div", {cls: "card " + st, "data-query": String(j)},
+              [head, el("div", {cls: "imgs"}, figs), ...checkLine(it)]);
   }
   function renderCards(k) {
     const run = D.runs[k], st = states[k], thr = thrOf(k);

@@ -1,0 +1,114 @@
+"""Verified answers against saved maps: the online localiser, batches, calibration, maps that cannot verify."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from topoloc.cluster import LocalExecutor
+from topoloc.datasets.traverse import load_traverse
+from topoloc.errors import TopolocError
+from topoloc.maps import Map
+from topoloc.maps.batch import localize_on
+from topoloc.sequence import sequence_similarity
+
+
+def _saved(route: dict[str, Any], tmp_path: Path, method: str = "bow", tour: Path | None = None) -> Map:
+    voc = route["vocabulary"] if method != "seqslam-single" else None
+    built = Map.build(method=method, tours=[load_traverse(tour) if tour else route["map"]], vocabulary=voc,
+                      cache_dir=tmp_path / "cache")
+    return Map.load(built.save(tmp_path / f"{method}.tlm"))
+
+
+@pytest.mark.parametrize("method,sequence", [("bow", 0), ("bow", 3), ("seqslam-single", 0)])
+def test_verified_lines_are_the_verified_scores_of_the_whole_tour(method: str, sequence: int,
+                                                                  tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    m = _saved(tiny_route, tmp_path, method)
+    frames = [(f"q{k}", None, f) for k, f in enumerate(tiny_route["query_frames"])]
+    lines = list(m.localizer(top_k=3, sequence=sequence, verify=True).stream(frames))
+    # The batch: the whole tour's S, its sequence search, then the verification stage.
+    res = m.resources(cache_dir=tmp_path / "cache")
+    S = m.similarity(tiny_route["query"], resources=res)
+    if sequence:
+        S = sequence_similarity(S, ds=sequence)
+    block = m.verifier(resources=res).verify(S, res.features(tiny_route["query"]))
+    assert [r["place"] for r in lines] == m.place_ids[block.S.argmax(axis=0)].tolist()
+    np.testing.assert_allclose([r["score"] for r in lines], block.S.max(axis=0), rtol=1e-6)
+    assert [r["verified"] for r in lines] == block.verified.tolist()
+    assert [r["inliers"] for r in lines] == block.inliers.tolist()
+    assert sum(r["verified"] for r in lines) >= len(lines) // 2  # the synthetic street verifies
+    # Without verification the lines carry no such fields.
+    assert "verified" not in next(m.localizer(verify=False).stream(frames[:1]))
+
+
+def test_batches_on_an_executor_verify_as_the_online_localiser(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    m = _saved(tiny_route, tmp_path)
+    frames = tiny_route["query_frames"]
+    online = m.localizer(top_k=3, sequence=2, verify=True)
+    want = [online.step(f, name=f"q{k}") for k, f in enumerate(frames)]
+    loc = m.localizer(top_k=3, sequence=2, verify=True)
+    items = iter([(f"q{k}", None, f) for k, f in enumerate(frames)])
+    got = [line for line, _ in localize_on(LocalExecutor(n_jobs=2), loc, items, batch_frames=5)]
+    assert got == want and all("verified" in g for g in got)
+    assert loc.summary()["verified"] == sum(g["verified"] for g in got)
+
+
+def test_what_a_map_verifies_by_default(tiny_route: dict[str, Any], tmp_path: Path,
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    m = _saved(tiny_route, tmp_path)
+    assert m.spec is not None and m.default_verify is None  # built now: wherever it can
+    assert m.localizer().verifier is not None
+    info = m.info()["verification"]
+    assert info["can_verify"] and info["map_images"] == len(tiny_route["map"])
+    assert info["features_bytes_at_most"] == len(tiny_route["map"]) * 1000 * (20 + 128 * 4)
+    # A map saved before verification existed scores as before unless asked.
+    m.spec = {k: v for k, v in m.spec.items() if k != "verification"}
+    assert m.default_verify is False and m.localizer().verifier is None
+    assert m.localizer(verify=True).verifier is not None
+    # TOPOLOC_VERIFY stands where no option says.
+    monkeypatch.setenv("TOPOLOC_VERIFY", "1")
+    assert m.localizer().verifier is not None
+    monkeypatch.setenv("TOPOLOC_VERIFY", "maybe")
+    with pytest.raises(TopolocError, match="TOPOLOC_VERIFY"):
+        m.localizer()
+
+
+def test_calibration_records_verification_and_localize_follows_it(tiny_route: dict[str, Any],
+                                                                   tmp_path: Path) -> None:
+    m = _saved(tiny_route, tmp_path)
+    cal = m.calibrate_on(tiny_route["query"], cache_dir=tmp_path / "cache", verify=True)
+    assert cal["verify"] is True and m.default_verify is True
+    assert m.localizer().verifier is not None
+    # Verified scores are above 1: the threshold was chosen among them.
+    assert cal["threshold"] is None or cal["threshold"] > 1.0
+    cal = m.calibrate_on(tiny_route["query"], cache_dir=tmp_path / "cache", verify=False)
+    assert cal["verify"] is False and m.localizer().verifier is None
+
+
+def test_a_map_whose_tour_is_gone_cannot_verify(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    tour = tmp_path / "noon"
+    shutil.copytree(tiny_route["map"].root, tour)
+    m = _saved(tiny_route, tmp_path, tour=tour)
+    shutil.rmtree(tour)
+    assert m.info()["verification"]["can_verify"] is False
+    assert "is gone" in m.info()["verification"]["why_not"]
+    with pytest.raises(TopolocError, match=r"cannot verify answers: tour 'noon' is gone.*--no-verify"):
+        m.localizer(verify=True)
+    assert m.localizer(verify=None).verifier is None or m.default_verify is False  # never silently half-verified
+
+
+def test_a_method_that_checks_geometry_itself_is_verified_only_when_asked(tiny_route: dict[str, Any], tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    built = Map.build(method="voting", tours=[tiny_route["map"]], cache_dir=tmp_path / "cache")
+    m = Map.load(built.save(tmp_path / "voting.tlm"))
+    assert m.recognizer.tags.verifies_geometry
+    assert m.localizer().verifier is None
+    assert m.localizer(verify=True).verifier is not None
+    # bag of words does not: the same default verifies it.
+    assert not _saved(tiny_route, tmp_path).recognizer.tags.verifies_geometry

@@ -1,0 +1,320 @@
+"""The ROS 1 node on a real roscore (loopback port), as its own process, fed by ``rosbag play`` (issue 37).
+
+Skipped, naming what is missing, where ROS 1 (Debian's ``ros-base``, ``python3-rospy`` and the message
+packages, which ``.ci/run`` installs where apt is available) is not installed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from topoloc.cli.main import app
+from topoloc.ros.probe import LocalMaster, free_port, wait_for
+
+SRC = Path(__file__).resolve().parents[2] / "src"
+T0 = 1_700_000_000
+TOPICS = {"bgr8": "/cam/bgr8", "mono8": "/cam/mono8", "compressed": "/cam/compressed"}
+
+
+def _ros_missing() -> str | None:
+    for tool in ("roscore", "rosbag", "rosservice", "roslaunch"):
+        if shutil.which(tool) is None:
+            return f"{tool} is not on PATH (apt-get install ros-base python3-rosbag)"
+    probe = subprocess.run([sys.executable, "-c", "from topoloc.ros import import_rospy; import_rospy()"],
+                           env={**os.environ, "PYTHONPATH": str(SRC)}, capture_output=True, text=True)
+    if probe.returncode != 0:
+        return (probe.stderr.strip().splitlines() or ["rospy cannot be imported"])[-1]
+    return None
+
+
+_MISSING = _ros_missing()
+pytestmark = pytest.mark.skipif(_MISSING is not None, reason=f"ROS 1 is not installed: {_MISSING}")
+
+
+class Ros(LocalMaster):
+    """A roscore on a loopback port, and the processes of one test beside it."""
+
+    def __init__(self, root: Path) -> None:
+        super().__init__(root, extra_path=SRC)
+        self.env["TOPOLOC_FEATURES"] = "sift"
+
+    def start(self, args: list[str], name: str) -> subprocess.Popen[str]:
+        out = (self.root / f"{name}.err").open("w")
+        return subprocess.Popen([sys.executable, *args], env=self.env, stdout=subprocess.PIPE, stderr=out, text=True)
+
+    def node(self, map_file: Path, name: str, *extra: str) -> subprocess.Popen[str]:
+        proc = self.start(["-m", "topoloc.ros", str(map_file), *extra, f"__name:={name}"], name)
+        topic = next((extra[k + 1] for k, a in enumerate(extra) if a == "--image-topic"), None)
+        if topic is not None:
+            wait_for(f"{name} to subscribe to {topic}", lambda: f"/{name}" in self.subscribers(topic) or
+                  proc.poll() is not None)
+            assert proc.poll() is None, self.err(name)
+        return proc
+
+    def probe(self, out: Path, *args: str) -> subprocess.Popen[str]:
+        proc = self.start(["-m", "topoloc.ros.probe", "--out", str(out), *args], out.stem)
+        for topic in [args[k + 1] for k, a in enumerate(args) if a == "--answers"]:
+            wait_for(f"the probe to subscribe to {topic}", lambda t=topic: bool(self.subscribers(t)))
+        return proc
+
+    def play(self, bag: Path, *args: str) -> None:
+        subprocess.run(["rosbag", "play", "-q", "-d", "2", *args, str(bag)], env=self.env, check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=120)
+
+    def err(self, name: str) -> str:
+        return (self.root / f"{name}.err").read_text()
+
+
+def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM, timeout: float = 30.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    return proc.wait(timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def ros(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
+    r = Ros(tmp_path_factory.mktemp("ros"))
+    yield r
+    r.close()
+
+
+def _ok(args: list[str]) -> str:
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    return result.stdout
+
+
+@pytest.fixture(scope="module")
+def route(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: pytest.TempPathFactory,
+          ) -> dict[str, Any]:
+    """The tiny route's map, and the dusk tour as a bag with bgr8, mono8 and compressed topics."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    root = tmp_path_factory.mktemp("ros_route")
+    map_file = tiny_route_map
+    files = sorted(tiny_route["query"].root.glob("*.jpg"))
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    t = ts.types
+
+    def header(sec: float) -> Any:
+        stamp = t["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=round((sec % 1) * 1e9))
+        return t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="camera")
+
+    def raw(sec: float, img: np.ndarray, encoding: str) -> bytes:
+        data = np.ascontiguousarray(img).reshape(-1)
+        msg = t["sensor_msgs/msg/Image"](header=header(sec), height=img.shape[0], width=img.shape[1],
+                                         encoding=encoding, is_bigendian=0, step=data.size // img.shape[0], data=data)
+        return bytes(ts.serialize_ros1(msg, "sensor_msgs/msg/Image"))
+
+    bag = root / "dusk.bag"
+    with Writer(bag) as w:
+        conns = {k: w.add_connection(topic, "sensor_msgs/msg/CompressedImage" if k == "compressed"
+                                     else "sensor_msgs/msg/Image", typestore=ts) for k, topic in TOPICS.items()}
+        for k, f in enumerate(files):
+            sec = T0 + 0.25 * k
+            bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            w.write(conns["bgr8"], round(sec * 1e9), raw(sec, bgr, "bgr8"))
+            w.write(conns["mono8"], round(sec * 1e9), raw(sec, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), "mono8"))
+            msg = t["sensor_msgs/msg/CompressedImage"](header=header(sec), format="jpeg",
+                                                      data=np.frombuffer(f.read_bytes(), np.uint8).copy())
+            w.write(conns["compressed"], round(sec * 1e9),
+                    bytes(ts.serialize_ros1(msg, "sensor_msgs/msg/CompressedImage")))
+    # A camera far faster than the node matches: the frames of the mono8 topic, 400 of them at 200 Hz (played
+    # faster still).
+    fast = root / "fast.bag"
+    with Writer(fast) as w:
+        conn = w.add_connection("/cam/fast", "sensor_msgs/msg/Image", typestore=ts)
+        greys = [cv2.cvtColor(cv2.imread(str(f), cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY) for f in files]
+        for k in range(400):
+            sec = T0 + 0.005 * k
+            w.write(conn, round(sec * 1e9), raw(sec, greys[k % len(greys)], "mono8"))
+    return {"root": root, "map": map_file, "bag": bag, "fast": fast, "n": len(files), "query": tiny_route["query"]}
+
+
+def _records(path: Path, kind: str) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in lines if r.get("kind") == kind]
+
+
+ANSWER_KEYS = ("place", "score", "accepted", "top", "x", "y", "time")
+
+
+def test_answers_equal_localize_on_each_encoding_of_the_bag(ros: Ros, route: dict[str, Any]) -> None:
+    """bgr8, mono8 and compressed topics played by rosbag play: the answers are localize's lines, frame for frame."""
+    nodes = {k: ros.node(route["map"], f"topoloc_{k}", "--image-topic", topic, "--queue", "1000")
+             for k, topic in TOPICS.items()}
+    out = route["root"] / "answers.jsonl"
+    probe = ros.probe(out, *[a for k in TOPICS for a in ("--answers", f"/topoloc_{k}/answer")])
+    ros.play(route["bag"], "-r", "2")
+    n = route["n"]
+    wait_for("every answer", lambda: all(sum(r["topic"] == f"/topoloc_{k}/answer" for r in _records(out, "answer"))
+                                      >= n for k in TOPICS), timeout=90)
+
+    def counted(k: str) -> bool:
+        last = [d for d in _records(out, "diagnostics") if d["name"].startswith(f"/topoloc_{k}")]
+        return bool(last) and int(last[-1]["values"]["frames_out"]) == n
+
+    wait_for("diagnostics of every frame", lambda: all(counted(k) for k in TOPICS), timeout=30)
+    for k in TOPICS:
+        assert _stop(nodes[k]) == 0
+        err = ros.err(f"topoloc_{k}")
+        assert "Traceback" not in err
+        # One line when it stops, with the counts: every frame in was answered, none skipped.
+        assert f"stopped (SIGTERM): {n} frames in, {n} answered, 0 skipped, 0 unreadable" in err, err
+    _stop(probe)
+    answers = _records(out, "answer")
+    for k, topic in TOPICS.items():
+        lines_file = route["root"] / f"localize_{k}.jsonl"
+        _ok(["localize", str(route["map"]), str(route["bag"]), "--topic", topic, "--out", str(lines_file), "-q"])
+        expected = [json.loads(line) for line in lines_file.read_text().splitlines()]
+        got = [a for a in answers if a["topic"] == f"/topoloc_{k}/answer"]
+        assert len(got) == len(expected) == n
+        for a, e in zip(got, expected, strict=True):
+            assert {key: a.get(key) for key in ANSWER_KEYS} == {key: e.get(key) for key in ANSWER_KEYS}
+            assert "x" in a  # the map has positions
+            # The frame's own header: stamp and frame id.
+            assert a["stamp"]["secs"] + 1e-9 * a["stamp"]["nsecs"] == pytest.approx(e["time"], abs=1e-6)
+            assert a["frame_id"] == "camera"
+            assert "verified" not in a or isinstance(a["verified"], bool)
+    # The diagnostics counted the frames of each node.
+    diags = _records(out, "diagnostics")
+    for k in TOPICS:
+        last = [d for d in diags if d["name"].startswith(f"/topoloc_{k}")]
+        assert last, f"no diagnostics from /topoloc_{k}"
+        values = last[-1]["values"]
+        assert int(values["frames_in"]) == n and int(values["frames_skipped"]) == 0
+        assert float(values["ms_extract_mean"]) > 0
+        assert last[-1]["level"] == 1  # WARN: the map is not calibrated, every answer accepted
+
+
+def test_a_camera_faster_than_matching_leaves_no_backlog(ros: Ros, route: dict[str, Any]) -> None:
+    """400 frames at 800 Hz: skipped frames are counted, answers stay current, latency stays bounded."""
+    node = ros.node(route["map"], "topoloc_fast", "--image-topic", "/cam/fast")
+    out = route["root"] / "fast.jsonl"
+    probe = ros.probe(out, "--answers", "/topoloc_fast/answer")
+    ros.play(route["fast"], "-r", "4")  # 800 frames a second
+    last_stamp = T0 + 0.005 * 399
+    wait_for("the answer to the last frame",
+          lambda: any(abs(a["time"] - last_stamp) < 1e-6 for a in _records(out, "answer")), timeout=30)
+    assert _stop(node) == 0
+    _stop(probe)
+    err = ros.err("topoloc_fast")
+    line = next(x for x in err.splitlines() if "stopped (SIGTERM)" in x)
+    n_in, n_out, n_skipped, n_bad = (int(w) for w in
+                                     [line.split(": ")[-1].split(", ")[i].split()[0] for i in range(4)])
+    answers = _records(out, "answer")
+    assert n_in == 400 and n_bad == 0
+    assert n_out == len(answers) and n_out + n_skipped == n_in
+    assert n_skipped > 0, "at 800 Hz some frames must be skipped"
+    times = [a["time"] for a in answers]
+    assert times == sorted(times) and len(set(times)) == len(times)
+    # No backlog: each answer is about a frame received shortly before (a node matching every frame in turn
+    # would answer the last of 400 frames, sent within half a second, only after matching all the others), and
+    # the last frame sent is answered (waited for above).
+    worst = max(a["latency_ms"] for a in answers)
+    assert worst < 3000, f"latency {worst:.0f} ms with {n_skipped} frames skipped"
+
+
+def test_a_map_rewritten_while_it_runs_is_reloaded(ros: Ros, route: dict[str, Any]) -> None:
+    """map calibrate rewrites the map file: the node loads it (watching the file), again on SIGHUP and on ~reload."""
+    map_file = route["root"] / "reloaded.tlm"
+    shutil.copy(route["map"], map_file)
+    node = ros.node(map_file, "topoloc_reload", "--image-topic", "/cam/mono8")
+    out = route["root"] / "reload.jsonl"
+    probe = ros.probe(out)
+    _ok(["map", "calibrate", str(map_file), "--query", str(route["query"].root), "--sequence", "0", "-q"])
+    wait_for("the reload", lambda: "map reloaded" in ros.err("topoloc_reload"), timeout=30)
+    wait_for("calibrated diagnostics", lambda: any(d["name"].startswith("/topoloc_reload") and d["level"] == 0
+                                                for d in _records(out, "diagnostics")), timeout=30)
+    node.send_signal(signal.SIGHUP)
+    wait_for("the second reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 2, timeout=30)
+    called = subprocess.run(["rosservice", "call", "/topoloc_reload/reload"], env=ros.env, capture_output=True,
+                            text=True, timeout=60)
+    assert "success: True" in called.stdout, called.stdout + called.stderr
+    wait_for("the third reload", lambda: ros.err("topoloc_reload").count("map reloaded") == 3, timeout=30)
+    # A file that is no map put in its place (atomically): one line, and the node keeps the map it has.
+    broken = route["root"] / "broken.tmp"
+    broken.write_bytes(b"not a map")
+    os.replace(broken, map_file)
+    wait_for("the refusal", lambda: "map not reloaded, keeping the one loaded" in ros.err("topoloc_reload"), timeout=30)
+    assert node.poll() is None
+    assert _stop(node, signal.SIGINT) == 0
+    _stop(probe)
+    err = ros.err("topoloc_reload")
+    assert "Traceback" not in err and "stopped (SIGINT)" in err
+    reloads = [d["values"]["map_reloads"] for d in _records(out, "diagnostics") if d["name"].startswith("/topoloc_re")]
+    assert reloads and int(reloads[-1]) >= 1
+
+
+def test_the_shipped_launch_file_starts_the_node(ros: Ros, route: dict[str, Any]) -> None:
+    """docs/ros.md's roslaunch line, with the manifest-only package on ROS_PACKAGE_PATH."""
+    import topoloc.ros
+
+    share = Path(topoloc.ros.__file__).parent / "share"
+    env = {**ros.env, "ROS_PACKAGE_PATH": str(share), "TOPOLOC_PYTHON": sys.executable}
+    log = (ros.root / "roslaunch.out").open("w")
+    launch = subprocess.Popen(["roslaunch", "topoloc_ros", "localize.launch", f"map:={route['map']}",
+                               "image:=/cam/launched", "queue:=2"], env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        wait_for("the launched node", lambda: "/topoloc" in ros.subscribers("/cam/launched") or
+              launch.poll() is not None, timeout=90)
+        assert launch.poll() is None, (ros.root / "roslaunch.out").read_text()
+        assert ros.param("/topoloc/queue") == 2
+    finally:
+        assert _stop(launch, signal.SIGINT, timeout=60) == 0
+        log.close()
+    out = (ros.root / "roslaunch.out").read_text()
+    assert "stopped (SIGINT)" in out or "stopped (SIGTERM)" in out, out
+    assert "Traceback" not in out
+
+
+def test_losing_the_master_is_one_line(route: dict[str, Any], tmp_path: Path) -> None:
+    own = Ros(tmp_path)
+    try:
+        node = own.node(route["map"], "topoloc_orphan", "--image-topic", "/cam/mono8")
+    finally:
+        own.close()
+    assert node.wait(timeout=30) == 1
+    lines = [x for x in own.err("topoloc_orphan").splitlines() if x.strip() and "not calibrated" not in x]
+    assert len(lines) == 1 and "the ROS master at" in lines[0] and "is gone" in lines[0], lines
+
+
+def test_no_master_and_bad_settings_are_one_line(ros: Ros, route: dict[str, Any], tmp_path: Path) -> None:
+    env = {**ros.env, "ROS_MASTER_URI": f"http://127.0.0.1:{free_port()}"}
+    r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(route["map"])], env=env, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "no ROS master at" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(route["map"]), "--queue", "0"], env=ros.env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "queue must be >= 1" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(tmp_path / "none.tlm")], env=ros.env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "none.tlm" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_numpy_is_this_environments_and_rospy_the_systems(ros: Ros) -> None:
+    """The node's process imports rospy from the system's ROS packages without their NumPy shadowing ours."""
+    code = ("import numpy, cv2\nfrom topoloc.ros import import_rospy\nrospy = import_rospy()\n"
+            "import numpy as n2, genpy\nprint(n2.__file__); print(rospy.__file__); print(numpy is n2)")
+    r = subprocess.run([sys.executable, "-c", code], env=ros.env, capture_output=True, text=True, timeout=60)
+    numpy_file, rospy_file, same = r.stdout.split()
+    assert same == "True"
+    assert Path(numpy_file).resolve().is_relative_to(Path(sys.prefix).resolve()) or "site-packages" in numpy_file
+    assert "site-packages" in numpy_file  # a virtual environment's (or pip's), never Debian's dist-packages
+    assert "dist-packages" in rospy_file or "rospy" in sys.modules
