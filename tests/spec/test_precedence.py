@@ -12,7 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import typer
+from typer.testing import CliRunner
 
+from topoloc.cli import options
 from topoloc.cli.options import ALTERNATIVES, spec_from_cli
 from topoloc.spec import EvaluateSpec, LocalizeSpec, MapBuildSpec, VocabTrainSpec
 from topoloc.spec.config import DOTTED_NAMES
@@ -38,6 +41,8 @@ SAMPLES: dict[str, tuple[Any, Any]] = {
     "sequence.length": (2, 10), "sequence.mode": ("acceleration", "constant"),
     "execution.scheduler": ("tcp://a:1", "tcp://b:2"), "execution.scheduler_timeout": (5, 6.5),
     "execution.cache_dir": ("c1", Path("c2")),
+    "verification.enabled": (True, False), "verification.candidates": (5, 8),
+    "stream": ("rtsp://a/x", "rtsp://b/y"),
 }
 
 
@@ -57,6 +62,8 @@ def _base(cls: type, *settings: str) -> dict[str, Any]:
         base.pop("method")
     if "pairs_out" in settings:
         base["top_k"] = 2
+    if "stream" in settings:  # a camera or stream is read alone
+        base.pop("images")
     return base
 
 
@@ -82,7 +89,9 @@ class _Ctx:
         self.given = given
 
     def get_parameter_source(self, key: str) -> Any:
-        return _Source() if key in self.given else None
+        # localize's INPUTS parameter gives images or a stream (cli.options._CLI_PARAMETER)
+        given = self.given | ({"inputs"} if self.given & {"images", "stream"} else set())
+        return _Source() if key in given else None
 
 
 def _settings(cls: type) -> list[str]:
@@ -171,3 +180,20 @@ def test_a_bad_value_from_the_file_says_it_came_from_the_file(tmp_path: Path) ->
     with pytest.raises(ParameterError) as e:
         spec_from_cli(EvaluateSpec, _Ctx(set()), {}, config=config)  # type: ignore[arg-type]
     assert f"(set in {config})" in str(e.value)
+
+
+def test_localize_inputs_on_the_command_line_override_the_files(tmp_path: Path) -> None:
+    """INPUTS reach the specification as images (or a stream): given with --config they still win."""
+    seen: list[Any] = []
+    app = typer.Typer()
+
+    @app.command()
+    def localize(ctx: typer.Context, map_file: Path, inputs: list[str], config: Path | None = None) -> None:
+        values = {"map_file": map_file, "images": [Path(i) for i in inputs], "stream": None, "out": Path("o.jsonl")}
+        seen.append(options.spec_from_cli(LocalizeSpec, ctx, values, config=config))
+
+    config = tmp_path / "run.toml"
+    config.write_text("images = ['from_file']\nout = 'o.jsonl'\n")
+    r = CliRunner().invoke(app, ["m.tlm", "from_flag", "--config", str(config)])
+    assert r.exit_code == 0, r.output
+    assert seen[0].images == (Path("from_flag"),)

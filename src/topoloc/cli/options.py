@@ -105,6 +105,8 @@ _CLI_TO_FLAT = {"map": "maps", "param": "params"}
 _FLAT_TO_FLAG = {"vocabulary": "--vocab/--vocab-train", "maps": "--map", "params": "--param", "images": "INPUTS",
                  "folders": "FOLDERS", "map_file": "--map-file"}
 _NOT_SPEC = {"config", "quiet", "ctx"}
+#: Values a command passes under another name than its parameter's: localize's INPUTS become images or a stream.
+_CLI_PARAMETER = {"images": "inputs", "stream": "inputs"}
 
 
 def flag_of(param: str, names: Mapping[str, str] | None = None) -> str:
@@ -164,7 +166,8 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
         if key in _NOT_SPEC:
             continue
         if config is not None:
-            source = ctx.get_parameter_source(key)
+            # Values a command renamed from its parameter (localize's INPUTS split into images and a stream).
+            source = ctx.get_parameter_source(_CLI_PARAMETER.get(key, key))
             if getattr(source, "name", None) not in ("COMMANDLINE", "ENVIRONMENT"):
                 continue
         if key == "param":
@@ -192,7 +195,7 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
 
 #: Settings that are alternatives to one another: a flag giving one replaces a file's other (issue #41).
 ALTERNATIVES = (("ground_truth.tolerance", "ground_truth.tolerance_m"), ("vocabulary.file", "vocabulary.train"),
-                ("maps", "map_file"))
+                ("maps", "map_file"), ("images", "stream"))
 #: A flag giving the first replaces the file's settings it fixes: a saved map fixes the method, its
 #: parameters and its vocabulary (a file's ``method = "bow"`` is for building from ``maps``).
 FIXES = {"map_file": ("method", "params", "vocabulary.file", "vocabulary.train", "vocabulary.words")}
