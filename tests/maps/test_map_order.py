@@ -102,7 +102,7 @@ def test_a_map_that_refits_to_add_needs_its_earlier_tours_unchanged(tours: dict[
     with pytest.raises(TopolocError, match="has changed since the map was built"):
         m.add_tour(b, cache_dir=tours["cache"])
     shutil.rmtree(a)
-    with pytest.raises(TopolocError, match="its folder is not found"):
+    with pytest.raises(TopolocError, match="its folder is gone"):
         m.add_tour(b, cache_dir=tours["cache"])
 
 

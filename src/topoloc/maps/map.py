@@ -107,10 +107,10 @@ def reload_tour(rec: dict[str, Any], *, purpose: str = "to add a tour") -> Trave
     else:
         if not Path(root).is_dir():
             where = ("" if Path(root).is_absolute() else
-                     f" (the map recorded it relative to the folder it was built in; run from there, or build "
-                     f"it again) from {Path.cwd()}")
+                     f" from {Path.cwd()} (the map recorded it relative to the folder it was built in; run from "
+                     "there, or build it again)")
             raise input_error(f"tour {rec.get('name')!r} of the map is needed again {purpose}, but its "
-                              f"folder is not found{where}", root)
+                              f"folder is gone{where}", root)
         t = load_traverse(root)
     if t.fingerprint() != rec["fingerprint"]:
         raise input_error(f"tour {rec.get('name')!r} has changed since the map was built (other images or "
