@@ -1,6 +1,6 @@
 """Regenerate docs/results/verification.md (+ .json, verification_pr.png): every method with and without verification.
 
-    .venv/bin/python -m benchmarks.bench_verification [--parts quality,consistency,speed,localize]
+    .venv/bin/python -m benchmarks.bench_verification [--parts quality,consistency,slam,speed,localize]
         [--rows gp_day,...] [--methods coocmap,...] [--runs DIR]
 
 Parts (development data, ``../shared/data``; every setting a default, XFeat features):
@@ -22,6 +22,12 @@ Parts (development data, ``../shared/data``; every setting a default, XFeat feat
   verified answer counts as confirmed when the previous frame's answer lies within
   its peak; the confidence of an unconfirmed answer drops below every confirmed
   one.  Measured on the gardens_point rows (the webcam queries are not a stream).
+- ``slam``: ``topoloc slam rtabmap_loop`` (online FAB-MAP, its default SIFT features, the
+  vocabulary trained on the webcams) with ``--verify`` and ``--no-verify``: loop
+  closures accepted and rejected by verification.  rtabmap_loop has no ground truth:
+  the route is walked twice (frames ~1-45 revisited by ~46-84), so a closure of image
+  k with image j is counted *on the route* when j is within 12 of k - 45 or the walk's
+  end meets its start (k >= 80, j <= 8).
 - ``speed``: the stage alone on 640 px gardens_point day frames (Cooc-Map's ``S``):
   ms per frame, quiet and beside 3 busy processes, paced at 10 Hz
   (``benchmarks.bench_load``'s ``busy`` and ``paced``).
@@ -173,6 +179,28 @@ def consistency(rows: Sequence[str], runs: Path) -> dict[str, Any]:
     return out
 
 
+def slam(tmp: Path) -> dict[str, Any]:
+    import csv
+
+    from benchmarks.common import DATA
+
+    out: dict[str, Any] = {}
+    for flag in ("--no-verify", "--verify"):
+        d = tmp / f"slam{flag}"
+        subprocess.run([str(TOPOLOC), "slam", "-q", str(DATA / "rtabmap_loop"), "--out", str(d), "--vocab-train",
+                        str(WEBCAM / "map"), flag], check=True, stdout=subprocess.DEVNULL)
+        with (d / "loop_closures.csv").open() as fh:
+            rows = list(csv.DictReader(fh))
+        on_route = sum(1 for r in rows if abs(int(r["matched_image"]) - (int(r["image"]) - 45)) <= 12
+                       or (int(r["image"]) >= 80 and int(r["matched_image"]) <= 8))
+        params = json.loads((d / "slam.json").read_text())["params"]
+        out[flag.strip("-").replace("-", "_")] = {
+            "closures": len(rows), "on_route": on_route,
+            "rejected": len(params.get("rejected_by_verification", [])),
+            "places": json.loads((d / "slam.json").read_text()).get("n_places")}
+    return out
+
+
 def speed(runs: Path) -> dict[str, Any]:
     d = _base_run("coocmap", "gp_day", runs)
     S = np.load(d / "S.npy")
@@ -305,6 +333,15 @@ def render(res: dict[str, Any]) -> str:
                   f"| quiet | {s['busy0']['median_ms']} | {s['busy0']['p95_ms']} |",
                   f"| 3 busy processes | {s['busy3']['median_ms']} | {s['busy3']['p95_ms']} |", "",
                   f"Beside 3 busy processes: {s['ratio_median']}x the quiet median, {s['ratio_p95']}x the p95.", ""]
+    sl = res.get("slam")
+    if sl:
+        lines += ["## `topoloc slam` (online FAB-MAP) on rtabmap_loop", "",
+                  "| verification | loop closures | on the route | rejected by verification | places |",
+                  "| --- | --- | --- | --- | --- |"]
+        for key, x in sl.items():
+            lines.append(f"| {key.replace('_', '-')} | {x['closures']} | {x['on_route']} | {x['rejected']} | "
+                         f"{x['places']} |")
+        lines.append("")
     loc = res.get("localize")
     if loc:
         lines += ["## `topoloc localize` end to end", "",
@@ -322,14 +359,15 @@ def render(res: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--parts", default="quality,consistency,speed,localize")
+    ap.add_argument("--parts", default="quality,consistency,slam,speed,localize")
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--runs", type=Path, default=None, help="Keep (and reuse) the evaluate runs here.")
     args = ap.parse_args(argv)
     parts = args.parts.split(",")
     rows = args.rows.split(",")
-    unknown = sorted(set(rows) - set(ROWS)) + sorted(set(parts) - {"quality", "consistency", "speed", "localize"})
+    known = {"quality", "consistency", "slam", "speed", "localize"}
+    unknown = sorted(set(rows) - set(ROWS)) + sorted(set(parts) - known)
     if unknown:
         raise SystemExit(f"unknown part or row: {', '.join(unknown)}")
     require_data()
@@ -349,6 +387,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         if "consistency" in parts:
             res["consistency"] = consistency(rows, runs)
             _drop_curves(res["consistency"])
+        if "slam" in parts:
+            res["slam"] = slam(tmp)
         if "speed" in parts:
             res["speed"] = speed(runs)
         if "localize" in parts:

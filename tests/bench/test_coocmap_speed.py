@@ -43,6 +43,14 @@ def test_bench_real_small(tmp_path: Path) -> None:
     assert res["locations"] == 10 and res["n_queries"] == 4 and res["n_images"] >= 6
     assert res["ms_per_query_median"] > 0 and res["map_bytes"] > 0 and res["n_features_median"] > 10
     assert res["recall_at_1"] >= 0.5 and res["lazy_agree"] == 1.0
+    # The tail: what the slowest 5 % and the rest do, from every query's profile.
+    assert res["ms_per_query_p95"] <= res["ms_per_query_p99"] <= res["ms_per_query_max"]
+    for part in ("slowest_5pct", "rest"):
+        prof = res[part]
+        assert prof["features"] > 10 and 0 <= prof["repeated_word_share"] <= 1
+        assert 0 < prof["best_score"] <= prof["best_candidates"] <= prof["features"]
+        assert prof["best_triples_per_candidate"] >= 1 and prof["J_built"] >= 1
+    assert "per_query" not in res
     assert len(list((tmp_path / "cache" / "bench").glob("*.tlc"))) == 1
     again = bench_coocmap_real([route], **kw)  # type: ignore[arg-type]  # features from the cache
     assert again["recall_at_1"] == res["recall_at_1"] and again["map_bytes"] == res["map_bytes"]

@@ -20,7 +20,7 @@ def _evaluate(cli: Cli, rf: dict[str, Path], out: Path, *extra: str) -> dict:
 def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: Cli, rf: dict[str, Path],
                                                                            tmp_path: Path) -> None:
     m = _evaluate(cli, rf, tmp_path / "v", "--verify")
-    assert m["params"]["verify"] is True and m["run"]["spec"]["verification"] == {"enabled": True, "candidates": 3}
+    assert m["params"]["verify"] is True and m["run"]["spec"]["verification"] == {"enabled": True, "candidates": None}
     v = m["verification"]
     assert v["candidates"] == 3 and 0.5 <= v["verified_fraction"] <= 1 and v["ms_per_query"] > 0
     z = np.load(tmp_path / "v" / "verification.npz")
@@ -80,3 +80,26 @@ def test_localize_says_per_frame_whether_it_verified(cli: Cli, rf: dict[str, Pat
     lines = [json.loads(x) for x in (tmp_path / "l.jsonl").read_text().splitlines()]
     assert all(isinstance(r["verified"], bool) and isinstance(r["inliers"], int) for r in lines)
     assert summary["verified"] == sum(r["verified"] for r in lines) and summary["ms_verify_mean"] > 0
+
+
+def test_slam_records_whether_it_verified_loop_closures(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    for flag, want in (([], True), (["--no-verify"], False)):
+        out = tmp_path / f"slam{len(flag)}"
+        said = cli.ok(["slam", str(rf["map"]), "--out", str(out), "--vocab", str(rf["vocab"]), "--cache-dir",
+                       str(rf["cache"]), "--min-gap", "2", "-q", *flag])
+        params = json.loads((out / "slam.json").read_text())["params"]
+        assert params["verify"] is want and ("rejected_by_verification" in params) is want
+        assert ("rejected by verification" in said) is want
+
+
+def test_a_sequence_verifies_its_best_place_only(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    m = _evaluate(cli, rf, tmp_path / "s", "--verify", "--sequence", "2")
+    assert m["verification"]["candidates"] == 1
+    z = np.load(tmp_path / "s" / "verification.npz")
+    S = np.load(tmp_path / "s" / "S.npy")
+    # No reranking: each query's best place is the sequence's, verified or not.
+    base = _evaluate(cli, rf, tmp_path / "b", "--no-verify", "--sequence", "2")
+    assert np.array_equal(np.load(tmp_path / "b" / "S.npy").argmax(axis=0), S.argmax(axis=0))
+    assert z["candidates"].shape == (S.shape[1], 1) and base["params"]["verify"] is False

@@ -193,6 +193,75 @@ def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyP
     np.testing.assert_array_equal(g1, g2)
 
 
+def _textured_case(seed: int, *, n_loc: int = 40, nw: int = 12, n: int = 70, tours: int = 3) -> tuple[
+        CoocModel, np.ndarray, np.ndarray]:
+    """Few words, many features: each word recurs in every image (texture), tens of triples per candidate."""
+    return _case(np.random.default_rng(seed), n_loc=n_loc, n_tours=tours, nw=nw, n=n, position_bits=6)
+
+
+def _window_and_translation_bounds(model: CoocModel, loc: int, w: np.ndarray, xy: np.ndarray, tol: int,
+                                   thr: float) -> tuple[int, int, int, int]:
+    """(candidates, triples, translation bound, window bound against ``thr``) of one location."""
+    from topoloc.coocmap import compiled as c
+
+    qptr, qf, qx, qy = c._query_table(model, w, xy)
+    gx, gy = int(model.grid_x), int(model.grid_y)
+    stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, _ = c._new_scratch(
+        len(qx), c._triple_capacity(model.loc_ptr, qptr), gx, gy)
+    n, nt = c._triples(model.loc_ptr[loc], model.loc_ptr[loc + 1], model.word, model.xy, qptr, qf, qx, gx, 0, stamp,
+                       cand, cof, t_f, t_a, t_x)
+    c._triple_rows(nt, t_f, t_a, t_x, model.xy, qy, gy, t_y, t_b)
+    tb = c._translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, tol + 1, c._PAIRWISE_MAX)
+    wb = c._window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, tol + 1, float(thr), c._WINDOW_ROUNDS)
+    return n, nt, int(tb), int(wb)
+
+
+@pytest.mark.parametrize("tol", [0, 1])
+def test_window_bound_bounds_every_score_and_is_tighter_than_the_translation_bound(tol: int) -> None:
+    model, w, xy = _textured_case(21 + tol, n_loc=12)
+    ref = match_sequential(consistency_graphs(model, w, xy, spatial_tolerance=tol))
+    tighter = 0
+    for loc in range(model.n_locations):
+        n, nt, tb, wb = _window_and_translation_bounds(model, loc, w, xy, tol, 0.0)  # thr 0: no peeling
+        assert nt >= 2 * n  # the textured case: where the matcher computes this bound
+        assert ref.scores[loc] <= wb <= tb
+        tighter += wb < tb
+        # Peeling against a threshold: below it only when the score is below it, and still an upper bound.
+        for thr in (ref.scores[loc], ref.scores[loc] + 1, wb + 1):
+            _, _, _, peeled = _window_and_translation_bounds(model, loc, w, xy, tol, float(thr))
+            assert peeled >= ref.scores[loc]
+            if thr <= ref.scores[loc]:
+                assert peeled >= thr
+    assert tighter >= model.n_locations // 2
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_equals_the_reference_where_words_recur(seed: int) -> None:
+    """Textured scenes (the slow tail, issue #38): same S as the rule every schedule follows, bit for bit.
+
+    Locations at or above the top_k-th best score T are exact and equal the reference
+    (every J built, every location eliminated to completion); the others report min(n_i, T - 1/2);
+    the best location's group is the reference's.  And the bounds before J drop locations here.
+    """
+    model, w, xy = _textured_case(seed)
+    n_i = candidate_counts(model, w)
+    dropped = 0
+    for tol in (0, 1, 2):
+        g = consistency_graphs(model, w, xy, seed=seed, spatial_tolerance=tol)
+        ref = match_sequential(g)
+        for k in (1, 3):
+            T = np.sort(ref.scores)[::-1][k - 1]
+            want = np.where(ref.scores >= T, ref.scores, np.minimum(n_i, T - 0.5))
+            for threads in (1, 2):
+                res, group = match_compiled(model, w, xy, top_k=k, seed=seed, spatial_tolerance=tol, threads=threads)
+                np.testing.assert_array_equal(res.exact, ref.scores >= T)
+                np.testing.assert_array_equal(res.scores, want.astype(res.scores.dtype))
+                np.testing.assert_array_equal(group, ref.group(g, ref.best))
+                assert res.best == ref.best
+                dropped += res.translation_pruned  # type: ignore[attr-defined]
+    assert dropped > 0
+
+
 @pytest.mark.parametrize(("seed", "n_loc", "k"), [(0, 12, 10), (1, 12, 10), (2, 14, 10), (3, 20, 10), (4, 40, 5)])
 def test_scores_follow_one_rule_whatever_the_schedule_finished(seed: int, n_loc: int, k: int) -> None:
     """S is exact at or above T (the top_k-th best score) and min(n_i, T - 1/2) below, even when every

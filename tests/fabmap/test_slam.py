@@ -92,3 +92,27 @@ def test_write_slam_outputs_from_word_arrays(model: FabMapModel, tmp_path: Path)
     summary = json.loads(paths["summary"].read_text())
     assert summary["n_images"] == len(seq) and summary["n_places"] == res.n_places
     assert summary["n_loop_closures"] == len(res.loop_closures())
+
+
+def test_a_loop_closure_the_geometry_rejects_founds_a_new_place(model: FabMapModel) -> None:
+    seq, _ = loop_sequence()
+    n = len(seq) // 2
+    plain = FabMapSlam(model, min_gap=5).run(seq)
+    asked: list[tuple[int, int]] = []
+
+    def verify(image: int, place: int) -> bool:
+        asked.append((image, place))
+        return image % 2 == 0  # odd images' loop closures fail the check
+
+    slam = FabMapSlam(model, min_gap=5, verify=verify)
+    res = slam.run(seq)
+    # Only loop closures are checked (never the first pass, never staying at the previous image's place).
+    assert asked and all(img >= n for img, _ in asked)
+    assert {img for img, _ in slam.rejected} == {img for img, _ in asked if img % 2}
+    lc = res.loop_closures()
+    assert lc and all(img % 2 == 0 for img, _, _ in lc)
+    assert all(res.steps[img].new_place for img, _ in slam.rejected)
+    assert res.n_places > plain.n_places
+    # Accepting every check changes nothing.
+    same = FabMapSlam(model, min_gap=5, verify=lambda i, p: True).run(seq)
+    assert same.loop_closures() == plain.loop_closures()

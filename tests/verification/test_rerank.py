@@ -58,3 +58,15 @@ def test_more_inliers_rank_higher_across_queries() -> None:
     assert verified.all()
     assert np.argsort(-Sv.max(axis=0)).tolist() == [0, 2, 1]  # by inliers, not by the method's score
     assert squash(np.array([-np.inf, 0.0, np.inf])).tolist() == [0.0, 0.5, 1.0]
+
+
+def test_the_methods_answer_stands_against_an_as_good_as_equal_rival() -> None:
+    S = _bumps(60, [(10, 3.0), (40, 2.0)])[:, None]
+    rows, lo, hi = candidate_rows(S, 2)
+    need = np.full((1, 2), 15)
+    # 55 against 50: within sqrt(105) ~ 10 of each other, the method's best place stays.
+    Sv, _, best = verified_scores(S, rows, lo, hi, np.array([[50, 55]]), need)
+    assert int(Sv[:, 0].argmax()) == 10 and best[0] == 50
+    # 80 against 50: clearly more support, the reranking happens.
+    Sv, _, best = verified_scores(S, rows, lo, hi, np.array([[50, 80]]), need)
+    assert int(Sv[:, 0].argmax()) == 40 and best[0] == 80

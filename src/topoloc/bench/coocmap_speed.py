@@ -375,10 +375,50 @@ def real_features(dirs: list[Any], *, locations: int, tours: int, n_queries: int
             "n_images": len(paths), "vocabulary": fp, "vocab_file": str(vocab_file)}
 
 
+def real_map(dirs: list[Any], *, locations: int = 2200, tours: int = 5, n_queries: int = 500,
+             vocab_train: list[Any], n_words: int = 10000, position_bits: int = 6, seed: int = 0,
+             cache_dir: Any = None, progress: Any = None) -> tuple[CoocModel, dict[str, Any], float]:
+    """The real-image benchmark's map and queries (:func:`real_features`): ``(model, data, build seconds)``.
+
+    The map uses the ``coocmap`` method's defaults (12 x 8 grid, interpolation, ``position_bits`` 6).
+    """
+    data = real_features(dirs, locations=locations, tours=tours, n_queries=n_queries, vocab_train=vocab_train,
+                         n_words=n_words, seed=seed, cache_dir=cache_dir, progress=progress)
+    t0 = time.perf_counter()
+    obs = [[(lo, data["tour_words"][t][lo], data["tour_xy"][t][lo]) for lo in range(locations)]
+           for t in range(tours)]
+    hours = np.linspace(8, 22, tours) if tours > 1 else np.array([14.0])
+    model = CoocModel.build(obs, n_locations=locations, n_words=n_words, position_bits=position_bits,
+                            tour_names=[f"t{t}" for t in range(tours)], tour_hours=list(map(float, hours)))
+    return model, data, time.perf_counter() - t0
+
+
+def query_profile(model: CoocModel, words: np.ndarray, res: Any) -> dict[str, float]:
+    """What one query's matching did (the counters of :func:`~topoloc.coocmap.compiled.match_compiled`),
+    and what its words are like: the share of its features whose word recurs in it, and the triples
+    (query feature, stored feature of the same word) per candidate of its best location."""
+    w = np.asarray(words, np.int64).ravel()
+    w = w[(w >= 0) & (w < model.n_words)]
+    _, inv, cnt = np.unique(w, return_inverse=True, return_counts=True)
+    best = int(res.best)
+    stored = np.bincount(np.asarray(model.word[model.loc_ptr[best]:model.loc_ptr[best + 1]], np.int64),
+                         minlength=model.n_words) if best >= 0 else np.zeros(model.n_words, np.int64)
+    per_f = stored[w]
+    n_cand = int(np.count_nonzero(per_f))
+    return {
+        "features": float(len(words)), "repeated_word_share": float(np.mean(cnt[inv] > 1)) if len(w) else 0.0,
+        "best_score": float(res.scores[best]) if best >= 0 else 0.0,
+        "best_triples_per_candidate": float(per_f.sum() / n_cand) if n_cand else 0.0,
+        "best_candidates": float(n_cand),
+        "visited": float(res.locations_visited), "pruned_before_J": float(res.translation_pruned),
+        "J_built": float(res.locations_built), "pair_tests": float(res.pair_tests), "steps": float(res.steps),
+    }
+
+
 def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5, n_queries: int = 500,
                        vocab_train: list[Any], n_words: int = 10000, top_k: int = 1, compare: int = 20,
                        spatial_tolerance: int = 1, position_bits: int = 6, seed: int = 0,
-                       cache_dir: Any = None, progress: Any = None) -> dict[str, Any]:
+                       cache_dir: Any = None, progress: Any = None, per_query: bool = False) -> dict[str, Any]:
     """Time localisation against a map of real images at the paper's size.
 
     Locations, tours and queries are described in :func:`real_features`.  The
@@ -395,41 +435,37 @@ def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5
     Returns
     -------
     dict
-        ``ms_per_query_median``, ``ms_per_query_p95``, ``recall_at_1`` (best
+        ``ms_per_query_median``, ``ms_per_query_p95``, ``ms_per_query_p99``,
+        ``ms_per_query_max``, ``recall_at_1`` (best
         location == the query's), ``map_bytes``, ``bytes_per_location``,
         ``n_features_median`` (per image, tours and queries),
         ``ms_lazy_median``/``ms_lazy_p95``/``recall_at_1_lazy`` and
         ``lazy_agree`` (same best location) on the ``compare`` queries,
         ``locations_built_median``/``_p95`` (locations whose ``J`` was built),
-        ``translation_pruned_median`` (dropped by the translation bound before
-        any ``J``), ``pair_tests_median``,
-        ``peak_rss_mb``, ``build_s`` and the settings.
+        ``translation_pruned_median`` (dropped by the bounds before any
+        ``J``), ``pair_tests_median``, ``slowest_5pct`` and ``rest`` (medians
+        of :func:`query_profile` over the slowest 5 % of the queries and over
+        the others), ``peak_rss_mb``, ``build_s`` and the settings; with
+        ``per_query``, ``per_query`` (ms and :func:`query_profile` of every
+        query, lists).
     """
     import resource
 
     from topoloc.coocmap.compiled import match_compiled
 
-    data = real_features(dirs, locations=locations, tours=tours, n_queries=n_queries, vocab_train=vocab_train,
-                         n_words=n_words, seed=seed, cache_dir=cache_dir, progress=progress)
-    t0 = time.perf_counter()
-    obs = [[(lo, data["tour_words"][t][lo], data["tour_xy"][t][lo]) for lo in range(locations)]
-           for t in range(tours)]
-    hours = np.linspace(8, 22, tours) if tours > 1 else np.array([14.0])
-    model = CoocModel.build(obs, n_locations=locations, n_words=n_words, position_bits=position_bits,
-                            tour_names=[f"t{t}" for t in range(tours)], tour_hours=list(map(float, hours)))
-    build_s = time.perf_counter() - t0
+    model, data, build_s = real_map(dirs, locations=locations, tours=tours, n_queries=n_queries,
+                                    vocab_train=vocab_train, n_words=n_words, position_bits=position_bits,
+                                    seed=seed, cache_dir=cache_dir, progress=progress)
     kw: dict[str, Any] = {"top_k": top_k, "seed": seed, "spatial_tolerance": spatial_tolerance}
     q_loc = data["query_loc"]
     match_compiled(model, data["query_words"][0], data["query_xy"][0], **kw)  # compile / load the kernel
-    ms, built, pruned, tests, best = [], [], [], [], []
+    ms, best, prof = [], [], []
     for w, xy in zip(data["query_words"], data["query_xy"], strict=True):
         t = time.perf_counter()
         res, _ = match_compiled(model, w, xy, **kw)
         ms.append(1e3 * (time.perf_counter() - t))
-        built.append(res.locations_built)  # type: ignore[attr-defined]
-        pruned.append(res.translation_pruned)  # type: ignore[attr-defined]
-        tests.append(res.pair_tests)  # type: ignore[attr-defined]
         best.append(res.best)
+        prof.append(query_profile(model, w, res))
     lazy_ms, lazy_best = [], []
     for w, xy in list(zip(data["query_words"], data["query_xy"], strict=True))[:compare]:
         t = time.perf_counter()
@@ -438,18 +474,24 @@ def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5
         lazy_best.append(lazy.best)
     n_feat = [len(w) for tw in data["tour_words"] for w in tw] + [len(w) for w in data["query_words"]]
     nc = len(lazy_best)
-    return {
+    col = {k: np.array([p[k] for p in prof]) for k in prof[0]} if prof else {}
+    slow = np.asarray(ms) >= np.percentile(ms, 95)
+    out = {
         "benchmark": "real", "dirs": [str(d) for d in dirs], "n_images": data["n_images"],
         "locations": locations, "tours": tours, "n_queries": len(q_loc), "n_words": n_words,
         "vocab_train": [str(d) for d in vocab_train], "features": "sift, <= 1000 per image (evaluate defaults)",
         "top_k": top_k, "spatial_tolerance": spatial_tolerance, "position_bits": position_bits,
         "ms_per_query_median": float(np.median(ms)), "ms_per_query_p95": float(np.percentile(ms, 95)),
-        "ms_per_query_max": float(np.max(ms)),
+        "ms_per_query_p99": float(np.percentile(ms, 99)), "ms_per_query_max": float(np.max(ms)),
         "recall_at_1": float(np.mean(np.asarray(best) == q_loc)),
         "map_bytes": model.nbytes, "bytes_per_location": model.bytes_per_location,
         "features_stored": model.n_features, "n_features_median": float(np.median(n_feat)),
-        "locations_built_median": float(np.median(built)), "locations_built_p95": float(np.percentile(built, 95)),
-        "translation_pruned_median": float(np.median(pruned)), "pair_tests_median": float(np.median(tests)),
+        "locations_built_median": float(np.median(col["J_built"])),
+        "locations_built_p95": float(np.percentile(col["J_built"], 95)),
+        "translation_pruned_median": float(np.median(col["pruned_before_J"])),
+        "pair_tests_median": float(np.median(col["pair_tests"])),
+        "slowest_5pct": {k: float(np.median(v[slow])) for k, v in col.items()},
+        "rest": {k: float(np.median(v[~slow])) for k, v in col.items()},
         "compare": nc,
         "ms_lazy_median": float(np.median(lazy_ms)) if nc else float("nan"),
         "ms_lazy_p95": float(np.percentile(lazy_ms, 95)) if nc else float("nan"),
@@ -460,3 +502,6 @@ def bench_coocmap_real(dirs: list[Any], *, locations: int = 2200, tours: int = 5
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "build_s": build_s,
     }
+    if per_query:
+        out["per_query"] = {"ms": [float(x) for x in ms], **{k: v.tolist() for k, v in col.items()}}
+    return out

@@ -395,6 +395,16 @@ def show_match_cmd(
     typer.echo(json.dumps({**info, "out": str(out)}, default=str))
 
 
+def slam_verify(verify: bool | None) -> bool:
+    """``slam --verify/--no-verify``; not given: ``$TOPOLOC_VERIFY``, else on (verification.md, part ``slam``)."""
+    from topoloc.spec.parts import verify_from_env
+
+    if verify is not None:
+        return verify
+    env = verify_from_env()
+    return True if env is None else env
+
+
 @app.command()
 @handle_errors
 def slam(
@@ -410,6 +420,7 @@ def slam(
     p_new: Annotated[float, typer.Option(help="Prior probability of a new place.")] = 0.9,
     min_gap: Annotated[int, typer.Option(help="Images between a place's last visit and a loop closure.")] = 10,
     features: SlamFeaturesOption = "sift",
+    verify: VerifyOption = None,
     max_features: MaxFeaturesOption = 1000,
     max_side: MaxSideAutoOption = "auto",
     preprocess: PreprocessOption = "auto",
@@ -449,12 +460,14 @@ def slam(
         resources, _ = make_resources(feature_spec.config(), voc_spec, cache_dir=cache_dir,
                                       needs_vocabulary="slam", progress=progress, tours=[trav])
         result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
-                          threshold=threshold, p_new=p_new, min_gap=min_gap)
+                          threshold=threshold, p_new=p_new, min_gap=min_gap, verify=slam_verify(verify))
         if html is not None:
             from topoloc.evaluation.slam_html import build_slam_html
 
             typer.echo(f"wrote {build_slam_html(out, html, progress=progress)}")
-    typer.echo(f"{result.n_images} images, {result.n_places} places, {len(result.loop_closures())} loop closures; "
+    rejected = len(result.params.get("rejected_by_verification", []))
+    typer.echo(f"{result.n_images} images, {result.n_places} places, {len(result.loop_closures())} loop closures"
+               + (f" ({rejected} rejected by verification)" if result.params.get("verify") else "") + "; "
                f"wrote {out}/posterior.npy, loop_closures.csv, loop_closures.png")
 
 

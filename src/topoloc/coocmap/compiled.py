@@ -33,11 +33,18 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   near-duplicate views the 2-D bound is within ~1.5x of the true score and
   drops almost every wrong location (``benchmarks/bench_coocmap_speed.py``,
   real-image rows of docs/results/coocmap_speed.md: J built for 2 of 2,200
-  locations, median); across day and night it prunes little.
+  locations, median); across day and night it prunes little.  Where a
+  word recurs in the query and in the stored images (texture: tens of
+  triples per candidate), counting triples is loose, and
+  :func:`_window_bound` counts the *distinct* candidates near each
+  candidate's translations instead (bitsets), then peels the candidates
+  that cannot be in a group as large as the threshold: the slowest 5 % of
+  the real benchmark's queries were such (its tail section).
 * ``J_i`` is filled as a dense 0/1 matrix by the same translation-bucketed
   enumeration of (query feature, stored feature) pairs as
   :func:`~topoloc.coocmap.matching.consistency_graphs` (exact), skipping the
-  spatial test of a pair of candidates already known to be consistent; no
+  spatial test of a pair of candidates already known to be consistent (a
+  candidate's triples in one bucket are one run, skipped at once); no
   edge list is formed, so nothing needs deduplicating.
 * Bounds of Sec. II-D before and during elimination: a mutually consistent
   group of ``k`` needs ``k`` candidates with at least ``k - 1`` consistent
@@ -66,6 +73,7 @@ Nothing here is approximate; :func:`match_compiled` only computes less.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -78,7 +86,7 @@ from topoloc._parallel import n_workers
 from topoloc.cluster import in_worker_task
 from topoloc.coocmap.matching import MatchResult
 from topoloc.coocmap.model import CoocModel
-from topoloc.coocmap.spatial import NORM, NORM_BITS
+from topoloc.coocmap.spatial import NORM, NORM_BITS, signed_cells
 
 #: Locations (by candidate count) whose translation bound orders the start of the matching.
 SEED_FIRST = 8
@@ -366,10 +374,137 @@ def _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r)
     return _h_index(n, cand, U, hist)
 
 
+#: :func:`_window_bound` is computed for a location with at least this many triples per candidate: there
+#: the translation bound, which counts every triple, is loosest.  With fewer, the translation bound counts
+#: each candidate near another about once, the two bounds are close, and the pass over every bucket's
+#: bitsets costs about what it saves (the gardens_point rows of the tail section of
+#: docs/results/coocmap_speed.md, ``benchmarks/bench_coocmap_speed.py``, time the matcher there).
+_WINDOW_MIN_TRIPLES = 2
+
+#: Peeling rounds of :func:`_window_bound` at most (each a valid bound; more only tighten it).
+_WINDOW_ROUNDS = 8
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _popcount(x):
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+@njit(cache=True, nogil=True)
+def _dilate(src, dst, BX, BY, r, along_rows):
+    """``dst[b]`` = the union (OR) of the bitsets ``src`` of the buckets at most ``r`` from bucket ``b`` in the
+    same column (``along_rows``: rows ``by - r .. by + r``) or in the same row (columns ``bx - r .. bx + r``);
+    bucket ``(bx, by)`` is row ``bx * BY + by``."""
+    nw = src.shape[1]
+    for bx in range(BX):
+        for by in range(BY):
+            o = bx * BY + by
+            for k in range(nw):
+                dst[o, k] = 0
+            c = by if along_rows else bx
+            lim = BY if along_rows else BX
+            for v in range(max(c - r, 0), min(c + r + 1, lim)):
+                p = bx * BY + v if along_rows else v * BY + by
+                for k in range(nw):
+                    dst[o, k] |= src[p, k]
+
+
+@njit(cache=True, nogil=True)
+def _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, rounds):
+    """Upper bound on the final group from the *distinct* candidates near each candidate's translations.
+
+    ``J[f, g] = 1`` needs a triple of ``g`` at most ``r`` buckets from one of
+    ``f``'s in both directions (:func:`_translation_bound`), so ``f``'s row sum
+    of ``J`` is at most the number of other candidates with a triple in the
+    union of the ``(2r + 1)^2`` windows around ``f``'s triples.  Each bucket's
+    candidates are a bitset; the window's union is the bucket's bitsets
+    dilated by ``r`` along the rows, then along the columns (O(buckets x r x
+    n / 64) word operations), and ``f``'s count the population of the union
+    over its triples' windows.  Unlike :func:`_translation_bound` (which counts
+    triples, once per triple of ``f``) a candidate met through many triples
+    counts once: where a word recurs in the query and in the stored images
+    (tens of triples per candidate on textured scenes) this bound is several
+    times tighter, and it costs O(triples x n / 64), not the O(triples^2) of
+    :func:`_partner_bound` or of building ``J``.
+
+    Then peeling, while the bound is at least ``thr`` (at most ``rounds``
+    times): a candidate whose count + 1 is below ``thr`` cannot be in a group
+    of ``thr`` or more (every member of such a group has its other members
+    near it), so it is removed and the counts taken again without it; the
+    members of a group of size ``>= thr`` are never removed, so the h-index of
+    what remains still bounds such a group.  Returns an upper bound on the
+    final group when it is below ``thr`` (the h-index, or ``ceil(thr) - 1``
+    once peeling has shown the group smaller than ``thr``), else a value
+    ``>= thr``.
+    """
+    BX = 2 * gx
+    BY = 2 * gy
+    NB = BX * BY
+    nw = (n + 63) >> 6
+    # The triples' buckets grouped by candidate (a counting sort by candidate index).
+    start = np.zeros(n + 1, np.int64)
+    for t in range(nt):
+        start[cof[t_f[t]] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:n].copy()
+    byc = np.empty(nt, np.int64)
+    for t in range(nt):
+        c = cof[t_f[t]]
+        byc[fill[c]] = t_x[t] * BY + t_y[t]
+        fill[c] += 1
+    alive = np.ones(n, np.bool_)
+    B = np.empty((NB, nw), np.uint64)
+    R = np.empty((NB, nw), np.uint64)
+    acc = np.empty(nw, np.uint64)
+    h = n
+    for rnd in range(max(rounds, 1)):
+        B[:] = 0
+        for c in range(n):
+            if alive[c]:
+                bit = np.uint64(1) << np.uint64(c & 63)
+                k = c >> 6
+                for q in range(start[c], start[c + 1]):
+                    B[byc[q], k] |= bit
+        # Dilate along the rows (into R), then along the columns (back into B).
+        _dilate(B, R, BX, BY, r, True)
+        _dilate(R, B, BX, BY, r, False)
+        for c in range(n):
+            if not alive[c]:
+                U[cand[c]] = 0
+                continue
+            for k in range(nw):
+                acc[k] = 0
+            for q in range(start[c], start[c + 1]):
+                b = byc[q]
+                for k in range(nw):
+                    acc[k] |= B[b, k]
+            cnt = 0
+            for k in range(nw):
+                cnt += _popcount(acc[k])
+            U[cand[c]] = cnt  # 1 + the others: its own bit is in its own window
+        hr = _h_index(n, cand, U, hist)
+        if rnd == 0:
+            h = hr
+        if hr < thr:
+            return min(h, int(np.ceil(thr)) - 1)
+        removed = False
+        for c in range(n):
+            if alive[c] and U[cand[c]] < thr:
+                alive[c] = False
+                removed = True
+        if not removed:
+            break
+    return h
+
+
 @njit(cache=True, nogil=True)
 def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed, tag,
                     stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune, pairwise_max,
-                    partners_max):
+                    partners_max, shift, ctab):
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
 
     Returns ``(score, exact, elimination steps, pair tests, dropped by the
@@ -398,6 +533,10 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     tb = _translation_bound(n, nt, cand, t_f, t_x, t_y, U, P, hist, gx, gy, r, pairwise_max)
     if tb_prune and tb < thr:
         return float(tb), False, 0, 0, 1
+    if tb_prune and nt > partners_max and nt >= _WINDOW_MIN_TRIPLES * n and thr > 0:
+        wb = _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, _WINDOW_ROUNDS)
+        if wb < thr:
+            return float(wb), False, 0, 0, 1
     if tb_prune and nt <= partners_max:
         pb = _partner_bound(n, nt, cand, cof, t_f, t_a, t_x, t_y, groups, U, hist, gx, r)
         if pb < thr:
@@ -407,8 +546,19 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     cand_feat = np.sort(cand[:n])
     for i in range(n):
         cof[cand_feat[i]] = i
-    # The triples in translation-bucket order, gathered into contiguous arrays.
-    bcount, perm = _counting_order(t_b, nt, NB)
+    # The triples in translation-bucket order and, within a bucket, by candidate (a counting sort by
+    # candidate, then a stable one by bucket), gathered into contiguous arrays.  A candidate's triples in
+    # a bucket are then one run (``run_end``), skipped at once once its pair with the other is known
+    # consistent: on a textured scene, tens of triples per candidate, that is most of the pairs.
+    key = np.empty(nt, np.int64)
+    for t in range(nt):
+        key[t] = cof[t_f[t]]
+    by_cand = _counting_order(key, nt, n)[1]
+    for t in range(nt):
+        key[t] = t_b[by_cand[t]]
+    bcount, perm = _counting_order(key, nt, NB)
+    for t in range(nt):
+        perm[t] = by_cand[perm[t]]
     sf = np.empty(nt, np.int64)
     sc = np.empty(nt, np.int64)
     sa = np.empty(nt, np.int64)
@@ -429,57 +579,84 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
         tx[d] = qx[f] - sx[d]
         ty[d] = qy[f] - sy[d]
         sg[d] = groups[a]
+    run_end = np.empty(nt, np.int64)
+    for d in range(nt - 1, -1, -1):
+        nxt = d + 1
+        run_end[d] = run_end[nxt] if nxt < nt and sc[nxt] == sc[d] and t_b[perm[nxt]] == t_b[perm[d]] else nxt
+    # On a coarse position lattice (the method's default) an offset is one of few lattice steps, and
+    # its signed cells come from a table (:func:`_cell_tables`) instead of being computed per test.
+    lattice = ctab.shape[1] > 0
+    D1 = (1 << (NORM_BITS - shift)) - 1
+    W = 2 * D1 + 1
+    # A lattice point's index p = kx * W + ky is linear, so an offset's table index is p_b - p_a + C.
+    C = D1 * W + D1
+    ps = np.empty(nt if lattice else 0, np.int64)
+    pq = np.empty(nt if lattice else 0, np.int64)
+    if lattice:
+        for d in range(nt):
+            f = sf[d]
+            ps[d] = (sx[d] >> shift) * W + (sy[d] >> shift)
+            pq[d] = (qx[f] >> shift) * W + (qy[f] >> shift)
     J = np.zeros((n, n), np.uint8)
     deg = np.zeros(n, np.int64)
     # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
     tests = 0
-    for bxa in range(2 * gx):
-        for bya in range(2 * gy):
-            ba = bxa * BYg + bya
-            a0 = bcount[ba]
-            a1 = bcount[ba + 1]
-            if a0 == a1:
-                continue
-            for ox in range(0, r + 1):
-                bxb = bxa + ox
-                if bxb >= 2 * gx:
-                    break
-                for oy in range(-r, r + 1):
-                    if ox == 0 and oy < 0:
-                        continue
-                    byb = bya + oy
-                    if byb < 0 or byb >= 2 * gy:
-                        continue
-                    bb = bxb * BYg + byb
-                    same = ox == 0 and oy == 0
-                    b1 = bcount[bb + 1]
-                    for i in range(a0, a1):
-                        fi = sf[i]
-                        ci = sc[i]
-                        j0 = i + 1 if same else bcount[bb]
-                        for j in range(j0, b1):
-                            cj = sc[j]
-                            if ci == cj or J[ci, cj]:
-                                continue
-                            # Necessary: translations less than tol + 1 squares apart.
-                            if abs(tx[j] - tx[i]) * gx >= lim or abs(ty[j] - ty[i]) * gy >= lim:
-                                continue
-                            if sa[i] == sa[j] or (sg[i] & sg[j]) == 0:
-                                continue
-                            tests += 1
-                            fj = sf[j]
-                            # Evaluate in the direction f < g, as the reference does.
-                            if fi < fj:
-                                ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
-                                mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
-                            else:
-                                ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
-                                mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
-                            if abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol:
-                                J[ci, cj] = 1
-                                J[cj, ci] = 1
-                                deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
-                                deg[cj] += 1
+    # For a triple in bucket (bx, by), the buckets within r that come after it in bucket order are, in
+    # each of the columns bx .. bx + r, one range of rows: so its partners are r + 1 contiguous ranges of
+    # the sorted triples (in its own column, from the next triple on), each swept in one loop.
+    BX = 2 * gx
+    for i in range(nt):
+        fi = sf[i]
+        ci = sc[i]
+        txi = tx[i]
+        tyi = ty[i]
+        sai = sa[i]
+        sgi = sg[i]
+        bi = t_b[perm[i]]
+        bxi = bi // BYg
+        byi = bi - bxi * BYg
+        y0 = max(byi - r, 0)
+        y1 = min(byi + r, BYg - 1)
+        for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
+            j = i + 1 if bxb == bxi else bcount[bxb * BYg + y0]
+            j1 = bcount[bxb * BYg + y1 + 1]
+            while j < j1:
+                cj = sc[j]
+                if ci == cj or J[ci, cj]:
+                    j = run_end[j]  # nothing left to learn from cj's other triples in this bucket
+                    continue
+                # Necessary: translations less than tol + 1 squares apart.
+                if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim
+                        or sai == sa[j] or (sgi & sg[j]) == 0):
+                    j += 1
+                    continue
+                tests += 1
+                fj = sf[j]
+                # Evaluate in the direction f < g, as the reference does.
+                if lattice:
+                    if fi < fj:
+                        ks = ps[j] - ps[i] + C
+                        kq = pq[j] - pq[i] + C
+                    else:
+                        ks = ps[i] - ps[j] + C
+                        kq = pq[i] - pq[j] + C
+                    ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
+                else:
+                    if fi < fj:
+                        ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
+                        mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
+                    else:
+                        ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
+                        mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
+                    ok = abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol
+                if ok:
+                    J[ci, cj] = 1
+                    J[cj, ci] = 1
+                    deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
+                    deg[cj] += 1
+                    j = run_end[j]
+                else:
+                    j += 1
     # The h-index bound from the row sums.
     hist = np.zeros(n + 1, np.int64)
     for i in range(n):
@@ -558,7 +735,8 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
 
 @njit(cache=True, nogil=True)
 def _match_chunk(order, p0, p1, seed_first, head, n_cand, top, n_fin, top_k, loc_ptr, word, xy, groups, qptr,
-                 qf_sorted, qx, qy, tol, gx, gy, seed, cap, out_score, out_exact, out_stats, best_keep):
+                 qf_sorted, qx, qy, tol, gx, gy, seed, cap, shift, ctab, out_score, out_exact, out_stats,
+                 best_keep):
     """Match the locations ``order[p0:p1]`` in turn (see :func:`_match_locations`), in one compiled loop.
 
     ``top`` (top_k,), ascending: the ``top_k`` best finished scores known when
@@ -593,7 +771,7 @@ def _match_chunk(order, p0, p1, seed_first, head, n_cand, top, n_fin, top_k, loc
             visited += 1
             res = _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed,
                                   p, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, True,
-                                  _PAIRWISE_MAX, _PARTNERS_MAX)
+                                  _PAIRWISE_MAX, _PARTNERS_MAX, shift, ctab)
         k = p - p0
         out_score[k] = res[0]
         out_exact[k] = res[1]
@@ -632,6 +810,36 @@ def _head_bounds(order, S, loc_ptr, word, xy, qptr, qf_sorted, qx, qy, tol, gx, 
     return head
 
 
+#: Position lattices of at most this many bits per axis get the signed-cell tables of :func:`_cell_tables`
+#: (``(2^bits - 1)^2`` offsets: 16,129 at the method's default of 6 bits).
+LATTICE_MAX_BITS = 8
+
+
+@functools.lru_cache(maxsize=16)
+def _lattice_cells(grid_x: int, grid_y: int, position_bits: int) -> tuple[int, np.ndarray]:
+    if position_bits > LATTICE_MAX_BITS:
+        return 16 - position_bits, np.zeros((2, 0), np.int8)
+    shift = 16 - position_bits
+    k = np.arange(-(1 << position_bits) + 1, 1 << position_bits, dtype=np.int64) << shift
+    dx, dy = np.meshgrid(k, k, indexing="ij")  # row-major: index (kx + D1) * W + ky + D1
+    cx, cy = signed_cells(dx.ravel(), dy.ravel(), grid_x, grid_y)
+    tab = np.stack([cx, cy])
+    tab.setflags(write=False)
+    return shift, tab
+
+
+def _cell_tables(model: CoocModel) -> tuple[int, np.ndarray]:
+    """``(shift, table)``: the signed cells (:func:`~topoloc.coocmap.spatial.signed_cells`) of every offset
+    between two points of the model's position lattice, ``table[:, (dx >> shift + D1) * W + dy >> shift + D1]``
+    with ``D1 = 2^bits - 1`` and ``W = 2 D1 + 1``; an empty table (``(2, 0)``) on a finer lattice (more than
+    :data:`LATTICE_MAX_BITS` bits), where the kernel computes the cells of each pair instead.
+
+    Exact: offsets between lattice points are multiples of ``2^shift``, so the table holds the very values
+    :func:`_cells` computes for them.
+    """
+    return _lattice_cells(int(model.grid_x), int(model.grid_y), int(model.position_bits))
+
+
 def _triple_capacity(loc_ptr: np.ndarray, qptr: np.ndarray) -> int:
     """Most triples any location can have with this query: its stored features times the most query
     features of one word."""
@@ -655,7 +863,7 @@ def _one_location(model: CoocModel, loc: int, thr: float, words: np.ndarray, xy:
     res = _match_location(int(loc), float(thr), model.loc_ptr, model.word, model.xy, model.group_masks(interpolate),
                           qptr, qf, qx, qy, int(tol), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
                           0, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, bool(tb_prune),
-                          int(pairwise_max), _PARTNERS_MAX)
+                          int(pairwise_max), _PARTNERS_MAX, *_cell_tables(model))
     return (*res, np.flatnonzero(keep))
 
 
@@ -753,14 +961,14 @@ class _Shared:
 
     def run(self, p0: int, p1: int, top: np.ndarray, n_fin: int) -> None:
         """Match the chunk (outside the lock) and record it, unless it was recorded meanwhile."""
-        loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap = self.kernel_args
+        loc_ptr, word, xy, groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, shift, ctab = self.kernel_args
         m = p1 - p0
         score, exact, stats = np.empty(m), np.zeros(m, bool), np.zeros((m, 3), np.int64)
         keep = np.zeros(self.F, np.bool_)
         order = self.order  # read once: the tail replaces it beyond ``head`` (never this chunk's positions)
         end, stopped, _, best_score, best_loc, visited = _match_chunk(
             order, p0, p1, self.seed_first, self.head, self.n_cand, top, n_fin, self.top_k, loc_ptr, word, xy,
-            groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, score, exact, stats, keep)
+            groups, qptr, qf, qx, qy, tol, gx, gy, seed, cap, shift, ctab, score, exact, stats, keep)
         k = end - p0
         with self.lock:
             if p0 in self.done:
@@ -840,7 +1048,7 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     location.  Returns the best location (-1 if none).
     """
     L = len(order)
-    loc_ptr, word, xy, _, qptr, qf, qx, qy, tol, gx, gy, _, cap = kernel_args
+    loc_ptr, word, xy, _, qptr, qf, qx, qy, tol, gx, gy, _, cap, _, _ = kernel_args
     S = min(seed_first, L)
     head = _head_bounds(order, S, loc_ptr, word, xy, qptr, qf, qx, qy, tol, gx, gy, cap)
     order = order.copy()
@@ -915,7 +1123,7 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     n_threads = 1 if not parallel or in_worker_task() else n_workers(-1 if threads is None else threads)
     kernel_args = (model.loc_ptr, model.word, model.xy, model.group_masks(interpolate), qptr, qf, qx, qy,
                    int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
-                   _triple_capacity(model.loc_ptr, qptr))
+                   _triple_capacity(model.loc_ptr, qptr), *_cell_tables(model))
     _match_locations(order, n_cand, kernel_args, int(top_k), SEED_FIRST, n_threads, len(words), scores, exact,
                      stats, keep)
     # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact

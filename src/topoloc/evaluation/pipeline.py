@@ -297,7 +297,8 @@ def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traver
                 raise
             log.warning("%s; answers are not verified", exc)
             return None
-    return build_verifier(spec.verification, method.place_ids_, tours, resources, what=what)
+    return build_verifier(spec.verification, method.place_ids_, tours, resources, what=what,
+                          sequence=spec.sequence.length)
 
 
 def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> None:

@@ -129,6 +129,7 @@ def run_slam(
     bailout: bool = False,
     seed: int = 0,
     plot: bool = True,
+    verify: bool = False,
 ) -> SlamResult:
     """Run online FAB-MAP over one traverse in order and write the outputs.
 
@@ -151,6 +152,12 @@ def run_slam(
         See :class:`~topoloc.fabmap.slam.FabMapSlam`.
     plot : bool
         Write ``loop_closures.png``.
+    verify : bool
+        Check each loop closure geometrically before accepting it
+        (:mod:`topoloc.verification`: the image against the image that founded
+        the place, with the local features of ``resources``); one that fails
+        founds a new place instead.  ``slam.json`` counts them
+        (``rejected_by_verification``).
 
     Returns
     -------
@@ -164,11 +171,18 @@ def run_slam(
     if len(words) != len(tr):
         raise TopolocError(f"got words for {len(words)} images but the traverse has {len(tr)}")
     fm = load_or_train_model(model, resources)
+    check = None
+    founders: list[int] = []  # the filter's, once it exists: the image that founded each place
+    if verify:
+        if resources is None:
+            raise TopolocError("run_slam needs resources (local features) to verify loop closures")
+        check = _loop_check(resources.features(tr), lambda place: founders[place])
     slam = FabMapSlam(
         fm, variant=variant, naive_bayes=naive_bayes, normaliser=normaliser,
         n_samples=n_samples, p_new=p_new, threshold=threshold, smoothing=smoothing,
-        p_stay=p_stay, p_uniform=p_uniform, min_gap=min_gap, bailout=bailout, seed=seed,
+        p_stay=p_stay, p_uniform=p_uniform, min_gap=min_gap, bailout=bailout, seed=seed, verify=check,
     )
+    founders = slam.result.founders
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     # Loop closures are appended as they are found, so an interrupted run keeps what it found;
@@ -190,9 +204,28 @@ def run_slam(
     extractor = getattr(resources, "extractor", None)
     if extractor is not None:  # which features the words came from (slam's default differs from evaluate's)
         result.params["features"] = extractor.config.descriptor_kind
+    result.params["verify"] = bool(verify)
+    if verify:
+        result.params["rejected_by_verification"] = [[k, slam.result.founders[p] if p < len(slam.result.founders)
+                                                      else -1] for k, p in slam.rejected]
     write_slam_outputs(result, out, plot=plot)
     progress_csv.unlink(missing_ok=True)
     return result
+
+
+def _loop_check(features: Sequence[Any], founder: Any) -> Any:
+    """``verify(image, place)`` for :class:`FabMapSlam`: the image against the place's founding image."""
+    from topoloc.verification import check_pair, prepare_descriptors
+
+    def verify(k: int, place: int) -> bool:
+        q, m = features[k], features[founder(place)]
+        pairs, needed = check_pair(np.ascontiguousarray(q.keypoints[:, :2], np.float64),
+                                   prepare_descriptors(q.descriptors),
+                                   np.ascontiguousarray(m.keypoints[:, :2], np.float64),
+                                   prepare_descriptors(m.descriptors), m.image_shape)
+        return len(pairs) >= needed and len(pairs) > 0
+
+    return verify
 
 
 # Every file a run writes into its folder (the partial file is removed when the run ends).

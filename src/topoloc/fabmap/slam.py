@@ -41,7 +41,7 @@ from the run's features and vocabulary and writes the result's files.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -209,6 +209,14 @@ class FabMapSlam:
     bailout : bool
         Bennett bail-out for the FAB-MAP 1.0 likelihoods.
     seed : int
+    verify : callable, optional
+        ``verify(image, place) -> bool``: a geometric check of a loop closure
+        before it is accepted (``topoloc slam --verify``:
+        :mod:`topoloc.verification` of the image against the place's founding
+        image).  A loop closure that fails it is not made: the image founds a
+        new place, as when the posterior stays below ``threshold`` (RTAB-Map
+        and DLoopDetector reject an unverified loop the same way).  Places
+        the image merely continues (the previous image's place) are not checked.
     """
 
     #: The filter's own parameters (``variant`` and ``normaliser``: :data:`~topoloc.fabmap.place_map.MAP_CONSTRAINTS`).
@@ -233,6 +241,7 @@ class FabMapSlam:
         min_gap: int = 10,
         bailout: bool = False,
         seed: int = 0,
+        verify: Callable[[int, int], bool] | None = None,
     ) -> None:
         validate_params("fabmap", {"threshold": threshold, "p_new": p_new, "p_stay": p_stay, "p_uniform": p_uniform},
                         self.parameter_constraints)
@@ -253,6 +262,8 @@ class FabMapSlam:
         self.p_stay = p_stay
         self.p_uniform = p_uniform
         self.min_gap = int(min_gap)
+        self.verify = verify
+        self.rejected: list[tuple[int, int]] = []
         self.result = SlamResult(params=dict(self.params))
         self._belief = np.zeros(0)
         self._edges: set[tuple[int, int]] = set()
@@ -280,7 +291,12 @@ class FabMapSlam:
             post = location_posterior(ll, prior, new_ll, p_new=self.p_new,
                                       smoothing=self.smoothing)
         best = int(np.argmax(post[:n])) if n else -1
-        if n and post[best] >= self.threshold:
+        accept = bool(n) and post[best] >= self.threshold
+        if accept and self.verify is not None and best != self._prev_place \
+                and k - self._last_seen[best] >= self.min_gap and not self.verify(k, best):
+            self.rejected.append((k, best))  # a loop closure the geometry does not confirm
+            accept = False
+        if accept:
             place, is_new, prob = best, False, float(post[best])
             self.map.update(place, obs)
             if place == self._prev_place:

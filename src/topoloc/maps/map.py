@@ -56,7 +56,7 @@ from topoloc.spec import (
 from topoloc.spec.parts import NOT_BOTH, verify_from_env
 from topoloc.spec.runs import check_prefetch
 from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import DEFAULT_CANDIDATES, Verifier
+from topoloc.verification import Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
@@ -634,8 +634,8 @@ class Map:
             return False
         return (self.spec.get("verification") or {}).get("enabled")
 
-    def verifier(self, *, candidates: int = DEFAULT_CANDIDATES, resources: Resources | None = None,
-                 cache_dir: str | Path | None = None) -> Verifier:
+    def verifier(self, *, candidates: int | None = None, resources: Resources | None = None,
+                 cache_dir: str | Path | None = None, sequence: int = 0) -> Verifier:
         """The verification stage against this map (:mod:`topoloc.verification`).
 
         The tours are read again from their folders or recordings (checked
@@ -656,7 +656,7 @@ class Map:
         tours = [reload_tour(rec, purpose="to verify answers") for rec in self.tours]
         res = resources if resources is not None else self.resources(cache_dir=cache_dir)
         v = build_verifier(VerificationSpec(enabled=True, candidates=candidates), self.place_ids, tours, res,
-                           what=where)
+                           what=where, sequence=sequence)
         assert v is not None
         return v
 
@@ -683,7 +683,7 @@ class Map:
 
     def localizer(self, *, top_k: int = 5, sequence: int | None = None,
                   sequence_mode: str | None = None, prefetch: int = -1, verify: bool | None = None,
-                  candidates: int = DEFAULT_CANDIDATES) -> Localizer:
+                  candidates: int | None = None) -> Localizer:
         """An online localiser: feed it frames one at a time (:meth:`Localizer.step`).
 
         ``sequence`` / ``sequence_mode`` None: those of :attr:`calibrated_sequence`,
@@ -871,7 +871,8 @@ class Map:
                               q.root)
         verify = self.resolve_verify(verify)  # not told: as localize would match (recorded with the threshold)
         res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
-        verifier = self.verifier(resources=res) if verify else None  # fails before the tour is scored
+        # Fails before the tour is scored.
+        verifier = self.verifier(resources=res, sequence=sequence.length if sequence else 0) if verify else None
         S = self.recognizer.similarity(q, resources=res)
         if sequence is not None and sequence.length:
             from topoloc.sequence import sequence_similarity
@@ -929,8 +930,9 @@ class Localizer:
         Verify each frame's candidates against the map images (:mod:`topoloc.verification`):
         its line then says ``verified`` and ``inliers``, and its score is the
         verified confidence.
-    candidates : int
-        Distinct peaks verified per frame.
+    candidates : int, optional
+        Distinct peaks verified per frame (default: 3 for single images, the
+        best place with ``sequence``: :func:`topoloc.verification.default_candidates`).
     prefetch : int
         Frames :meth:`stream` reads and describes ahead of the one being
         matched, on a pool of one thread per core (at most ``prefetch``): the
@@ -942,7 +944,7 @@ class Localizer:
     """
 
     def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant",
-                 prefetch: int = -1, verify: bool = False, candidates: int = DEFAULT_CANDIDATES) -> None:
+                 prefetch: int = -1, verify: bool = False, candidates: int | None = None) -> None:
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
         check_prefetch(prefetch)
@@ -955,7 +957,7 @@ class Localizer:
         self.prefetch = prefetch
         self.frames = 0
         # Built before the first frame: a map whose tours cannot be read again fails here, in one line.
-        self.verifier: Verifier | None = m.verifier(candidates=candidates) if verify else None
+        self.verifier: Verifier | None = m.verifier(candidates=candidates, sequence=sequence) if verify else None
         self.ms_verify = 0.0
         self.n_verified = 0
         rec = m.recognizer

@@ -566,17 +566,20 @@ class VerificationSpec:
         wherever the map's images can be verified, which on the development
         data raises R@100P by day and at night (``docs/results/verification.md``);
         True: verify, or a one-line error where the map cannot be; False: never.
-    candidates : int
-        Distinct peaks checked per query.
+    candidates : int or None
+        Distinct peaks checked per query; None (default): 3 for single images,
+        the sequence's best place only with ``--sequence N``
+        (:func:`topoloc.verification.default_candidates`).
     """
 
     enabled: bool | None = None
-    candidates: int = 3
+    candidates: int | None = None
 
     def __post_init__(self) -> None:
         if self.enabled is not None and not isinstance(self.enabled, bool):
             raise ParameterError("verification.enabled", f"must be true or false, got {self.enabled!r}")
-        if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or self.candidates < 1:
+        if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
+                                            or self.candidates < 1):
             raise ParameterError("verification.candidates", f"must be a whole number >= 1, got {self.candidates!r}")
 
 

@@ -37,7 +37,7 @@ from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
 from topoloc.resources import CachedResources, Resources
 from topoloc.spec.parts import VerificationSpec, VocabularySpec, verify_from_env
-from topoloc.verification import Verifier
+from topoloc.verification import Verifier, default_candidates
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import VOCAB_SCHEMA
 
@@ -243,7 +243,7 @@ def unverifiable(tours: Sequence[Traverse]) -> str:
 
 
 def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequence[Traverse],
-                   resources: Resources, *, what: str = "the map") -> Verifier | None:
+                   resources: Resources, *, what: str = "the map", sequence: int = 0) -> Verifier | None:
     """The verification stage of a run (:mod:`topoloc.verification`), or None when it is off.
 
     ``spec.enabled`` None (the default) verifies where the map's images can
@@ -261,6 +261,9 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
         Where their local features come from (the run's feature settings and cache).
     what : str
         Named in the error.
+    sequence : int
+        The run's ``--sequence N`` (0: single images), which sets the default
+        number of candidates (:func:`topoloc.verification.default_candidates`).
     """
     enabled = spec.enabled if spec.enabled is not None else verify_from_env()
     if enabled is False:
@@ -290,7 +293,8 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     def image_names(row: int) -> list[str]:
         return [str(tours[ti].images[k]) for ti, k in rows_of[row]]
 
-    return Verifier(place_images, candidates=spec.candidates, image_names=image_names)
+    candidates = spec.candidates if spec.candidates is not None else default_candidates(sequence)
+    return Verifier(place_images, candidates=candidates, image_names=image_names)
 
 
 __all__ = ["build_method", "build_verifier", "make_resources", "tours_vocabulary", "unverifiable"]

@@ -9,6 +9,7 @@ runs both over a block of queries.  Arrays and feature sets in, arrays out
 
 from topoloc.verification.pairs import (
     chance_inliers,
+    check_pair,
     fundamental_inliers,
     fundamental_mask,
     inlier_threshold,
@@ -16,10 +17,30 @@ from topoloc.verification.pairs import (
     prepare_descriptors,
 )
 from topoloc.verification.rerank import candidate_rows, squash, verified_scores
-from topoloc.verification.verifier import DEFAULT_CANDIDATES, DEFAULT_MAX_ITERS, VerifiedBlock, Verifier
+from topoloc.verification.verifier import (
+    DEFAULT_CANDIDATES,
+    DEFAULT_MAX_ITERS,
+    SEQUENCE_CANDIDATES,
+    VerifiedBlock,
+    Verifier,
+    default_candidates,
+)
 
 __all__ = [
-    "DEFAULT_CANDIDATES", "DEFAULT_MAX_ITERS", "VerifiedBlock", "Verifier", "candidate_rows", "chance_inliers",
-    "fundamental_inliers", "fundamental_mask", "inlier_threshold", "mutual_matches", "prepare_descriptors", "squash",
+    "DEFAULT_CANDIDATES",
+    "DEFAULT_MAX_ITERS",
+    "SEQUENCE_CANDIDATES",
+    "VerifiedBlock",
+    "Verifier",
+    "candidate_rows",
+    "chance_inliers",
+    "check_pair",
+    "default_candidates",
+    "fundamental_inliers",
+    "fundamental_mask",
+    "inlier_threshold",
+    "mutual_matches",
+    "prepare_descriptors",
+    "squash",
     "verified_scores",
 ]

@@ -176,5 +176,37 @@ def fundamental_mask(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, ma
     return np.zeros(m, bool) if mask is None else mask.ravel().astype(bool)
 
 
-__all__ = ["ALPHA", "ETA", "MIN_SAMPLE", "chance_inliers", "fundamental_inliers", "fundamental_mask",
+def check_pair(xy_q: np.ndarray, desc_q: np.ndarray, xy_m: np.ndarray, desc_m: np.ndarray,
+               shape_m: tuple[int, int], *, max_iters: int = 2000,
+               matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, int]:
+    """Steps 1-4 of the module docstring for one query and one map image.
+
+    Parameters
+    ----------
+    xy_q, xy_m : ndarray, shape (n_q, 2) and (n_m, 2)
+        Keypoint positions (pixels) of the query and the map image.
+    desc_q, desc_m : ndarray
+        Their descriptors, prepared by :func:`prepare_descriptors`.
+    shape_m : (H, W)
+        The map image's size (its diagonal sets the tolerance).
+    max_iters : int
+        Of :func:`fundamental_mask`.
+    matches : (ia, ib), optional
+        :func:`mutual_matches` of the two, when already computed.
+
+    Returns
+    -------
+    inliers : ndarray of float32, shape (n, 4)
+        The inlier matches: query x, y, map x, y.
+    needed : int
+        The chance support (:func:`chance_inliers`): verified iff ``n >= needed``.
+    """
+    ia, ib = mutual_matches(desc_q, desc_m) if matches is None else matches
+    t = inlier_threshold(shape_m)
+    keep = fundamental_mask(xy_q[ia], xy_m[ib], t, max_iters=max_iters)
+    pairs = np.hstack([xy_q[ia[keep]], xy_m[ib[keep]]]).astype(np.float32)
+    return pairs, chance_inliers(len(ia), shape_m, t)
+
+
+__all__ = ["ALPHA", "ETA", "MIN_SAMPLE", "chance_inliers", "check_pair", "fundamental_inliers", "fundamental_mask",
            "inlier_threshold", "mutual_matches", "prepare_descriptors"]

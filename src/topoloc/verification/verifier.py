@@ -23,18 +23,27 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
-from topoloc.verification.pairs import (
-    chance_inliers,
-    fundamental_mask,
-    inlier_threshold,
-    mutual_matches,
-    prepare_descriptors,
-)
+from topoloc.verification.pairs import check_pair, mutual_matches, prepare_descriptors
 from topoloc.verification.rerank import candidate_rows, verified_scores
 
-#: Distinct peaks verified per query (``docs/results/verification.md``, part ``knobs``).
+#: Distinct peaks verified per single image (``docs/results/verification.md``, part ``quality``).
 DEFAULT_CANDIDATES = 3
+#: ... and per frame matched in a sequence: its best place only.  A sequence's answer rests on N + 1 frames;
+#: one frame's geometry checks it but does not overrule it (reranking among 3 peaks lowered R@1 of every method
+#: on gardens_point's night row with ``--sequence 10``: verification.md, part ``quality``).
+SEQUENCE_CANDIDATES = 1
+
+# The descriptor products are small (a few hundred to a thousand rows): OpenBLAS's thread team costs more than
+# it saves there, and on a busy machine it waits at its barriers for descheduled threads, so the stage runs them
+# on one thread (the ``speed`` part of benchmarks/bench_verification.py times the stage beside busy processes).
+_BLAS = ThreadpoolController()
+
+
+def default_candidates(sequence: int) -> int:
+    """Distinct peaks verified per query: :data:`DEFAULT_CANDIDATES` for single images, 1 with ``--sequence N``."""
+    return SEQUENCE_CANDIDATES if sequence else DEFAULT_CANDIDATES
 #: RANSAC iterations per candidate: they bound the stage's time on wrong pairs.
 DEFAULT_MAX_ITERS = 2000
 
@@ -154,11 +163,9 @@ class Verifier:
         if best is None:
             return 0, 1, np.zeros((0, 4), np.float32), -1
         ia, ib, k = best
-        xy_c, _, shape = images[k]
-        t = inlier_threshold(shape)
-        keep = fundamental_mask(xy_q[ia], xy_c[ib], t, max_iters=self.max_iters)
-        pairs = np.hstack([xy_q[ia[keep]], xy_c[ib[keep]]]).astype(np.float32)
-        return len(pairs), chance_inliers(len(ia), shape, t), pairs, int(k)
+        xy_c, dc, shape = images[k]
+        pairs, needed = check_pair(xy_q, dq, xy_c, dc, shape, max_iters=self.max_iters, matches=(ia, ib))
+        return len(pairs), needed, pairs, int(k)
 
     def verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
         """Verify the candidates of every column of ``S`` (one column per query, in order).
@@ -176,6 +183,10 @@ class Verifier:
         S = np.asarray(S)
         if S.ndim != 2 or S.shape[1] != len(queries):
             raise ValueError(f"S of shape {S.shape} needs one column per query; {len(queries)} queries given")
+        with _BLAS.limit(limits=1, user_api="blas"):
+            return self._verify(S, queries)
+
+    def _verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
         rows, lo, hi = candidate_rows(S, self.candidates)
         inl = np.zeros(rows.shape, np.int64)
         need = np.ones(rows.shape, np.int64)
@@ -204,4 +215,5 @@ class Verifier:
         return VerifiedBlock(S_v, verified, best, rows, inl, ms, matches, images, shapes)
 
 
-__all__ = ["DEFAULT_CANDIDATES", "DEFAULT_MAX_ITERS", "HasFeatures", "VerifiedBlock", "Verifier"]
+__all__ = ["DEFAULT_CANDIDATES", "DEFAULT_MAX_ITERS", "SEQUENCE_CANDIDATES", "HasFeatures", "VerifiedBlock", "Verifier",
+           "default_candidates"]
