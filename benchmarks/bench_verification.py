@@ -60,7 +60,7 @@ from topoloc.evaluation.metrics import compute_metrics
 from topoloc.evaluation.timing import apply_sequence
 from topoloc.spec import FeatureSpec, VerificationSpec
 from topoloc.spec.setup import build_verifier, make_resources
-from topoloc.verification import Verifier
+from topoloc.verification import Verifier, confirmed, demote_unconfirmed
 
 FEATURES = "xfeat"
 SEQUENCE = 10
@@ -106,10 +106,11 @@ def _base_run(method: str, row: str, runs: Path) -> Path:
 
 
 def _verifier(row: str, place_ids: np.ndarray) -> tuple[Verifier, list[Any]]:
-    maps, query, _, _, _ = ROWS[row]
+    maps, query, _, seq, _ = ROWS[row]
     res, _ = make_resources(FeatureSpec(method=FEATURES).config(), None)
     tours = [load_traverse(m) for m in maps]
-    v = build_verifier(VerificationSpec(enabled=True), place_ids, tours, res)
+    # As evaluate builds it: the sequence row verifies each frame's best place only.
+    v = build_verifier(VerificationSpec(enabled=True), place_ids, tours, res, sequence=seq)
     assert v is not None
     return v, res.features(load_traverse(query))
 
@@ -148,16 +149,6 @@ def _cli_check(method: str, row: str, runs: Path, S_bench: np.ndarray) -> bool:
     return bool(np.allclose(np.load(d / "S.npy"), S_bench, rtol=0, atol=1e-6))
 
 
-def confirmed(S: np.ndarray) -> np.ndarray:
-    """Whether each query's best place lies within the peak of the previous query's best (the first: no)."""
-    from topoloc.confidence import peak_extent
-
-    best, lo, hi = peak_extent(S)
-    ok = np.zeros(S.shape[1], bool)
-    ok[1:] = (best[:-1] >= lo[1:]) & (best[:-1] < hi[1:])
-    return ok
-
-
 def consistency(rows: Sequence[str], runs: Path) -> dict[str, Any]:
     """Temporal consistency on top of verification: unconfirmed answers below every confirmed one."""
     out: dict[str, Any] = {}
@@ -173,7 +164,7 @@ def consistency(rows: Sequence[str], runs: Path) -> dict[str, Any]:
             v, qf = _verifier(row, np.load(d / "places.npy"))
             Sv = v.verify(S, qf).S
             ok = confirmed(Sv)
-            Sc = Sv - np.where(ok, 0.0, 2.0)[None, :].astype(np.float32)
+            Sc = demote_unconfirmed(Sv, ok)
             out.setdefault(row, {})[method] = {"verified": _scores(Sv, gt), "verified_and_confirmed": _scores(Sc, gt),
                                                "confirmed_fraction": round(float(ok.mean()), 3)}
     return out
@@ -238,14 +229,16 @@ def localize(tmp: Path) -> dict[str, Any]:
     return out
 
 
-def _drop_curves(part: dict[str, Any]) -> None:
-    """The PR curves are drawn, not kept in the JSON (thousands of points per webcam cell)."""
+def _thin_curves(part: dict[str, Any], points: int = 200) -> None:
+    """PR curves kept at most ``points`` points each (thousands per webcam cell), enough to draw them again."""
     for cells in part.values():
         for cell in cells.values():
             for scores in cell.values():
-                if isinstance(scores, dict):
-                    scores.pop("precision", None)
-                    scores.pop("recall", None)
+                if isinstance(scores, dict) and "recall" in scores:
+                    n = len(scores["recall"])
+                    keep = np.unique(np.linspace(0, n - 1, min(n, points)).round().astype(int)) if n else []
+                    for key in ("precision", "recall"):
+                        scores[key] = [round(float(scores[key][i]), 4) for i in keep]
 
 
 # --------------------------------------------------------------------------------------------- page
@@ -381,12 +374,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         t0 = time.perf_counter()
         if "quality" in parts:
-            res["quality"] = quality(rows, args.methods.split(","), runs)
+            fresh = quality(rows, args.methods.split(","), runs)
+            _thin_curves(fresh)
+            # Rows not run this time keep their last measurement; the figure needs every row's curves.
+            res["quality"] = {r: {**old.get("quality", {}).get(r, {}), **fresh.get(r, {})}
+                              for r in ROWS if r in fresh or r in old.get("quality", {})}
             pr_figure(res["quality"], OUT_PNG)
-            _drop_curves(res["quality"])
         if "consistency" in parts:
-            res["consistency"] = consistency(rows, runs)
-            _drop_curves(res["consistency"])
+            fresh = consistency(rows, runs)
+            _thin_curves(fresh)
+            res["consistency"] = {**old.get("consistency", {}), **fresh}
         if "slam" in parts:
             res["slam"] = slam(tmp)
         if "speed" in parts:

@@ -41,7 +41,7 @@ SAMPLES: dict[str, tuple[Any, Any]] = {
     "sequence.length": (2, 10), "sequence.mode": ("acceleration", "constant"),
     "execution.scheduler": ("tcp://a:1", "tcp://b:2"), "execution.scheduler_timeout": (5, 6.5),
     "execution.cache_dir": ("c1", Path("c2")),
-    "verification.enabled": (True, False), "verification.candidates": (5, 8),
+    "verification.enabled": (True, False), "verification.candidates": (5, 8), "verification.confirm": (True, False),
     "stream": ("rtsp://a/x", "rtsp://b/y"),
 }
 

@@ -14,6 +14,7 @@ from topoloc.cli.app import app, bench_app, handle_errors, vocab_app
 from topoloc.cli.options import (
     CacheDirOption,
     ConfigOption,
+    ConfirmOption,
     EveryMOption,
     EverySOption,
     FeaturesOption,
@@ -70,6 +71,7 @@ def evaluate(
     sequence: SequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
+    confirm: ConfirmOption = False,
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")
     ] = "1,5,10",

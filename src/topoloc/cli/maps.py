@@ -20,6 +20,7 @@ from topoloc.cli.options import (
     CacheDirOption,
     CalibrateSequenceOption,
     ConfigOption,
+    ConfirmOption,
     EveryMOption,
     EverySOption,
     FeaturesOption,
@@ -271,6 +272,7 @@ def localize(
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
+    confirm: ConfirmOption = False,
     quiet: QuietOption = False,
     topic: TopicOption = None,
     every_s: EverySOption = None,
@@ -318,7 +320,7 @@ def localize(
     warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
                       prefetch=spec.prefetch, verify=spec.verification.enabled,
-                      candidates=spec.verification.candidates)
+                      candidates=spec.verification.candidates, confirm=spec.verification.confirm)
     # Written line by line: a run that is stopped keeps every frame done so far.
     # ``--out -``: the lines on standard output (the Unix convention, for `| jq`), the summary on standard error.
     lines_to = _LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)
@@ -377,7 +379,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
     warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
     loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
                       prefetch=spec.prefetch, verify=spec.verification.enabled,
-                      candidates=spec.verification.candidates)
+                      candidates=spec.verification.candidates, confirm=spec.verification.confirm)
     stopped_by: list[str] = []
 
     def stop(signum: int, frame: object) -> None:

@@ -71,6 +71,9 @@ VerifyOption = Annotated[bool | None, typer.Option(
                                  "it by its inliers (docs/protocol.md, Verification). Default: wherever the map's "
                                  "images can be read (a saved map: as it was calibrated or built; maps saved before "
                                  "verification existed are not verified unless asked).")]
+ConfirmOption = Annotated[bool, typer.Option(
+    "--confirm/--no-confirm", help="Temporal consistency: an answer the previous frame's does not confirm ranks below "
+                                   "every confirmed one (docs/protocol.md, Verification; off by default).")]
 SequenceModeOption = Annotated[str, typer.Option(
     help="constant: SeqSLAM's constant-velocity lines; acceleration: Cooc-Map's forward paths (II-F).")]
 PrefetchOption = Annotated[int, typer.Option(

@@ -53,7 +53,7 @@ from topoloc.resources import CachedResources
 from topoloc.spec import EvaluateSpec, FeatureSpec, parse_recall_at, spec_from_flat, spec_to_dict
 from topoloc.spec.parts import verify_from_env
 from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import VerifiedBlock, Verifier
+from topoloc.verification import VerifiedBlock, Verifier, confirmed, demote_unconfirmed
 
 log = logging.getLogger(__name__)
 
@@ -175,6 +175,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
                 ver = verifier.verify(S, resources.features(query, timed=False))
             S = ver.S
             ms_each = ms_each + ver.ms
+        if spec.verification.confirm:
+            S = demote_unconfirmed(S, confirmed(S))
         if spec.top_k:  # sequence matching needs neighbouring columns: the dense S is formed first
             top = TopK(*top_k_of(S, spec.top_k), n_places=S.shape[0])
             S = None
@@ -196,7 +198,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         "n_queries": int(shape[1]),
         **({"top_k": top.k} if top is not None else {}),
         "params": {**method.get_params(), "sequence": seq.length,
-                   **({"sequence_mode": seq.mode} if seq.length else {}), "verify": ver is not None},
+                   **({"sequence_mode": seq.mode} if seq.length else {}), "verify": ver is not None,
+                   **({"confirm": True} if spec.verification.confirm else {})},
         **({"verification": verification_record(ver, verifier)} if ver is not None and verifier is not None else {}),
         "run": {
             "map": map_labels,

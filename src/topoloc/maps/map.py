@@ -56,7 +56,7 @@ from topoloc.spec import (
 from topoloc.spec.parts import NOT_BOTH, verify_from_env
 from topoloc.spec.runs import check_prefetch
 from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import Verifier
+from topoloc.verification import Verifier, confirmed, demote_unconfirmed
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
@@ -683,7 +683,7 @@ class Map:
 
     def localizer(self, *, top_k: int = 5, sequence: int | None = None,
                   sequence_mode: str | None = None, prefetch: int = -1, verify: bool | None = None,
-                  candidates: int | None = None) -> Localizer:
+                  candidates: int | None = None, confirm: bool = False) -> Localizer:
         """An online localiser: feed it frames one at a time (:meth:`Localizer.step`).
 
         ``sequence`` / ``sequence_mode`` None: those of :attr:`calibrated_sequence`,
@@ -696,7 +696,7 @@ class Map:
         return Localizer(self, top_k=top_k, sequence=cal.length if sequence is None else sequence,
                          sequence_mode=(cal.mode if sequence is None else "constant")
                          if sequence_mode is None else sequence_mode, prefetch=prefetch,
-                         verify=self.resolve_verify(verify), candidates=candidates)
+                         verify=self.resolve_verify(verify), candidates=candidates, confirm=confirm)
 
     def resolve_verify(self, verify: bool | None) -> bool:
         """Whether to verify: as asked; else as the threshold was calibrated; else ``$TOPOLOC_VERIFY``; else
@@ -930,6 +930,10 @@ class Localizer:
         Verify each frame's candidates against the map images (:mod:`topoloc.verification`):
         its line then says ``verified`` and ``inliers``, and its score is the
         verified confidence.
+    confirm : bool
+        Temporal consistency (:mod:`topoloc.verification.consistency`): a
+        frame's answer not confirmed by the previous frame's ranks below every
+        confirmed one; its line says ``confirmed``.
     candidates : int, optional
         Distinct peaks verified per frame (default: 3 for single images, the
         best place with ``sequence``: :func:`topoloc.verification.default_candidates`).
@@ -944,7 +948,8 @@ class Localizer:
     """
 
     def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant",
-                 prefetch: int = -1, verify: bool = False, candidates: int | None = None) -> None:
+                 prefetch: int = -1, verify: bool = False, candidates: int | None = None,
+                 confirm: bool = False) -> None:
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
         check_prefetch(prefetch)
@@ -960,6 +965,8 @@ class Localizer:
         self.verifier: Verifier | None = m.verifier(candidates=candidates, sequence=sequence) if verify else None
         self.ms_verify = 0.0
         self.n_verified = 0
+        self.confirm = confirm
+        self._previous_best: int | None = None
         rec = m.recognizer
         self._items: deque[Any] = deque(maxlen=int(rec.get_params().get("ds", 0)) + 1)
         self._columns: deque[np.ndarray] = deque(maxlen=sequence + 1)
@@ -1157,7 +1164,15 @@ class Localizer:
             col = block.S[:, 0]
             self.ms_verify += float(block.ms[0])
             self.n_verified += int(block.verified[0])
+        ok = None
+        if self.confirm:
+            col2 = np.asarray(col, np.float32)[:, None]
+            ok = bool(confirmed(col2, self._previous_best)[0])
+            self._previous_best = int(np.argmax(col2[:, 0]))
+            col = demote_unconfirmed(col2, np.array([ok]))[:, 0]
         out = self._result(np.asarray(col, np.float64), name, time_s)
+        if ok is not None:
+            out["confirmed"] = ok
         if block is not None:
             out["verified"] = bool(block.verified[0])
             out["inliers"] = int(block.inliers[0])

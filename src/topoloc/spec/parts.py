@@ -570,12 +570,20 @@ class VerificationSpec:
         Distinct peaks checked per query; None (default): 3 for single images,
         the sequence's best place only with ``--sequence N``
         (:func:`topoloc.verification.default_candidates`).
+    confirm : bool
+        Temporal consistency for streams (:mod:`topoloc.verification.consistency`):
+        an answer not confirmed by the previous frame's ranks below every
+        confirmed one.  Off by default: it did not pay on the development data
+        (``docs/results/verification.md``, part ``consistency``).
     """
 
     enabled: bool | None = None
     candidates: int | None = None
+    confirm: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.confirm, bool):
+            raise ParameterError("verification.confirm", f"must be true or false, got {self.confirm!r}")
         if self.enabled is not None and not isinstance(self.enabled, bool):
             raise ParameterError("verification.enabled", f"must be true or false, got {self.enabled!r}")
         if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)

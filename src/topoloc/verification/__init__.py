@@ -7,6 +7,7 @@ runs both over a block of queries.  Arrays and feature sets in, arrays out
 (layer 2 of ``docs/architecture.md``).
 """
 
+from topoloc.verification.consistency import confirmed, demote_unconfirmed
 from topoloc.verification.pairs import (
     chance_inliers,
     check_pair,
@@ -35,7 +36,9 @@ __all__ = [
     "candidate_rows",
     "chance_inliers",
     "check_pair",
+    "confirmed",
     "default_candidates",
+    "demote_unconfirmed",
     "fundamental_inliers",
     "fundamental_mask",
     "inlier_threshold",
