@@ -41,7 +41,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import RESULTS
+from benchmarks.common import RESULTS, output_folder
 from benchmarks.peak_run import reset_vm_hwm, vm_hwm_mib
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -211,7 +211,7 @@ def extrapolate(run: dict[str, Any], *, places: int = TARGET_PLACES, machines: t
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--places", type=int, nargs="+", default=[2_000, 8_000])
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "cluster_route")
@@ -226,7 +226,8 @@ def main() -> None:
                          "the pages (the commands' rows are kept)")
     ap.add_argument("--keep", action="store_true",
                     help="keep the runs of other route lengths already in cluster.json (each keeps its own date)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    output_folder(args.out)  # before the minutes of work, not after them
     if args.page_only:
         data = json.loads((args.out / "cluster.json").read_text())
         write_pages(data, args.out)

@@ -1,6 +1,9 @@
 """Regenerate docs/results/fabmap_openfabmap.md (+ .json): FAB-MAP 2.0 beside openFABMAP 2.0 per query.
 
-    .venv/bin/python -m benchmarks.bench_fabmap_openfabmap
+    .venv/bin/python -m benchmarks.bench_fabmap_openfabmap --openfabmap-src OPENFABMAP_CLONE
+
+The openFABMAP sources are a clone of its public repository (``benchmarks/openfabmap.py`` names the
+repository and the commit measured), given by ``--openfabmap-src`` or ``$OPENFABMAP_SRC``.
 
 Both implementations score the same words in one run: openFABMAP 2.0 (``of2::FabMap2``,
 sampled new-place term, Chow-Liu; built from its public repository by
@@ -24,6 +27,7 @@ included).  The load average is recorded beside the numbers.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -34,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import RESULTS, VOCAB_FOR_WEBCAM, WEBCAM, WEBCAM_TOURS, require_data
-from benchmarks.openfabmap import OpenFabMapUnavailable, run_openfabmap
+from benchmarks.openfabmap import SRC_ENV, OpenFabMapUnavailable, build_openfabmap, run_openfabmap
 from topoloc.datasets import load_traverse
 from topoloc.datasets.groundtruth import ground_truth_from_places
 from topoloc.evaluation.metrics import recall_at_k
@@ -154,9 +158,15 @@ def _row(r: dict[str, Any], label: str) -> str:
             f"{r['load_average_after']} |\n")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--openfabmap-src", help=f"openFABMAP sources (a clone of its repository; default ${SRC_ENV})")
+    args = ap.parse_args(argv)
+    if args.openfabmap_src:
+        os.environ[SRC_ENV] = args.openfabmap_src  # read by run_openfabmap's build
     require_data()
     try:
+        build_openfabmap()  # before any work: sources missing or not compiling stop the benchmark here
         results = [webcam(), synthetic()]
     except OpenFabMapUnavailable as e:
         raise SystemExit(f"bench_fabmap_openfabmap: {e}") from e

@@ -106,6 +106,12 @@ FAMILIES = {
     "bombs": "an input that would take all memory is refused before it is decoded",
     "tracebacks": "bad input is one line `topoloc: error: ...`, exit 2, never a traceback",
     "names": "file and folder names of any characters work, and are text in the HTML page",
+    "security": "a link or file planted in a shared folder is never followed; names in places.csv stay inside "
+                "their folder; a private map stays private",
+    "determinism": "the same inputs give byte-identical lines and S, whatever else runs on the machine",
+    "configuration": "a configuration file is untrusted input: bounded, typed, one line naming the setting and "
+                     "the file; flags always win",
+    "misleading": "the message names what is wrong and where, before the work; what a user asked for is done",
 }
 CASE_TIMEOUT_S = 120
 ODD = "a b ü 'q\" <script>alert(1) <!--<script> &amp;\nline"
@@ -427,7 +433,446 @@ def family_cases(work: Path, route: Path, env: dict[str, str]) -> list[dict[str,
 
     case("names", "folder and image names with spaces, unicode, quotes, <script>, a newline: evaluate, "
                   "--html, map build, localize", odd_names)
+    campaign3_cases(work, route, env, case, tlm)
     return rows
+
+
+# -- the families of issue #41: security, determinism, configuration files, misleading messages ------------
+ALIAS_BOMB = "".join(f"{x}: &{x} [{', '.join([f'*{p}'] * 9) if p else ', '.join(['x'] * 9)}]\n"
+                     for p, x in zip(["", *"abcdefgh"], "abcdefghi", strict=True))
+
+
+def _busy(n: int) -> list[subprocess.Popen[bytes]]:
+    """``n`` processes spinning on the cores (ended by the caller, by their ids)."""
+    import sys
+
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        p.kill()
+        p.wait()
+
+
+def _plain_copy(src: Path, dst: Path, rename: dict[int, str] | None = None) -> list[Path]:
+    dst.mkdir(parents=True)
+    out = []
+    for k, p in enumerate(sorted(src.glob("*.jpg"))):
+        out.append(dst / (rename or {}).get(k, p.name))
+        shutil.copy(p, out[-1])
+    return out
+
+
+def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable[[str, str, Callable[[], str]], None],
+                    tlm: Path) -> None:
+    """The cases of issue #41 (and more of each family), run as a user would."""
+    noon, dusk, morning = route / "noon", route / "dusk", route / "morning"
+    seq = ["--method", "seqslam", "--param", "ds=3", "--quiet"]
+    vocab = work / "c3_vocab.tlv"
+    rc, _, err, _ = _run(["vocab", "train", str(morning), "--words", "200", "--out", str(vocab), "--quiet"], env)
+    if rc != 0:
+        raise SystemExit(f"vocab train for the campaign cases failed: {err}")
+    cooc = work / "c3_cooc.tlm"
+    _run(["map", "build", "--method", "coocmap", "--map", str(noon), "--vocab", str(vocab), "--out", str(cooc),
+          "--quiet"], env)
+    _run(["map", "calibrate", str(cooc), "--query", str(morning), "--sequence", "3", "--precision", "0.5",
+          "--quiet"], env)
+
+    def victim(name: str) -> Path:
+        v = work / f"victim_{name}"
+        v.mkdir()
+        (v / "thesis.tex").write_text("years of work")
+        return v
+
+    # -- security --
+    def planted_store_link(target: str) -> Callable[[], str]:
+        def check() -> str:
+            v = victim(f"store_{target}")
+            shared = work / f"shared_cache_{target}"
+            shared.mkdir()
+            shared.chmod(0o1777)  # a cache folder every user may write to
+            (shared / "features" / "sift-x").mkdir(parents=True)
+            link = shared / "features" / "sift-x" / "store"
+            link.symlink_to(v if target == "folder" else v.parent)
+            if target == "vocab":
+                (shared / "vocab").mkdir()
+                (shared / "vocab" / "v.tlv").symlink_to(v / "thesis.tex")
+            rc, _, err, _ = _run(["cache", "clean", "--all", "--cache-dir", str(shared)], env)
+            if not (v / "thesis.tex").is_file():
+                return f"exit {rc}: the victim's folder outside the cache is gone"
+            return "" if rc == 0 else f"exit {rc}: {err.strip()[-160:]}"
+        return check
+
+    def planted_user_folder() -> str:
+        v = victim("userdir")
+        shared = work / "shared_cache_user"
+        shared.mkdir()
+        shared.chmod(0o777)
+        (shared / f"user-{os.geteuid()}").symlink_to(v)
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(work / "sec_u"),
+                              "--cache-dir", str(shared), "--method", "bow", "--vocab", str(vocab), "--quiet"], env)
+        if sorted(p.name for p in v.iterdir()) != ["thesis.tex"]:
+            return "the cache was written through the planted link"
+        return _one_line_error(rc, err, f"user-{os.geteuid()}")
+
+    def places_outside(name: str) -> Callable[[], str]:
+        def check() -> str:
+            secret = work / "secret.jpg"
+            shutil.copy(sorted(dusk.glob("*.jpg"))[0], secret)
+            q = _copy_tour(dusk, work / f"sec_q_{len(list(work.iterdir()))}")
+            bad = str(secret) if name == "absolute" else "../secret.jpg"
+            rows = list(csv.DictReader((q / "places.csv").open(newline="")))
+            (q / "places.csv").write_text("image,place\n" + "".join(f"{r['image']},{r['place']}\n" for r in rows[1:])
+                                          + f"{bad},0\n")
+            page = work / f"sec_{name}.html"
+            rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(q), "--out", str(work / f"sec_{name}"),
+                                  "--html", str(page), *seq], env)
+            if page.exists():
+                return f"exit {rc}: a page was written with the image from outside the query folder"
+            return _one_line_error(rc, err, "outside the traverse's folder")
+        return check
+
+    def private_map(mode: int, command: str) -> Callable[[], str]:
+        def check() -> str:
+            m = work / f"sec_{mode:o}_{command}.tlm"
+            shutil.copy(cooc, m)
+            m.chmod(mode)
+            args = (["map", "add", str(m), str(dusk), "--quiet"] if command == "add" else
+                    ["map", "calibrate", str(m), "--query", str(dusk), "--quiet"])
+            rc, _, err, _ = _run(args, env)
+            now = m.stat().st_mode & 0o777
+            if rc != 0:
+                return f"exit {rc}: {err.strip()[-160:]}"
+            return "" if now == mode else f"mode {mode:o} became {now:o}"
+        return check
+
+    case("security", "a link planted as features/<key>/store in a shared cache: cache clean --all keeps what "
+                     "it points at", planted_store_link("folder"))
+    case("security", "links planted as a store and as a cached vocabulary: cache clean --all keeps their targets",
+         planted_store_link("vocab"))
+    case("security", "the per-user folder of a shared cache planted as a link: one line, nothing written through it",
+         planted_user_folder)
+    case("security", "places.csv naming ../secret.jpg: evaluate --html refuses in one line, no page",
+         places_outside("parent"))
+    case("security", "places.csv naming an absolute path: refused in one line, no page", places_outside("absolute"))
+    case("security", "map add on a 0600 map keeps it 0600", private_map(0o600, "add"))
+    case("security", "map calibrate on a 0640 map keeps it 0640", private_map(0o640, "calibrate"))
+
+    # -- determinism --
+    def same_lines(args: list[str], n_runs: int, beside: int) -> str:
+        ref = work / f"det_ref_{len(list(work.iterdir()))}.jsonl"
+        rc, _, err, _ = _run([*args, "--out", str(ref)], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        want = ref.read_bytes()
+        differ = 0
+        for k in range(n_runs):
+            busy = _busy(beside)
+            outs = [ref.with_name(f"{ref.stem}_{k}_{j}.jsonl") for j in range(2)]
+            try:
+                procs = [subprocess.Popen([str(TOPOLOC), *args, "--out", str(o)], env=env, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL) for o in outs]
+                codes = [p.wait(timeout=CASE_TIMEOUT_S) for p in procs]
+            finally:
+                _stop(busy)
+            if any(codes):
+                return f"exit {codes} in run {k}"
+            differ += sum(o.read_bytes() != want for o in outs)
+        return "" if not differ else f"{differ} of {2 * n_runs} runs beside busy processes gave other lines"
+
+    def same_S(args: list[str], n_runs: int) -> str:
+        outs = [work / f"det_S_{len(list(work.iterdir()))}_{j}" for j in range(2 * n_runs + 1)]
+        rc, _, err, _ = _run([*args, "--out", str(outs[0])], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        for k in range(n_runs):
+            busy = _busy(1)
+            try:
+                procs = [subprocess.Popen([str(TOPOLOC), *args, "--out", str(o)], env=env, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL) for o in outs[1 + 2 * k:3 + 2 * k]]
+                for p in procs:
+                    p.wait(timeout=CASE_TIMEOUT_S)
+            finally:
+                _stop(busy)
+        ref = np.load(outs[0] / "S.npy")
+        bad = sum(not np.array_equal(np.load(o / "S.npy"), ref) for o in outs[1:])
+        return "" if not bad else f"S differed in {bad} of {2 * n_runs} runs"
+
+    case("determinism", "Cooc-Map, calibrated map, --sequence 3: localize lines of 6 runs, two at a time beside a "
+                        "busy process", lambda: same_lines(["localize", str(cooc), str(dusk), "--quiet"], 3, 1))
+    case("determinism", "Cooc-Map --sequence 0 --top-k 12 (every place's score): 4 runs beside two busy processes",
+         lambda: same_lines(["localize", str(cooc), str(dusk), "--sequence", "0", "--top-k", "12", "--quiet"], 2, 2))
+    case("determinism", "Cooc-Map --prefetch 0 and the default give the same lines",
+         lambda: same_lines(["localize", str(cooc), str(dusk), "--prefetch", "0", "--quiet"], 1, 1))
+    case("determinism", "evaluate Cooc-Map --sequence 3: S.npy of 4 runs, two at a time beside a busy process",
+         lambda: same_S(["evaluate", "--map", str(noon), "--query", str(dusk), "--method", "coocmap", "--vocab",
+                         str(vocab), "--sequence", "3", "--quiet"], 2))
+    case("determinism", "evaluate bag of words --sequence 3: S.npy of 4 runs beside a busy process",
+         lambda: same_S(["evaluate", "--map", str(noon), "--query", str(dusk), "--method", "bow", "--vocab",
+                         str(vocab), "--sequence", "3", "--quiet"], 2))
+
+    # -- configuration files --
+    def config_error(name: str, text: str, *needles: str, seconds: float = 10) -> Callable[[], str]:
+        def check() -> str:
+            f = work / name
+            f.write_text(text)
+            rc, _, err, secs = _run(["evaluate", "--config", str(f)], env, memory_bytes=2 * 2**30)
+            if len(err) > 2000:
+                return f"an error of {len(err):,} characters"
+            problem = _one_line_error(rc, err, str(f), *needles)
+            return problem or ("" if secs < seconds else f"took {secs:.0f} s")
+        return check
+
+    base = f"method = 'bow'\nmaps = ['{noon}']\nquery = '{dusk}'\nout = '{work / 'cfg_out'}'\n"
+    for k, (label, text, needle) in enumerate((
+            ("maps = 5", "maps = 5", "--map must be a list"),
+            ("features = \"sift\"", "features = 'sift'", "features must be a table"),
+            ("params = [1, 2]", "params = [1, 2]", "--param must be a table"),
+            ("method = [...]", "method = ['bow', 'seqslam']", "--method must be text"),
+            ("recall_at = 5", "recall_at = 5", "--recall-at must be text"),
+            ("cache_dir = 7", "[execution]\ncache_dir = 7", "--cache-dir must be a path"),
+            ("sequence.length = 'ten'", "[sequence]\nlength = 'ten'", "--sequence must be a whole number"),
+            ("top_k = true", "top_k = true", "--top-k must be a whole number"),
+            ("vocabulary.train = [1]", "[vocabulary]\ntrain = [1]", "--vocab-train must be a path"))):
+        case("configuration", f"TOML {label}: one line naming the flag and the file",
+             config_error(f"cfg_{k}.toml", text + "\n", needle))
+    n = 50_000
+    case("configuration", "JSON nested 50,000 deep: one line", config_error("deep.json", "[" * n + "]" * n, "nested"))
+    case("configuration", "TOML nested 50,000 deep: one line", config_error("deep.toml", "a = " + "[" * n + "]" * n,
+                                                                            "nested"))
+    case("configuration", "YAML nested 50,000 deep: one line", config_error("deep.yaml", "a: " + "[" * n + "]" * n,
+                                                                            "nested"))
+    case("configuration", "YAML alias bomb under maps (10^9 values): one line within 10 s",
+         config_error("bomb_maps.yaml", ALIAS_BOMB + "maps: *i\n", "aliases"))
+    case("configuration", "YAML with two documents: one line", config_error("two.yaml", "method: bow\n---\nx: 1\n",
+                                                                            "several YAML documents"))
+    case("configuration", "a 2 MiB JSON configuration: one line",
+         config_error("big.json", json.dumps({"params": {"x": "y" * (2 << 20)}}), "larger than"))
+
+    def tolerance_flag_wins() -> str:
+        f = work / "tol.toml"
+        f.write_text(base.replace("'bow'", "'seqslam'") + "params = {ds = 3}\n[ground_truth]\ntolerance_m = '0:25'\n")
+        rc, _, err, _ = _run(["evaluate", "--config", str(f), "--tolerance", "0:0", "--out", str(work / "tol_a"),
+                              "--quiet"], env)
+        rc2, _, err2, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--tolerance", "0:0", "--out",
+                                str(work / "tol_b"), *seq], env)
+        if rc or rc2:
+            return f"exit {rc}/{rc2}: {(err or err2).strip()[-160:]}"
+        a = json.loads((work / "tol_a" / "metrics.json").read_text())
+        b = json.loads((work / "tol_b" / "metrics.json").read_text())
+        return "" if a["run"]["ground_truth"] == b["run"]["ground_truth"] else \
+            f"ground truth {a['run']['ground_truth']!r}, flag alone {b['run']['ground_truth']!r}"
+
+    def metrics_json_outputs() -> str:
+        run = work / "runs" / "bow"
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(run), *seq], env)
+        before = (run / "S.npy").read_bytes()
+        rc, _, err, _ = _run(["evaluate", "--config", str(run / "metrics.json"), "--tolerance", "0:3"], env)
+        if not (run / "S.npy").is_file() or (run / "S.npy").read_bytes() != before:
+            return f"exit {rc}: the run the configuration was read from was replaced"
+        return _one_line_error(rc, err, "--out is needed")
+
+    def alternative_flag(flag: list[str], setting: str) -> Callable[[], str]:
+        def check() -> str:
+            f = work / f"alt_{setting.replace('.', '_')}.toml"
+            body = {"vocabulary.file": f"[vocabulary]\nfile = '{vocab}'\n", "maps": ""}[setting]
+            f.write_text(base + body)
+            rc, _, err, _ = _run(["evaluate", "--config", str(f), *flag, "--out", str(work / f"alt_o_{setting}"),
+                                  "--quiet"], env)
+            return "" if rc == 0 else f"exit {rc}: {err.strip()[-160:]}"
+        return check
+
+    case("configuration", "--tolerance 0:0 over a file's ground_truth.tolerance_m: the flag's ground truth",
+         tolerance_flag_wins)
+    case("configuration", "evaluate --config RUN/metrics.json --tolerance 0:3 without --out: refused, RUN kept",
+         metrics_json_outputs)
+    case("configuration", "--vocab-train over a file's vocabulary.file: runs, no error about flags not given",
+         alternative_flag(["--vocab-train", str(morning), "--vocab-words", "100"], "vocabulary.file"))
+    case("configuration", "--map-file over a file's maps: runs, no error about flags not given",
+         alternative_flag(["--map-file", str(cooc)], "maps"))
+
+    # -- data loss, hangs, tracebacks: more cases of the same kinds --
+    def config_out_holds_config() -> str:
+        run = work / "dl_runs" / "seq"
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(run), *seq], env)
+        before = (run / "S.npy").read_bytes()
+        rc, _, err, _ = _run(["evaluate", "--config", str(run / "metrics.json"), "--out", str(run.parent),
+                              "--tolerance", "0:3"], env)
+        if not (run / "S.npy").is_file() or (run / "S.npy").read_bytes() != before:
+            return f"exit {rc}: the run holding the configuration was replaced"
+        return _one_line_error(rc, err, "--out would replace the configuration file")
+
+    def fifo_config() -> str:
+        fifo = work / "hang_config.yaml"
+        os.mkfifo(fifo)
+        rc, _, err, _ = _run(["evaluate", "--config", str(fifo)], env, timeout=60)
+        return _one_line_error(rc, err, str(fifo), "not a regular file")
+
+    def dash_outputs() -> str:
+        bad = []
+        for args, needle in ((["localize", str(tlm), str(dusk), "--out", "-", "--top-k", "2", "--pairs-out", "-"],
+                              "standard output"),
+                             (["map", "build", "--map", str(noon), "--out", "-", *seq], "standard output"),
+                             (["evaluate", "--config", str(work / "absent.toml")], "not found")):
+            rc, _, err, _ = _run(args, env)
+            problem = _one_line_error(rc, err, needle)
+            if problem:
+                bad.append(f"{args[0]}: {problem}")
+        return "; ".join(bad)
+
+    case("data loss", "evaluate --config RUN/metrics.json --out RUN's parent: refused, RUN kept",
+         config_out_holds_config)
+    case("hangs", "a named pipe as --config: one line, no wait", fifo_config)
+    case("tracebacks", "'-' as a pairs file or a map, a missing --config: one line each", dash_outputs)
+
+    # -- bombs, silent wrong, names: more cases of issue #41 --
+    case("bombs", "441-byte YAML alias bomb in params.grid_x: one short line within 10 s (2 GiB limit)",
+         config_error("bomb.yaml", ALIAS_BOMB + "params:\n  grid_x: *i\n", "aliases"))
+
+    def special_image(kind: str) -> Callable[[], str]:
+        def check() -> str:
+            q = work / f"sw_special_{kind}"
+            _plain_copy(dusk, q)
+            bad = q / "Image005.jpg"
+            if kind == "fifo":
+                os.mkfifo(bad)
+            elif kind == "zero":
+                bad.symlink_to("/dev/zero")
+            else:
+                bad.symlink_to(work / "nothing_here.jpg")
+            rc, _, err, _ = _run(["localize", str(tlm), str(q), "--out", str(work / f"sw_{kind}.jsonl"), "--quiet"],
+                                 env, timeout=60)
+            return _one_line_error(rc, err, str(bad), "not a regular file")
+        return check
+
+    case("silent wrong", "a named pipe called Image005.jpg in a localize folder: refused, not skipped",
+         special_image("fifo"))
+    case("silent wrong", "a link to /dev/zero called Image005.jpg: refused, not skipped", special_image("zero"))
+    case("silent wrong", "a dangling link called Image005.jpg: refused, not skipped", special_image("dangling"))
+
+    def not_utf8() -> str:
+        q = work / "names_latin1"
+        _plain_copy(dusk, q, {3: os.fsdecode(b"latin1 \xe9t\xe9 3.jpg")})
+        problems = []
+        for args in (["localize", str(tlm), str(q), "--out", str(work / "n8.jsonl"), "--quiet"],
+                     ["evaluate", "--map", str(noon), "--query", str(q), "--out", str(work / "n8run"), "--html",
+                      str(work / "n8.html"), "--tolerance", "0:20", *seq],
+                     ["map", "build", "--map", str(q), "--out", str(work / "n8.tlm"), *seq]):
+            rc, _, err, _ = _run(args, env)
+            if rc != 0:
+                problems.append(f"{args[0]} exit {rc}: {err.strip()[-100:]}")
+        return "; ".join(problems)
+
+    case("names", "an image name that is not UTF-8 (latin-1 bytes): localize, evaluate --html, map build",
+         not_utf8)
+
+    # -- misleading --
+    def add_through_link() -> str:
+        real = work / "mis_maps" / "real.tlm"
+        real.parent.mkdir()
+        shutil.copy(tlm, real)
+        link = work / "mis_current.tlm"
+        link.symlink_to(real)
+        rc, _, err, _ = _run(["map", "add", str(link), str(morning), "--quiet"], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        if not link.is_symlink():
+            return "the link was replaced by a file"
+        rc, out, _, _ = _run(["map", "info", str(real), "--json"], env)
+        return "" if len(json.loads(out)["tours"]) == 2 else "the linked map was not updated"
+
+    def add_from_elsewhere() -> str:
+        here = work / "mis_rel"
+        here.mkdir()
+        shutil.copytree(noon, here / "noon")
+        r = subprocess.run([str(TOPOLOC), "map", "build", "--map", "noon", "--out", "m.tlm", *seq], cwd=here,
+                           env=env, capture_output=True, text=True)
+        if r.returncode:
+            return f"map build exit {r.returncode}"
+        rc, _, err, _ = _run(["map", "add", str(here / "m.tlm"), str(morning), "--quiet"], env)
+        return "" if rc == 0 else f"exit {rc}: {err.strip()[-160:]}"
+
+    def pairs_before_work() -> str:
+        q = work / "mis_pairs"
+        _plain_copy(dusk, q, {4: "with space.jpg"})
+        out = work / "mis_pairs.jsonl"
+        rc, _, err, _ = _run(["localize", str(tlm), str(q), "--out", str(out), "--top-k", "2", "--pairs-out",
+                              str(work / "mis_pairs.txt"), "--quiet"], env)
+        if out.exists():
+            return "refused only after frames were localised (lines written)"
+        return _one_line_error(rc, err, "with space.jpg")
+
+    def gt_shape_before_fit() -> str:
+        gt = work / "mis_gt.npy"
+        np.save(gt, np.ones((3, 3), bool))
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--method", "seqslam",
+                              "--ground-truth", str(gt), "--out", str(work / "mis_gt")], env)
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        if len(lines) > 1:
+            return f"{len(lines)} lines on standard error before the refusal (the fit ran)"
+        return _one_line_error(rc, err, str(gt), "shape")
+
+    def report_unknown() -> str:
+        run = work / "mis_old_run"
+        _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(run), "--method", "bow", "--vocab",
+              str(vocab), "--quiet"], env)
+        m = json.loads((run / "metrics.json").read_text())
+        for key in ("features", "vocabulary", "spec"):
+            m["run"].pop(key, None)
+        (run / "metrics.json").write_text(json.dumps(m))
+        rc, _, err, _ = _run(["report", str(run), "--out", str(work / "mis_rep")], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        text = "".join(p.read_text() for p in (work / "mis_rep").glob("*.md"))
+        wrong = [w for w in ("full size", "preprocessing none", "| none |") if w in text]
+        return f"shows {wrong} for settings the run did not record" if wrong or "unknown" not in text else ""
+
+    def out_dash() -> str:
+        rc, out, err, _ = _run(["localize", str(tlm), str(dusk), "--out", "-", "--quiet"], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        try:
+            lines = [json.loads(x) for x in out.splitlines()]
+        except ValueError:
+            return "standard output holds more than the lines"
+        return "" if len(lines) == len(list(dusk.glob("*.jpg"))) else f"{len(lines)} lines"
+
+    def gif_rule() -> str:
+        import cv2
+
+        q = work / "mis_gif"
+        files = _plain_copy(dusk, q)
+        gif = files[2].with_suffix(".gif")
+        from PIL import Image
+
+        Image.fromarray(cv2.cvtColor(cv2.imread(str(files[2])), cv2.COLOR_BGR2RGB)).save(gif)
+        files[2].unlink()
+        rc, _, _, _ = _run(["localize", str(tlm), str(q), "--out", str(work / "gif_a.jsonl"), "--quiet"], env)
+        rc2, _, _, _ = _run(["localize", str(tlm), str(gif), "--out", str(work / "gif_b.jsonl"), "--quiet"], env)
+        return "" if rc == rc2 == 0 else f"folder exit {rc}, named exit {rc2}"
+
+    def empty_topic() -> str:
+        try:
+            from rosbags.rosbag1 import Writer
+            from rosbags.typesys import Stores, get_typestore
+        except ImportError:
+            return "rosbags is not installed (pip install 'topoloc[ros]')"
+        bag = work / "mis_empty.bag"
+        with Writer(bag) as w:
+            w.add_connection("/cam/image", "sensor_msgs/msg/Image", typestore=get_typestore(Stores.ROS1_NOETIC))
+        rc, _, err, _ = _run(["localize", str(tlm), str(bag), "--out", str(work / "mis_empty.jsonl"), "--quiet"], env)
+        return _one_line_error(rc, err, "/cam/image", "no messages", str(bag))
+
+    case("misleading", "map add through a link to the map: the linked map updated, the link kept", add_through_link)
+    case("misleading", "map add from another folder than map build's (tour named relative)", add_from_elsewhere)
+    case("misleading", "localize --pairs-out with an image name holding a space: refused before the first frame",
+         pairs_before_work)
+    case("misleading", "a ground truth of the wrong shape: refused before the method's fit", gt_shape_before_fit)
+    case("misleading", "report of a run without recorded settings says unknown", report_unknown)
+    case("misleading", "localize --out -: the lines on standard output, nothing else", out_dash)
+    case("misleading", "a GIF read in a folder as when named", gif_rule)
+    case("misleading", "localize on a bag whose image topic has no messages: one line", empty_topic)
 
 
 def _kill_cases(work: Path, route: Path, rng: np.random.Generator) -> list[dict[str, Any]]:

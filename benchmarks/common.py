@@ -94,6 +94,24 @@ def marked_sections(path: Path) -> str:
     return "".join(out)
 
 
+def output_folder(path: Path, flag: str = "--out") -> Path:
+    """``path`` checked as an output folder before any work (as the commands check theirs), and created.
+
+    A benchmark that runs for minutes must not find at its end that it cannot write its result
+    (issue #41: ``bench_cluster --out`` naming a folder that did not exist).  One line and exit 2.
+    """
+    from topoloc.errors import TopolocError
+    from topoloc.io.dirs import check_output_dir
+
+    try:
+        check_output_dir(path)
+        path.mkdir(parents=True, exist_ok=True)
+    except (TopolocError, OSError) as exc:
+        print(f"{flag}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    return path
+
+
 def require_data() -> None:
     if not GP.is_dir() or not WEBCAM.is_dir():
         raise SystemExit(f"shared data not found under {DATA} (set TOPOLOC_DATA)")

@@ -1,9 +1,12 @@
 """Build and run openFABMAP 2.0 beside topoloc's FAB-MAP 2.0 on the same words (benchmarks only).
 
-openFABMAP (https://github.com/arrenglover/openfabmap, BSD) is compiled at benchmark time from
-a local copy of its repository: ``OPENFABMAP_SRC`` names a source folder (holding ``src/`` and
-``include/``) or a git directory whose ``HEAD`` is exported; by default the mirror
-``/work/.mirror/arrenglover+openfabmap/repo``.  Its ``fabmap.cpp`` and ``inference.cpp`` are
+openFABMAP (https://github.com/arrenglover/openfabmap, BSD; measured at commit
+:data:`OPENFABMAP_COMMIT`) is compiled at benchmark time from a local copy of its repository,
+named by ``bench_fabmap_openfabmap --openfabmap-src FOLDER`` or the environment variable
+``OPENFABMAP_SRC``: a source folder (holding ``src/`` and ``include/``, as ``git clone`` makes
+it) or a git directory whose ``HEAD`` is exported.  Nothing is looked for elsewhere: without
+either, the benchmark stops (and its test skips) with a line saying how to get it.  Its
+``fabmap.cpp`` and ``inference.cpp`` are
 compiled with ``benchmarks/openfabmap_driver.cpp`` (``g++ -O3``, as its CMake Release build,
 OpenCV core from ``pkg-config opencv4`` or ``/usr/include/opencv4``) into
 ``~/.cache/topoloc/openfabmap/``; none of its code enters this repository.
@@ -27,7 +30,12 @@ import numpy as np
 from topoloc.fabmap.model import FabMapModel
 
 DRIVER = Path(__file__).with_name("openfabmap_driver.cpp")
-DEFAULT_SRC = Path("/work/.mirror/arrenglover+openfabmap/repo")
+SRC_ENV = "OPENFABMAP_SRC"
+#: The public repository and the commit the results in docs/results/fabmap_openfabmap.md were measured on.
+OPENFABMAP_REPO = "https://github.com/arrenglover/openfabmap"
+OPENFABMAP_COMMIT = "47fef64e2cb6407604cbce415a44a9b9e6219da8"
+HOW_TO_GET = (f"git clone {OPENFABMAP_REPO} && git -C openfabmap checkout {OPENFABMAP_COMMIT[:12]}, then "
+              f"set {SRC_ENV}=openfabmap (or --openfabmap-src openfabmap)")
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "topoloc" / "openfabmap"
 
 
@@ -56,14 +64,20 @@ def _export_source(src: Path, into: Path) -> None:
                                  capture_output=True, check=True).stdout
         subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
         return
-    raise OpenFabMapUnavailable(f"no openFABMAP sources at {src} (set OPENFABMAP_SRC)")
+    raise OpenFabMapUnavailable(f"no openFABMAP sources (src/fabmap.cpp, or a git directory) at {src}: {HOW_TO_GET}")
 
 
-def build_openfabmap() -> Path:
-    """The compiled driver (built once per driver version, then reused); raises OpenFabMapUnavailable."""
-    src = Path(os.environ.get("OPENFABMAP_SRC", DEFAULT_SRC))
+def build_openfabmap(src: str | Path | None = None) -> Path:
+    """The compiled driver (built once per driver version and source, then reused); raises OpenFabMapUnavailable.
+
+    ``src``: the openFABMAP sources (default ``$OPENFABMAP_SRC``; see the module docstring).
+    """
+    given = src if src is not None else os.environ.get(SRC_ENV)
+    if not given:
+        raise OpenFabMapUnavailable(f"openFABMAP sources not given: {HOW_TO_GET}")
+    src = Path(given).expanduser()
     if not src.exists():
-        raise OpenFabMapUnavailable(f"no openFABMAP sources at {src} (set OPENFABMAP_SRC)")
+        raise OpenFabMapUnavailable(f"no openFABMAP sources at {src}: {HOW_TO_GET}")
     key = hashlib.sha256(DRIVER.read_bytes() + str(src.resolve()).encode()).hexdigest()[:12]
     exe = CACHE / f"openfabmap_driver_{key}"
     if exe.is_file():

@@ -49,3 +49,24 @@ def test_query_sentence_reports_the_probe_counters(cluster: ModuleType) -> None:
     assert "top_k = 10" in text
     # Runs probed before the counters existed say nothing.
     assert cluster._query_sentence([{"places": 5_000, "local": {"ms_matching_median": 3.0}}]) == ""
+
+
+def test_an_unwritable_out_stops_before_any_work(cluster: ModuleType, tmp_path: Any,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """It ran for many minutes, then failed to write its result (issue #41)."""
+    import time
+
+    blocker = tmp_path / "a file"
+    blocker.write_text("x")
+    t0 = time.perf_counter()
+    with pytest.raises(SystemExit) as e:
+        cluster.main(["--out", str(blocker / "results"), "--work", str(tmp_path / "work"), "--places", "2000"])
+    assert e.value.code == 2 and time.perf_counter() - t0 < 5
+    assert "inside a file" in capsys.readouterr().err
+    assert not (tmp_path / "work").exists()  # nothing generated
+
+
+def test_a_missing_out_folder_is_created_before_the_work(benchmark_module: Callable[[str], ModuleType],
+                                                        tmp_path: Any) -> None:
+    common = benchmark_module("common")
+    assert common.output_folder(tmp_path / "new" / "results").is_dir()

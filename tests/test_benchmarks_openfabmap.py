@@ -1,7 +1,8 @@
 """The openFABMAP driver of the side-by-side benchmark (benchmarks/openfabmap.py) scores what topoloc scores.
 
-openFABMAP is compiled from a local copy of its repository; where none is present (or OpenCV's
-headers are missing) the test is skipped with the reason.  Where it runs, the exported Chow-Liu
+openFABMAP is compiled from a clone of its public repository named by ``$OPENFABMAP_SRC`` (the
+repository and commit in ``benchmarks/openfabmap.py``); where none is given (or OpenCV's headers are
+missing) the test is skipped with the reason, which says how to get it.  Where it runs, the exported Chow-Liu
 tree and detector must make openFABMAP's per-image log-likelihood (relative to the empty place)
 equal to topoloc's FAB-MAP 2.0 one, or the timings would not be on the same model.
 """
@@ -55,3 +56,13 @@ def test_openfabmap_scores_equal_topoloc_fabmap2(ofm: ModuleType) -> None:
         smoothed = 0.99 * post + 0.01 / post.size
         assert out["p_new"][k] == pytest.approx(smoothed[-1], rel=1e-6, abs=1e-12)
     assert np.mean(out["best"] == np.asarray(truth)) > 0.5  # revisits are found
+
+
+def test_no_machine_path_is_assumed(benchmark_module: Callable[[str], ModuleType],
+                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without ``$OPENFABMAP_SRC`` the sources are not looked for on one machine's path (issue #41)."""
+    mod = benchmark_module("openfabmap")
+    monkeypatch.delenv("OPENFABMAP_SRC", raising=False)
+    assert not hasattr(mod, "DEFAULT_SRC")
+    with pytest.raises(mod.OpenFabMapUnavailable, match=r"git clone https://github\.com/arrenglover/openfabmap"):
+        mod.build_openfabmap()

@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "topoloc"
 
 LAYERS: dict[str, int] = {
     # 0 foundation: no topoloc imports but each other
-    "errors": 0, "io": 0, "_params": 0, "_parallel": 0, "cluster": 0, "progress": 0,
+    "errors": 0, "io": 0, "_params": 0, "_parallel": 0, "_version": 0, "cluster": 0, "progress": 0,
     # 1 inputs: images, traverses, features, vocabularies, geometry, synthetic data
     "datasets": 1, "features": 1, "vocabulary": 1, "geometry": 1, "synth": 1,
     # 2 algorithm packages: arrays in, arrays out
@@ -89,6 +89,9 @@ def test_imports_point_down(path: Path) -> None:
     bad = []
     for line, module in _imports(path):
         target = _unit(module)
+        if module == "topoloc":  # the package's __init__ imports every layer: nothing inside may climb to it
+            bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} imports topoloc itself (above every layer)")
+            continue
         if not target or target == me:
             continue
         if LAYERS[target] > LAYERS[me]:
@@ -176,8 +179,8 @@ def _module_edges(source: str, module: str, is_package: bool, modules: set[str])
     """The topoloc modules ``source`` (module ``module``) imports, imports inside functions included.
 
     ``from a.b import c`` is an import of ``a.b.c`` where that is a module, else of ``a.b``.
-    Imports under ``if TYPE_CHECKING:`` are left out: they exist for annotations only, never run,
-    and are the usual way to name a type without importing its module.
+    Imports under ``if TYPE_CHECKING:`` count too: a circle that only annotations close still ties
+    the two modules together (issue #41); name such a type with a protocol instead.
     """
     def known(name: str) -> str:
         parts = name.split(".")
@@ -186,13 +189,9 @@ def _module_edges(source: str, module: str, is_package: bool, modules: set[str])
         return ".".join(parts)
 
     tree = ast.parse(source)
-    typing_only = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
-                   and "TYPE_CHECKING" in ast.unparse(node.test) for stmt in node.body for n in ast.walk(stmt)}
     package = module.split(".") if is_package else module.split(".")[:-1]
     out: set[str] = set()
     for node in ast.walk(tree):
-        if id(node) in typing_only:
-            continue
         if isinstance(node, ast.Import):
             out |= {known(a.name) for a in node.names if a.name.startswith("topoloc")}
         elif isinstance(node, ast.ImportFrom):
@@ -249,11 +248,29 @@ def test_no_two_modules_import_each_other() -> None:
     assert not _import_cycles(graph), "import cycles: " + "; ".join(" <-> ".join(c) for c in _import_cycles(graph))
 
 
-def test_the_cycle_check_finds_cycles_through_functions_but_not_type_checking() -> None:
+def test_the_cycle_check_finds_cycles_through_functions_and_type_checking() -> None:
     modules = {"topoloc.a", "topoloc.a.x", "topoloc.a.y", "topoloc.b"}
     x = _module_edges("def f():\n    from topoloc.a import y\n", "topoloc.a.x", False, modules)
     y = _module_edges("from .x import f\nfrom typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
                       "    from topoloc.b import B\n", "topoloc.a.y", False, modules)
-    assert x == {"topoloc.a.y"} and y == {"topoloc.a.x"}
+    assert x == {"topoloc.a.y"} and y == {"topoloc.a.x", "topoloc.b"}
     assert _import_cycles({"topoloc.a.x": x, "topoloc.a.y": y, "topoloc.b": {"topoloc.a.y"}}) == [
-        ["topoloc.a.x", "topoloc.a.y"]]
+        ["topoloc.a.x", "topoloc.a.y", "topoloc.b"]]
+
+
+def test_no_two_packages_import_each_other() -> None:
+    # Within one layer (evaluation and maps, say) the layer rule cannot see a pair of packages that import
+    # each other; one of them climbs.  evaluation imports maps (a saved map to evaluate), maps nothing of
+    # evaluation (issue #41).
+    graph: dict[str, set[str]] = {}
+    for path in _sources():
+        if path.name == "__main__.py":
+            continue  # an entry point (python -m topoloc.ros runs the command line): nothing imports it
+        me = path.relative_to(PACKAGE).parts[0].removesuffix(".py")
+        graph.setdefault(me, set()).update(t for _, m in _imports(path) if (t := _unit(m)) and t != me)
+    assert not _import_cycles(graph), "packages importing each other: " + "; ".join(
+        " <-> ".join(c) for c in _import_cycles(graph))
+
+
+def test_the_climb_check_sees_an_import_of_the_package_itself() -> None:
+    assert _imports_of("def f():\n    from topoloc import __version__\n", "topoloc.maps.map") == [(2, "topoloc")]

@@ -23,9 +23,8 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from topoloc._version import __version__
 from topoloc.errors import NotFittedError, TopolocError
-
-__version__ = "0.1.0"
 
 # Public name -> module that defines it.  The recognisers' classes are not listed: a public
 # name (in __all__) that is not here is looked up among the registered methods by class name.

@@ -666,7 +666,8 @@ def traverse_key(traverse: Traverse) -> str:
     Of fixed size whatever the tour's length: the names themselves would make a key of
     megabytes on a 100,000-image route.
     """
-    names = hashlib.sha1("\0".join(p.name for p in traverse.images).encode(), usedforsecurity=False)
+    names = hashlib.sha1("\0".join(p.name for p in traverse.images).encode("utf-8", "surrogateescape"),
+                         usedforsecurity=False)
     return f"{traverse.root.resolve()}|{len(traverse.images)}|{names.hexdigest()}"
 
 

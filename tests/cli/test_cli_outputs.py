@@ -85,7 +85,8 @@ def test_localize_never_writes_over_its_map_or_images(cli: Cli, proj: dict[str, 
     cli.error([*base, str(proj["image"])], "is a file of input folder")
     cli.error([*base, str(proj["query"])], "folder, not a file")
     cli.error([*base, "/dev/null"], "not a regular file")
-    cli.error([*base, "-"], "standard output")
+    # "-" is standard output for the lines (test_cli_campaign3.py), never for the pairs file.
+    cli.error([*base, str(proj["root"] / "l.jsonl"), "--top-k", "2", "--pairs-out", "-"], "standard output")
 
 
 def test_map_build_show_match_and_vocab_train_never_overwrite_inputs(cli: Cli, proj: dict[str, Path],

@@ -122,5 +122,5 @@ def test_sidecar_names_are_checked_against_one_listing_of_the_folder(tmp_path: P
     # d.png alone is left out (c.png is listed as ./c.png; dir.png is a folder).
     assert "1 of the 3 images" in caplog.text  # the folder's own: a.png, c.png, d.png
     (tmp_path / "places.csv").write_text("image,place\na.png,1\ndir.png,2\n")
-    with pytest.raises(TopolocError, match=r"'dir\.png' does not exist"):
+    with pytest.raises(TopolocError, match=r"'dir\.png' is not a regular file"):
         load_traverse(tmp_path)

@@ -173,3 +173,30 @@ def test_a_scratch_folder_that_cannot_be_made_is_a_one_line_error(tmp_path: Path
     with pytest.raises(WriteError) as info, scratch.spill_to(tmp_path / "file" / "maps"):
         pass
     assert str(tmp_path / "file" / "maps") in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_planted_scratch_leftover_link_is_never_followed(tmp_path: Path) -> None:
+    """A link named like a dead writer's scratch folder, pointing at a user's folder, is left alone (#41)."""
+    import os
+
+    from topoloc.io.scratch import spill_to
+
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep.txt").write_text("mine")
+    folder = tmp_path / "maps"
+    folder.mkdir()
+    name = f".topoloc-scratch-4194999-{writer_tag().split('-')[1]}-abcdefgh"  # a writer that is gone
+    (folder / name).symlink_to(victim)
+    (folder / (name[:-1] + "x")).mkdir()  # a real leftover of this user is still removed
+    others = folder / (name[:-1] + "o")  # another user's leftover: theirs to remove, not ours
+    others.mkdir()
+    (others / "their.raw").write_text("theirs")
+    if os.geteuid() == 0:
+        os.chown(others, 65534, 65534)
+    with spill_to(folder):
+        pass
+    assert (victim / "keep.txt").read_text() == "mine"
+    assert os.path.islink(folder / name)
+    assert not (folder / (name[:-1] + "x")).exists()
+    assert (others / "their.raw").is_file() or os.geteuid() != 0

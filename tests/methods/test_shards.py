@@ -12,8 +12,9 @@ from topoloc.cluster import LocalExecutor
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.io.scratch import file_backed, spill_to
-from topoloc.methods import available_methods, get_method, shards
-from topoloc.methods.shards import ShardPart, build_from_shards, shard_maps, split_places
+from topoloc.methods import available_methods, get_method, shard_build
+from topoloc.methods.shard_build import build_from_shards
+from topoloc.methods.shards import ShardPart, shard_maps, split_places
 from topoloc.resources import InMemoryResources
 
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20, "output": "posterior"},
@@ -95,19 +96,19 @@ def test_shards_moved_to_scratch_files_as_they_arrive_build_the_same_map(name: s
     want = build_from_shards(cls, maps, params=params, resources=_res(tiny_route), n_shards=3,
                              executor=LocalExecutor(n_jobs=1))
     arrived: list[ShardPart] = []
-    spilled = shards._spilled
+    spilled = shard_build._spilled
 
     def spy(part: ShardPart) -> ShardPart:
         arrived.append(spilled(part))
         return arrived[-1]
 
     with spill_to(tmp_path, min_bytes=1 << 30):  # "always": even arrays far below the threshold
-        shards._spilled = spy
+        shard_build._spilled = spy
         try:
             got = build_from_shards(cls, maps, params=params, resources=_res(tiny_route), n_shards=3,
                                     executor=LocalExecutor(n_jobs=1))
         finally:
-            shards._spilled = spilled
+            shard_build._spilled = spilled
     assert len(arrived) == 3
     assert all(file_backed(a) for p in arrived for a in p.arrays.values() if a.size)
     assert list(tmp_path.iterdir()) == []
@@ -177,7 +178,7 @@ def test_landmark_shards_built_with_other_tours_are_refused(tiny_route: dict[str
 def test_shard_tasks_keep_no_memo_in_the_resources_they_share(tiny_route: dict[str, Any]) -> None:
     # A Dask worker runs every shard it gets with one deserialised copy of the task's arguments:
     # what one shard memoises must go with it, or a worker's memory grows with the route.
-    from topoloc.methods.shards import _shard_task
+    from topoloc.methods.shard_build import _shard_task
 
     res = _res(tiny_route)
     maps = [tiny_route["map"]]

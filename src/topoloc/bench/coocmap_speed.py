@@ -318,7 +318,7 @@ def real_features(dirs: list[Any], *, locations: int, tours: int, n_queries: int
     from topoloc._parallel import n_workers
     from topoloc.datasets.traverse import find_images, read_image
     from topoloc.features import FeatureConfig, FeatureExtractor
-    from topoloc.features.cache import default_cache_dir
+    from topoloc.features.cache import cache_root
     from topoloc.io.container import read_container, write_container
     from topoloc.vocabulary import cached_vocabulary
     from topoloc.vocabulary.vocab import vocabulary_fingerprint
@@ -331,7 +331,7 @@ def real_features(dirs: list[Any], *, locations: int, tours: int, n_queries: int
     ident = [[str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns] for p in paths]
     key = hashlib.sha1(json.dumps([ident, locations, tours, n_queries, seed, extractor.config.key(),
                                    fp.get("sha1"), _VARIANT_VERSION]).encode()).hexdigest()[:20]
-    root = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    root = cache_root(cache_dir)
     file = root / "bench" / f"coocmap_real_{key}.tlc"
     rng = np.random.default_rng(seed)
     query_loc = np.sort(rng.choice(locations, size=min(n_queries, locations), replace=False))

@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -48,11 +49,12 @@ from topoloc.cli.options import (
 from topoloc.cli.progress import rich_progress
 from topoloc.errors import TopolocError
 from topoloc.io.scratch import spill_to
+from topoloc.maps.acceptance import warn_before_localizing
 from topoloc.spec.parts import STREAM_SEQUENCE_MODE, stream_sequence_for
 
 if TYPE_CHECKING:
     from topoloc.maps import Map
-    from topoloc.spec import LocalizeSpec, SequenceSpec
+    from topoloc.spec import LocalizeSpec
 
 log = logging.getLogger(__name__)
 
@@ -261,7 +263,9 @@ def localize(
         help="Image files or folders, ROS bags (.bag, rosbag2 folders; --topic) or videos, in order; or one "
              "camera (/dev/video0 or its index) or network stream (rtsp://, http:// MJPEG), read live: the "
              "newest frame is matched, the ones that arrive meanwhile are skipped (counted), Ctrl-C stops.")] = None,
-    out: Annotated[Path | None, typer.Option(help="JSON lines file, one line per frame, written as it goes.")] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="JSON lines file, one line per frame, written as it goes (-: standard output, the summary then on "
+             "standard error).")] = None,
     top_k: Annotated[int, typer.Option(help="Places listed per frame.")] = 5,
     pairs_out: PairsOutOption = None,
     prefetch: PrefetchOption = -1,
@@ -301,7 +305,15 @@ def localize(
         _localize_live(spec, m)
         return
     names: deque[str] = deque()  # the pairs name of each frame read and not yet written (lines keep its order)
-    total, frames = spec.inputs.frames(spec.images, on_frame=names.append if spec.pairs_out else None)
+    check_name = None
+    if spec.pairs_out is not None:
+        from topoloc.evaluation.pairs import check_pair_name
+
+        for name in m.place_image_names():
+            check_pair_name(name, spec.map_file)
+        check_name = check_pair_name
+    total, frames = spec.inputs.frames(spec.images, on_frame=names.append if spec.pairs_out else None,
+                                       check_name=check_name)
     # The map file is memory-mapped while the lines are written: truncating it would kill the run.
     spec.check_outputs()
     # After the inputs are checked, so that an input error stays the only line.
@@ -310,7 +322,9 @@ def localize(
                       prefetch=spec.prefetch, verify=spec.verification.enabled,
                       candidates=spec.verification.candidates, confirm=spec.verification.confirm)
     # Written line by line: a run that is stopped keeps every frame done so far.
-    with spec.execution.connect() as executor, _LineFile(spec.out) as fh, rich_progress(not quiet) as progress:
+    # ``--out -``: the lines on standard output (the Unix convention, for `| jq`), the summary on standard error.
+    lines_to = _LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)
+    with spec.execution.connect() as executor, lines_to as fh, rich_progress(not quiet) as progress:
         advance = progress(f"localize ({m.recognizer.name})", total)
         pairs: list[tuple[str, str]] = []
         place_images = dict(zip(m.place_ids.tolist(), m.place_image_names(), strict=True)) if spec.pairs_out else {}
@@ -325,7 +339,7 @@ def localize(
 
         write_pairs(spec.pairs_out, pairs)
     typer.echo(json.dumps({"out": str(spec.out), **({"pairs": str(spec.pairs_out)} if spec.pairs_out else {}),
-                           **loc.summary()}))
+                           **loc.summary()}), err=spec.to_stdout)
 
 
 def _split_inputs(inputs: list[str]) -> tuple[list[Path], str | None]:
@@ -338,33 +352,6 @@ def _split_inputs(inputs: list[str]) -> tuple[list[Path], str | None]:
     if len(inputs) > 1:
         raise TopolocError(f"a camera or stream is read alone, give no other input: {live[0]}")
     return [], live[0]
-
-
-def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: SequenceSpec,
-                           verify: bool | None = None) -> None:
-    """The warnings of a map whose acceptance will not hold: not calibrated, stale, another sequence or verification.
-
-    For loop closure an accepted false match breaks the map: ``localize`` and
-    the ROS node say so before the first frame.
-    """
-    if m.threshold is None:
-        log.warning("%s is not calibrated: every frame is marked accepted; run `topoloc map calibrate %s "
-                    "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
-                    map_file, map_file)
-    elif m.calibration_stale:
-        assert m.calibration is not None
-        log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
-                    "`topoloc map calibrate %s --query FOLDER` again", map_file,
-                    ", ".join(m.calibration.get("tours_added_since", [])), map_file)
-    if m.threshold is not None and sequence != m.calibrated_sequence:
-        cal = m.calibrated_sequence
-        log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
-                    "hold; run `topoloc map calibrate` with the same --sequence", map_file,
-                    _sequence_words(cal.length, cal.mode), _sequence_words(sequence.length, sequence.mode))
-    if m.threshold is not None and verify is not None and verify != m.default_verify:
-        log.warning("%s: the threshold was calibrated %s verification, and this run matches %s: its precision "
-                    "does not hold; run `topoloc map calibrate` with the same --verify/--no-verify", map_file,
-                    "with" if m.default_verify else "without", "with" if verify else "without")
 
 
 def _localize_live(spec: LocalizeSpec, m: Map) -> None:
@@ -403,7 +390,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
 
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        with _LineFile(spec.out) as fh:
+        with (_LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)) as fh:
             for line in loc.stream(source.frames()):
                 fh.write(json.dumps(line) + "\n")
     finally:
@@ -415,11 +402,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
         log.warning("the stream ended after %d frames: %s", source.frames_read, source.name)
     typer.echo(json.dumps({"out": str(spec.out), "stream": source.name, "ended": stopped_by[0] if stopped_by
                            else "stream", "frames_read": source.frames_read, "frames_skipped": source.buffer.skipped,
-                           **loc.summary()}))
-
-
-def _sequence_words(length: int, mode: str) -> str:
-    return f"sequences of {length + 1} frames ({mode})" if length else "single images"
+                           **loc.summary()}), err=spec.to_stdout)
 
 
 class _LineFile:
@@ -429,11 +412,14 @@ class _LineFile:
     the file is cut back to its last whole line, so what is there still reads.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, stream: Any = None) -> None:
         from topoloc.errors import WriteError
 
         self.path = path
         self.size = 0
+        self.stream = stream  # standard output: each line written and flushed, never cut back or closed
+        if stream is not None:
+            return
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
@@ -443,6 +429,13 @@ class _LineFile:
     def write(self, text: str) -> None:
         from topoloc.errors import WriteError
 
+        if self.stream is not None:
+            try:
+                self.stream.write(text)
+                self.stream.flush()
+            except OSError as exc:
+                raise WriteError.of(self.path, exc) from None
+            return
         raw = text.encode("utf-8")
         data = memoryview(raw)
         try:
@@ -460,7 +453,8 @@ class _LineFile:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        os.close(self.fd)
+        if self.stream is None:
+            os.close(self.fd)
 
 
 cache_app = command_group(help="The feature and vocabulary cache (~/.cache/topoloc or TOPOLOC_CACHE_DIR).")
@@ -475,7 +469,7 @@ def cache_info(
     quiet: QuietOption = False,
 ) -> None:
     """Files and bytes in each part of the cache, and the feature stores of each feature setting."""
-    from topoloc.features.cache import cache_usage, default_cache_dir
+    from topoloc.features.cache import cache_root, cache_usage
     from topoloc.features.store import store_usage
 
     usage = cache_usage(cache_dir)
@@ -487,10 +481,10 @@ def cache_info(
         agg["images"] += st["images"]
         agg["bytes"] += st["bytes"]
     if as_json:
-        typer.echo(json.dumps({"cache_dir": str(cache_dir or default_cache_dir()), **usage,
+        typer.echo(json.dumps({"cache_dir": str(cache_root(cache_dir)), **usage,
                                "feature_stores": per_setting, "stores": stores}))
         return
-    typer.echo(f"cache: {cache_dir or default_cache_dir()}")
+    typer.echo(f"cache: {cache_root(cache_dir)}")
     for part, u in usage.items():
         typer.echo(f"  {part}: {u['files']} files, {u['bytes'] / 2**20:.1f} MiB")
     if per_setting:

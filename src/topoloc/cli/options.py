@@ -15,7 +15,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 
-from topoloc.errors import TopolocError
+from topoloc.errors import ParameterError, TopolocError
 
 S = TypeVar("S")
 
@@ -108,6 +108,8 @@ _CLI_TO_FLAT = {"map": "maps", "param": "params"}
 _FLAT_TO_FLAG = {"vocabulary": "--vocab/--vocab-train", "maps": "--map", "params": "--param", "images": "INPUTS",
                  "folders": "FOLDERS", "map_file": "--map-file"}
 _NOT_SPEC = {"config", "quiet", "ctx"}
+#: Values a command passes under another name than its parameter's: localize's INPUTS become images or a stream.
+_CLI_PARAMETER = {"images": "inputs", "stream": "inputs"}
 
 
 def flag_of(param: str, names: Mapping[str, str] | None = None) -> str:
@@ -160,13 +162,15 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
     the command line (or in the environment) override the file's settings.
     """
     from topoloc.spec import load_config, merge, nest, spec_from_dict
+    from topoloc.spec.config import typed_config
 
     flat: dict[str, Any] = {}
     for key, value in values.items():
         if key in _NOT_SPEC:
             continue
         if config is not None:
-            source = ctx.get_parameter_source(key)
+            # Values a command renamed from its parameter (localize's INPUTS split into images and a stream).
+            source = ctx.get_parameter_source(_CLI_PARAMETER.get(key, key))
             if getattr(source, "name", None) not in ("COMMANDLINE", "ENVIRONMENT"):
                 continue
         if key == "param":
@@ -176,5 +180,62 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
         elif isinstance(value, list):
             value = tuple(value)
         flat[_CLI_TO_FLAT.get(key, key)] = value
-    base = load_config(config) if config is not None else {}
-    return spec_from_dict(cls, merge(base, nest(flat, names=names)), source=config)
+    given = nest(flat, names=names)
+    base: dict[str, Any] = {}
+    if config is not None:
+        base = drop_alternatives(typed_config(cls, load_config(config), source=config), given)
+        out = given.get("out")
+        if out is not None and Path(config).resolve().is_relative_to(Path(out).resolve()):
+            raise ParameterError("out", f"would replace the configuration file it is read from: {config}")
+    try:
+        return spec_from_dict(cls, merge(base, given), source=config)
+    except ParameterError as exc:
+        if config is None or any(_dotted(given, p) not in (None, (), [], "") for p in exc.param.split("/")):
+            raise
+        # A value the file set, not a flag: say where it came from.
+        raise ParameterError(exc.param, f"{exc.detail} (set in {config})") from None
+
+
+#: Settings that are alternatives to one another: a flag giving one replaces a file's other (issue #41).
+ALTERNATIVES = (("ground_truth.tolerance", "ground_truth.tolerance_m"), ("vocabulary.file", "vocabulary.train"),
+                ("maps", "map_file"), ("images", "stream"))
+#: A flag giving the first replaces the file's settings it fixes: a saved map fixes the method, its
+#: parameters and its vocabulary (a file's ``method = "bow"`` is for building from ``maps``).
+FIXES = {"map_file": ("method", "params", "vocabulary.file", "vocabulary.train", "vocabulary.words")}
+
+
+def _dotted(nested: Mapping[str, Any], name: str) -> Any:
+    head, _, tail = name.partition(".")
+    value = nested.get(head)
+    return (value.get(tail) if isinstance(value, Mapping) else None) if tail else value
+
+
+def drop_alternatives(base: dict[str, Any], given: Mapping[str, Any]) -> dict[str, Any]:
+    """A file's settings less those that a setting given as a flag replaces (flags always win).
+
+    Settings of :data:`ALTERNATIVES` exclude each other; given one of a group
+    on the command line, the file's others of the group are left out.
+    """
+    out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in base.items()}
+
+    def given_here(name: str) -> bool:
+        return _dotted(given, name) not in (None, (), [], "", {})
+
+    def drop(name: str) -> None:
+        head, _, tail = name.partition(".")
+        if tail and isinstance(out.get(head), dict):
+            out[head].pop(tail, None)
+        elif not tail:
+            out.pop(head, None)
+
+    for group in ALTERNATIVES:
+        if any(given_here(name) for name in group):
+            for name in group:
+                if not given_here(name):
+                    drop(name)
+    for flag, fixed in FIXES.items():
+        if given_here(flag):
+            for name in fixed:
+                if not given_here(name):
+                    drop(name)
+    return out

@@ -1129,8 +1129,10 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact
     # score (their bounds never fall below the threshold); which others it finishes depends on the
     # order and the batches.  So that S does not depend on the threads, every other location
-    # reports min(n_i, T - 1/2), an upper bound strictly below T.
-    if exact.sum() >= top_k and not exact.all():
+    # reports min(n_i, T - 1/2), an upper bound strictly below T -- also when a schedule happened to
+    # finish every location (helpers that claimed chunks before the threshold rose): keeping those
+    # exact scores made S depend on the timing of the threads (issue #41).
+    if exact.sum() >= top_k:
         T = np.sort(scores[exact])[::-1][int(top_k) - 1]
         below = ~exact | (scores < T)
         scores[below] = np.minimum(n_cand[below], T - 0.5)

@@ -143,6 +143,33 @@ def decode_bytes(data: bytes | np.ndarray, where: str | Path, *, gray: bool = Tr
     return to_gray(img) if gray else to_bgr(img)
 
 
+def has_image_reader(path: str | Path) -> bool:
+    """Whether OpenCV has a decoder for the file's header (``cv2.haveImageReader``), whatever its name.
+
+    OpenCV takes the name as UTF-8: a name that is not (bytes of another
+    encoding, as Python's surrogate escapes carry them) crashed the process
+    (issue #41), so such a file's first bytes are looked at through a
+    temporary copy under a plain name.
+    """
+    name = str(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        import tempfile
+
+        try:
+            with open(path, "rb") as fh:
+                head = fh.read(1 << 16)
+        except OSError:
+            return False
+        suffix = Path(name).suffix
+        with tempfile.NamedTemporaryFile(prefix="topoloc-header-", suffix=suffix if suffix.isascii() else "") as tmp:
+            tmp.write(head)
+            tmp.flush()
+            return bool(cv2.haveImageReader(tmp.name))
+    return bool(cv2.haveImageReader(name))
+
+
 def read_image(path: str | Path, *, gray: bool = True) -> np.ndarray:
     """Read an image file: its bytes through :func:`decode_bytes`.
 
@@ -220,5 +247,5 @@ def to_bgr(image: np.ndarray, code: int | None = None) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-__all__ = ["DECODE_VERSION", "MAX_IMAGE_PIXELS", "check_image_size", "decode_bytes", "image_header_size",
-           "read_image", "to_bgr", "to_gray"]
+__all__ = ["DECODE_VERSION", "MAX_IMAGE_PIXELS", "check_image_size", "decode_bytes", "has_image_reader",
+           "image_header_size", "read_image", "to_bgr", "to_gray"]

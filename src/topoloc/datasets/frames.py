@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from topoloc.datasets.traverse import IMAGE_SUFFIXES, natural_key, read_image
+from topoloc.datasets.traverse import image_entry, natural_key, read_image
 from topoloc.errors import input_error
 
 
@@ -26,7 +26,7 @@ def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
     files: list[Path] = []
     for item in map(Path, inputs):
         if item.is_dir():
-            found = sorted((p for p in item.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+            found = sorted((p for p in item.iterdir() if image_entry(p)),
                            key=lambda p: natural_key(p.name))
             if not found:
                 raise input_error("folder holds no images", item)
@@ -35,14 +35,14 @@ def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
             files.append(item)
         else:
             raise input_error("input does not exist", item)
-    import cv2
+    from topoloc.datasets.decode import has_image_reader
 
     # Before the first frame: an empty file or one no decoder recognises (its header) stops the run
     # here, not after an hour of frames; a file damaged further in still fails when it is reached.
     for f in files:
         if f.stat().st_size == 0:
             raise input_error("image file is empty", f)
-        if not cv2.haveImageReader(str(f)):
+        if not has_image_reader(f):
             raise input_error("not an image OpenCV can read", f)
     yield from files
 
@@ -55,6 +55,7 @@ def read_frame(path: Path) -> np.ndarray:
 def frame_stream(
     inputs: Sequence[Path], *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
     pose_topic: str | None = None, on_frame: Callable[[str], None] | None = None,
+    check_name: Callable[[str, Path], None] | None = None,
 ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
     """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
 
@@ -63,7 +64,8 @@ def frame_stream(
     when given, is called before each frame is yielded with the frame's name
     under one image root: ``<folder name>/<file name>`` for an image file
     (named or in a folder), ``<recording stem>/<frame name>`` for a bag or video
-    (what ``localize --pairs-out`` writes).
+    (what ``localize --pairs-out`` writes).  ``check_name(name, file)``, when given, is called on
+    each of those names (a recording's: its stem) before the first frame.
     """
     from topoloc.datasets.sources import FrameSource, is_stream_input, open_source
 
@@ -74,6 +76,13 @@ def frame_stream(
         else:
             parts.append(list(iter_inputs([item])))
     total = sum(len(p) for p in parts)
+    if check_name is not None:  # the names ``on_frame`` will give, checked before the first frame
+        for part in parts:
+            if isinstance(part, list):
+                for path in part:
+                    check_name(f"{path.resolve().parent.name}/{path.name}", path)
+            else:
+                check_name(Path(part.path).stem, Path(part.path))
 
     def frames() -> Iterator[tuple[str, float | None, np.ndarray]]:
         for part in parts:

@@ -40,8 +40,27 @@ from topoloc.datasets.decode import (  # noqa: F401
 from topoloc.errors import TopolocError, input_error
 
 IMAGE_SUFFIXES = frozenset(
-    {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
+    {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp", ".gif"}
 )
+"""Files of a folder that are images (a GIF too: its first frame, as when it is named directly)."""
+
+
+def image_entry(p: Path) -> bool:
+    """Whether ``p``, found in a folder, is one of its images: named as one and not a folder.
+
+    Raises
+    ------
+    TopolocError
+        When it is named as an image but is not a regular file (a named pipe, a device, a link to
+        one, a dangling link): skipping it would move every later image down one place id, so that
+        places and ground truth no longer line up (issue #41).
+    """
+    if p.suffix.lower() not in IMAGE_SUFFIXES or p.is_dir():
+        return False
+    if not p.is_file():
+        raise input_error("named as an image but not a regular file (a pipe, a device, or a link to one or to "
+                          "nothing): remove it or give it another name", p)
+    return True
 SIDECAR = "places.csv"
 log = logging.getLogger(__name__)
 TRAVERSE_KINDS = ("files", "images", "features", "words")
@@ -216,7 +235,7 @@ class Traverse:
             when = str(self.times[k]) if self.times is not None else ""
             if self.kind == "files":
                 size = Path(name).stat().st_size if Path(name).is_file() else -1
-                digest.update(f"{Path(name).name}\t{int(place)}\t{when}\t{size}\n".encode())
+                digest.update(f"{Path(name).name}\t{int(place)}\t{when}\t{size}\n".encode("utf-8", "surrogateescape"))
             else:
                 digest.update(f"{int(place)}\t{when}\n".encode())
                 frame = (self.frames or ())[k]
@@ -274,7 +293,7 @@ def _as_image(img: Any, index: int, name: str) -> np.ndarray:
 
 def _list_images(folder: Path) -> list[Path]:
     return sorted(
-        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+        (p for p in folder.iterdir() if image_entry(p)),
         key=lambda p: natural_key(p.name),
     )
 
@@ -366,9 +385,16 @@ def _sidecar_row(
     name = (row.get("image") or "").strip()
     if not name:
         raise input_error(f"{csv_path}:{i}: empty image name", None)
-    if name not in in_folder and not (folder / name).is_file():
+    if name not in in_folder:
+        norm = os.path.normpath(name)
+        if os.path.isabs(name) or norm == ".." or norm.startswith(".." + os.sep):
+            # A page meant to be shared would embed a private photo from elsewhere (issue #41).
+            raise input_error(f"{csv_path}:{i}: image {name!r} is outside the traverse's folder (names in "
+                              "places.csv are relative to it, without '..')", None)
         img = folder / name
-        raise input_error(f"{csv_path}:{i}: image {name!r} does not exist", img)
+        if not img.is_file():
+            what = "is not a regular file" if os.path.lexists(img) else "does not exist"
+            raise input_error(f"{csv_path}:{i}: image {name!r} {what}", img)
     raw = (row.get("place") or "").strip()
     try:
         pid = int(raw)
@@ -425,7 +451,7 @@ def find_images(folders: list[Path] | list[str]) -> list[Path]:
         if not f.is_dir():
             raise input_error("image folder does not exist", f)
         found = sorted(
-            (p for p in f.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+            (p for p in f.rglob("*") if image_entry(p)),
             key=lambda p: natural_key(str(p.relative_to(f))),
         )
         if not found:

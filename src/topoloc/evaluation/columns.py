@@ -49,8 +49,14 @@ def _params_text(m: dict[str, Any]) -> str:
     return f"{m.get('method', '?')} ({body})" if body else str(m.get("method", "?"))
 
 
-def _vocabulary_text(voc: dict[str, Any]) -> str:
-    if not voc or not voc.get("used"):
+#: A setting the run did not record (written by an older version): said so, not shown as a default (issue #41).
+UNKNOWN = "unknown"
+
+
+def _vocabulary_text(voc: dict[str, Any] | None) -> str:
+    if not isinstance(voc, dict) or "used" not in voc:
+        return UNKNOWN
+    if not voc.get("used"):
         return "none" if not voc.get("train_folders") else "not trained"
     words = voc.get("n_words") or voc.get("words")
     if words is None and isinstance(voc.get("centers_shape"), list):
@@ -92,9 +98,11 @@ def uses_vocabulary(m: dict[str, Any]) -> bool:
 
 
 def _features_text(f: dict[str, Any]) -> str:
-    side = f.get("max_side", 0)
-    side_text = f"max side {side}" if side else "full size"
-    return f"{f.get('method', 'sift')}, <= {f.get('max_features', '?')} per image, {side_text}"
+    if not f:
+        return UNKNOWN
+    side = f.get("max_side")
+    side_text = f"max side {UNKNOWN}" if side is None else f"max side {side}" if side else "full size"
+    return f"{f.get('method', UNKNOWN)}, <= {f.get('max_features', '?')} per image, {side_text}"
 
 
 def run_columns(m: dict[str, Any]) -> dict[str, str]:
@@ -109,8 +117,8 @@ def run_columns(m: dict[str, Any]) -> dict[str, str]:
         "map": " + ".join(maps) if len(maps) <= 3 else f"{len(maps)} traverses {maps[0]} ... {maps[-1]}",
         "query": _short(str(run.get("query", "?"))),
         "ground_truth": str(run.get("ground_truth", "?")),
-        "vocabulary": _vocabulary_text(run.get("vocabulary", {})),
-        "preprocess": str(feats.get("preprocess", "none")) if local else NOT_USED,
+        "vocabulary": _vocabulary_text(run.get("vocabulary")),
+        "preprocess": str(feats.get("preprocess", UNKNOWN)) if local else NOT_USED,
         "features": _features_text(feats) if local else NOT_USED,
         "sequence": str(seq) if seq > 1 else "off",
         # Runs written before verification existed were not verified.

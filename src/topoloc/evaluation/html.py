@@ -112,10 +112,16 @@ class _Thumbs:
     def encode_all(self, progress: ProgressFactory) -> None:
         import cv2
 
+        from topoloc.datasets.decode import read_image
+        from topoloc.errors import TopolocError
+
         todo = [(p, k) for p, k in self.keys.items() if k not in self.data]
         advance = progress("HTML thumbnails", len(todo))
         for path, key in todo:
-            img = cv2.imread(path, cv2.IMREAD_COLOR)
+            try:  # not cv2.imread: a name that is not UTF-8 crashed OpenCV (issue #41); the size is checked first
+                img = read_image(path, gray=False)
+            except TopolocError:
+                img = None
             if img is None:
                 log.warning("cannot read image for a thumbnail: %s", path)
                 advance(1)
@@ -423,5 +429,5 @@ def build_html_report(
         out = out / "index.html"
     page = render_html([Path(d) for d in run_dirs], title=title, progress=progress)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out, page.encode())
+    atomic_write_bytes(out, page.encode("utf-8", "surrogateescape"))
     return out

@@ -15,47 +15,16 @@ or a place no tour record names, is written as ``place-<id>``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
+# Names of images and places, shared with saved maps (a lower layer's module, so that maps do not import this
+# package: issue #41); named here too, as before.
+from topoloc.datasets.image_names import first_images, image_name, image_names, place_names
+from topoloc.errors import TopolocError, input_error
 from topoloc.io.container import atomic_write_bytes
-
-
-def image_name(traverse: Traverse, i: int) -> str:
-    """The name of image ``i`` of ``traverse`` in a pairs file: ``<folder name>/<path under the folder>``."""
-    img = Path(traverse.images[i])
-    if traverse.kind != "files":
-        return img.as_posix()  # already <name>/<k>
-    try:
-        rel = img.relative_to(traverse.root).as_posix()
-    except ValueError:
-        rel = img.name
-    return f"{traverse.root.name or traverse.name}/{rel}"
-
-
-def image_names(traverse: Traverse) -> list[str]:
-    """:func:`image_name` of every image of ``traverse``, in order."""
-    return [image_name(traverse, i) for i in range(len(traverse.images))]
-
-
-def first_images(traverse: Traverse) -> dict[int, str]:
-    """The first image of each place of ``traverse``: place id -> :func:`image_name`."""
-    # np.unique's return_index is the first occurrence: one name built per place, not per image.
-    ids, first = np.unique(np.asarray(traverse.places), return_index=True)
-    return {int(p): image_name(traverse, int(i)) for p, i in zip(ids.tolist(), first.tolist(), strict=True)}
-
-
-def place_names(place_ids: Sequence[int] | np.ndarray, tours: Iterable[Mapping[int, str]]) -> list[str]:
-    """The image each place is written as: the first of ``tours`` (place -> image) naming it, else ``place-<id>``."""
-    known: dict[int, str] = {}
-    for tour in tours:
-        for p, name in tour.items():
-            known.setdefault(int(p), name)
-    return [known.get(int(p), f"place-{int(p)}") for p in np.asarray(place_ids).tolist()]
 
 
 def retrieval_pairs(query_names: Sequence[str], rows: np.ndarray, row_names: Sequence[str]) -> list[tuple[str, str]]:
@@ -66,14 +35,23 @@ def retrieval_pairs(query_names: Sequence[str], rows: np.ndarray, row_names: Seq
     return [(q, row_names[int(r)]) for q, rs in zip(query_names, rows.tolist(), strict=True) for r in rs]
 
 
+def check_pair_name(name: str, where: str | Path | None = None) -> None:
+    """Refuse a name a pairs file cannot hold (empty, or holding white space: hloc splits on it), naming the file.
+
+    Called on every name known before any work (``localize --pairs-out``: the map's place images and
+    the input images), so that a run is not refused after every frame was localised (issue #41).
+    """
+    if not name or any(c.isspace() for c in name):
+        raise input_error(f"image name {name!r} is empty or holds white space, which a pairs file (--pairs-out) "
+                          "cannot hold: rename the image", where)
+
+
 def format_pairs(pairs: Iterable[tuple[str, str]]) -> bytes:
     """The text of a pairs file: ``query map`` a line.  A name holding white space is refused (hloc splits on it)."""
     lines = []
     for q, m in pairs:
         for name in (q, m):
-            if not name or any(c.isspace() for c in name):
-                raise TopolocError(f"image name {name!r} is empty or holds white space, which a pairs file "
-                                   "cannot hold: rename the image")
+            check_pair_name(name)
         lines.append(f"{q} {m}\n")
     return "".join(lines).encode("utf-8")
 

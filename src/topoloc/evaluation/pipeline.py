@@ -46,7 +46,7 @@ from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
 from topoloc.io.dirs import staged_dir
-from topoloc.methods.base import PlaceRecognizer
+from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
 from topoloc.resources import CachedResources
@@ -123,6 +123,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     map_xy = None
     place_images: list[str] | None = None
     calibration: dict[str, Any] | None = None
+    early_gt: GroundTruth | None = None
+    early_ids = np.zeros(0, np.int64)
     tour_records: list[dict[str, Any]] = []
     if spec.map_file is not None:
         method, resources, vocab_info, map_xy, place_images, calibration, tour_records = _saved_map(
@@ -131,6 +133,10 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         map_labels = [str(spec.map_file)]
     else:
         method = build_method(spec.method, spec.params)
+        # The ground truth (a file of the wrong shape...) is checked before the fit's work (issue #41); the
+        # rows of S are the maps' sorted place ids whatever the method.
+        early_ids = map_place_ids(maps)
+        early_gt = spec.ground_truth.make(early_ids, query, maps=maps, map_xy=map_xy)
         if not method.uses_vocabulary and spec.vocabulary.given:
             log.warning("method %s uses no visual vocabulary: the vocabulary given is ignored", method.name)
         config = spec.features.config()
@@ -147,7 +153,8 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         fit_s = time.perf_counter() - t0 - float(vocab_info.get("seconds_this_run", 0.0))
         map_labels = [str(m) for m in spec.maps]
     place_ids = method.place_ids_
-    gt = spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy)
+    gt = (early_gt if early_gt is not None and np.array_equal(place_ids, early_ids)
+          else spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy))
     check_overlap(gt, query, place_ids)
     verifier = _verifier(spec, method, maps, tour_records, resources)
     items = method.encode(query, resources=resources)
@@ -398,6 +405,6 @@ def write_outputs(
     label = f"{metrics['method']} (AUC {metrics['auc']:.2f})"
     plot_pr_curves([(label, scores.precision, scores.recall)], out / "pr.png",
                    title=run_title(metrics))
-    atomic_write_bytes(out / "report.md", render_run_report(metrics).encode())
+    atomic_write_bytes(out / "report.md", render_run_report(metrics).encode("utf-8", "surrogateescape"))
 
 

@@ -91,19 +91,28 @@ def table_row(m: dict[str, Any]) -> str:
     )
 
 
+#: What the report says of a setting the run did not record (written by an older version): not a default.
+UNKNOWN = "unknown (not recorded)"
+
+
 def _features_line(f: dict[str, Any]) -> str:
-    side = int(f.get("max_side", 0))
-    resize = f"images longer than {side} px downscaled to a longer side of {side} px" if side else "images at full size"
+    if "max_side" not in f:
+        resize = f"image size {UNKNOWN}"
+    else:
+        side = int(f["max_side"] or 0)
+        resize = (f"images longer than {side} px downscaled to a longer side of {side} px" if side
+                  else "images at full size")
     if "max_side_option" in f:
         resize += f" (--max-side {f['max_side_option']})"
-    return (f"{f['method']}, at most {f['max_features']} per image, {resize}, "
-            f"photometric preprocessing {f.get('preprocess', 'none')}")
+    cap = f"at most {f['max_features']} per image" if "max_features" in f else f"features per image {UNKNOWN}"
+    return (f"{f.get('method', UNKNOWN)}, {cap}, {resize}, "
+            f"photometric preprocessing {f.get('preprocess', UNKNOWN)}")
 
 
 def render_run_report(m: dict[str, Any]) -> str:
     """``report.md`` of one run."""
     run = m["run"]
-    voc = run["vocabulary"]
+    voc = run.get("vocabulary")
     lines = [
         f"# {run_title(m)}\n\n",
         TABLE_HEADER,
@@ -113,10 +122,12 @@ def render_run_report(m: dict[str, Any]) -> str:
         f"- map: {', '.join(f'`{x}`' for x in run['map'])}\n",
         f"- query: `{run['query']}` ({m['n_queries']} queries, {m['n_places']} map places)\n",
         f"- ground truth: {run['ground_truth']}\n",
-        f"- local features: {_features_line(run['features'])}\n" if uses_local_features(m)
+        f"- local features: {_features_line(run.get('features') or {})}\n" if uses_local_features(m)
         else "- local features: none (this method does not use them; no feature settings or preprocessing apply)\n",
     ]
-    if voc.get("used"):
+    if not isinstance(voc, dict) or "used" not in voc:
+        lines.append(f"- vocabulary: {UNKNOWN}\n")
+    elif voc.get("used"):
         prov = {k: v for k, v in voc.items() if k not in {"used"}}
         lines.append(f"- vocabulary: `{json.dumps(prov, default=str)}`\n")
     else:
@@ -204,6 +215,6 @@ def build_report(run_dirs: list[Path], out: Path, title: str = "Results") -> Pat
               for i, (label, (m, p, r)) in enumerate(zip(labels, runs, strict=True))]
     plot_pr_curves(curves, out / "pr_curves.png", title=title)
     path = out / "report.md"
-    atomic_write_bytes(path, "".join(md).encode())
+    atomic_write_bytes(path, "".join(md).encode("utf-8", "surrogateescape"))
     return path
 

@@ -262,7 +262,7 @@ def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = 
     for img, matched, p in result.loop_closures():
         w.writerow([img, name(img), matched, name(matched), f"{p:.6f}"])
     paths["loop_closures"] = out / "loop_closures.csv"
-    atomic_write_bytes(paths["loop_closures"], text.getvalue().encode())
+    atomic_write_bytes(paths["loop_closures"], text.getvalue().encode("utf-8", "surrogateescape"))
 
     text = io.StringIO()
     w = csv.writer(text, lineterminator="\n")
@@ -271,7 +271,7 @@ def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = 
         w.writerow([s.image, name(s.image), s.place, result.founders[s.place], name(result.founders[s.place]),
                     int(s.new_place), int(s.loop_closure)])
     paths["assignments"] = out / "assignments.csv"
-    atomic_write_bytes(paths["assignments"], text.getvalue().encode())
+    atomic_write_bytes(paths["assignments"], text.getvalue().encode("utf-8", "surrogateescape"))
 
     summary = {
         "n_images": result.n_images,
@@ -280,7 +280,7 @@ def write_slam_outputs(result: SlamResult, out_dir: str | Path, *, plot: bool = 
         "params": result.params,
     }
     paths["summary"] = out / "slam.json"
-    atomic_write_bytes(paths["summary"], (json.dumps(summary, indent=2) + "\n").encode())
+    atomic_write_bytes(paths["summary"], (json.dumps(summary, indent=2) + "\n").encode("utf-8", "surrogateescape"))
 
     if plot:
         paths["plot"] = out / "loop_closures.png"

@@ -150,5 +150,5 @@ def build_slam_html(run_dir: Path, out: Path, title: str = "", progress: Progres
     out = Path(out)
     page = render_slam_html(run_dir, title=title, progress=progress)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out, page.encode())
+    atomic_write_bytes(out, page.encode("utf-8", "surrogateescape"))
     return out

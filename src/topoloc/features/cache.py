@@ -10,6 +10,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import stat
+from collections.abc import Iterator
 from pathlib import Path
 
 from topoloc.errors import input_error
@@ -19,11 +21,66 @@ CACHE_ENV = "TOPOLOC_CACHE_DIR"
 
 
 def default_cache_dir() -> Path:
-    """The cache root: ``$TOPOLOC_CACHE_DIR`` if set, else ``~/.cache/topoloc``."""
+    """The cache root: ``$TOPOLOC_CACHE_DIR`` if set, else ``~/.cache/topoloc`` (see :func:`cache_root`)."""
     env = os.environ.get(CACHE_ENV)
-    if env:
-        return Path(env).expanduser()
-    return Path.home() / ".cache" / "topoloc"
+    return cache_root(Path(env).expanduser() if env else Path.home() / ".cache" / "topoloc")
+
+
+def _private(st: os.stat_result) -> bool:
+    """Owned by this user and writable by nobody else: nothing in it was planted by another user."""
+    return st.st_uid == os.geteuid() and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+
+
+def cache_root(root: str | Path | None) -> Path:
+    """The folder the cache of ``root`` (a cache folder as named; None: :func:`default_cache_dir`) lives in.
+
+    A folder of this user that nobody else may write to is used as it is.  A
+    folder shared between users (another's, or writable by group or others:
+    ``/tmp/cache``, a team's ``TOPOLOC_CACHE_DIR``) is never used directly,
+    since a link or file planted in it by another user could make topoloc
+    read, overwrite or delete what that link points at (issue #41): the
+    cache lives in ``user-UID`` inside it, created private (mode 0700) and
+    checked to be a real folder of this user that nobody else may write to.
+
+    Raises
+    ------
+    TopolocError
+        When that per-user folder exists but is a link, not a folder, another
+        user's, or writable by others (planted).
+    """
+    if root is None:
+        return default_cache_dir()
+    root = Path(root).expanduser()
+    try:
+        st = os.stat(root)  # the root as named, links followed: the user chose it
+    except OSError:
+        return root  # made when first written, by this user
+    if _private(st):
+        return root
+    mine = root / f"user-{os.geteuid()}"
+    try:
+        os.mkdir(mine, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return mine  # a read-only shared cache: nothing of this user in it, and nothing is followed
+    try:
+        st = os.lstat(mine)
+    except OSError:
+        return mine
+    if not stat.S_ISDIR(st.st_mode) or not _private(st):
+        raise input_error("the per-user folder of a cache shared between users is not a private folder of "
+                          "this user (a link, or another user's, or writable by others): remove it", mine)
+    return mine
+
+
+def walk_no_links(root: Path) -> Iterator[tuple[Path, list[str], list[str]]]:
+    """``os.walk`` of ``root`` that never enters a linked folder; links are listed with the files."""
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        here = Path(folder)
+        links = [d for d in dirs if os.path.islink(here / d)]
+        dirs[:] = [d for d in dirs if d not in links]
+        yield here, dirs, files + links
 
 
 def file_sha1(path: str | Path) -> str:
@@ -50,17 +107,19 @@ def cache_usage(cache_dir: str | Path | None = None) -> dict[str, dict[str, int]
     dict
         ``{part: {"files": n, "bytes": b}}`` plus ``"total"``.
     """
-    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    root = cache_root(cache_dir)
     out: dict[str, dict[str, int]] = {}
     total = {"files": 0, "bytes": 0}
-    if root.is_dir():
-        for f in root.rglob("*"):
-            if not f.is_file():
+    for folder, _, names in walk_no_links(root):
+        for name in names:
+            f = folder / name
+            try:
+                size = os.lstat(f).st_size  # a link counts as itself: what it points at is not the cache's
+            except OSError:
                 continue
             rel = f.relative_to(root).parts
             part = "/".join(rel[:2]) if rel[0] == "features" and len(rel) > 2 else rel[0]
             entry = out.setdefault(part, {"files": 0, "bytes": 0})
-            size = f.stat().st_size
             entry["files"] += 1
             entry["bytes"] += size
             total["files"] += 1
@@ -102,16 +161,19 @@ def _cache_units(root: Path) -> list[tuple[float, int, int, Path]]:
     system records them).
     """
     units: list[tuple[float, int, int, Path]] = []
-    if not root.is_dir():
-        return units
-    stores = {d for d in root.glob(STORE_GLOB) if d.is_dir()}
-    for store in stores:
-        files = [f for f in store.rglob("*") if f.is_file()]
-        units.append((store_last_used(files), sum(f.stat().st_size for f in files), len(files), store))
-    for f in root.rglob("*"):
-        if f.is_file() and not any(parent in stores for parent in f.parents):
-            st = f.stat()
-            units.append((max(st.st_atime, st.st_mtime), st.st_size, 1, f))
+    # Never through a link (issue #41: a link planted as ``features/<key>/store`` made ``cache clean --all``
+    # delete the folder it pointed at): a link is an entry of its own, removed as a link.
+    for folder, dirs, names in walk_no_links(root):
+        rel = folder.relative_to(root).parts
+        if len(rel) == 3 and rel[0] == "features" and rel[2] == STORE_GLOB.split("/")[2]:
+            for d in list(dirs):
+                files = [sub / n for sub, _, ns in walk_no_links(folder / d) for n in ns]
+                stats = [os.lstat(f) for f in files]
+                units.append((store_last_used(files), sum(st.st_size for st in stats), len(files), folder / d))
+            dirs.clear()
+        for name in names:
+            st = os.lstat(folder / name)
+            units.append((max(st.st_atime, st.st_mtime), st.st_size, 1, folder / name))
     return units
 
 
@@ -123,7 +185,7 @@ def store_last_used(files: list[Path]) -> float:
     """
     times = [0.0]
     for f in files:
-        st = f.stat()
+        st = os.lstat(f)
         times.append(st.st_mtime if f.name == "store.json" else max(st.st_atime, st.st_mtime))
     return max(times)
 
@@ -159,7 +221,7 @@ def clean_cache(cache_dir: str | Path | None = None, *, max_bytes: int | None = 
     """
     import time
 
-    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    root = cache_root(cache_dir)
     info = sorted(_cache_units(root), key=lambda x: x[0])
     now = time.time()
     remove_all = max_bytes is None and older_than_s is None
@@ -170,7 +232,7 @@ def clean_cache(cache_dir: str | Path | None = None, *, max_bytes: int | None = 
         old = older_than_s is not None and now - used > older_than_s
         over = max_bytes is not None and total - removed_bytes > max_bytes
         if remove_all or old or over:
-            if path.is_dir():
+            if path.is_dir() and not path.is_symlink():
                 _remove_store(path)
                 removed_stores += 1
             else:

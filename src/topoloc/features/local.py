@@ -45,7 +45,7 @@ from topoloc._parallel import n_workers
 from topoloc._params import Configurable, Constraint, Interval, Options
 from topoloc.datasets.decode import DECODE_VERSION, read_image, to_gray
 from topoloc.errors import TopolocError, input_error
-from topoloc.features.cache import default_cache_dir, file_sha1
+from topoloc.features.cache import cache_root, file_sha1
 from topoloc.io import read_container, write_container
 
 log = logging.getLogger(__name__)
@@ -564,7 +564,7 @@ class FeatureExtractor:
     ) -> None:
         self.config = config if config is not None else FeatureConfig()
         check_method_available(self.config.method)
-        self.cache_dir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+        self.cache_dir = cache_root(cache_dir)
         self.use_cache = use_cache
         self.n_jobs = n_jobs
 

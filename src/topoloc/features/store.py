@@ -47,6 +47,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -57,7 +58,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from topoloc.errors import TopolocError, input_error
-from topoloc.features.cache import STORE_GLOB, default_cache_dir, file_sha1, store_last_used
+from topoloc.features.cache import STORE_GLOB, cache_root, file_sha1, store_last_used, walk_no_links
 from topoloc.features.local import FeatureConfig, FeatureExtractor, FeatureSet, extract_features
 from topoloc.io import atomic_write_bytes, read_container, write_container
 
@@ -84,9 +85,9 @@ STORE_DIR = "store"
 def store_id(root: Path, names: Sequence[str], block_size: int) -> str:
     """Identifier of the store of a traverse: hash of its folder, its file names in order and the block size."""
     h = hashlib.sha1()
-    h.update(f"{STORE_SCHEMA}\0{Path(root).resolve()}\0{block_size}\n".encode())
+    h.update(f"{STORE_SCHEMA}\0{Path(root).resolve()}\0{block_size}\n".encode("utf-8", "surrogateescape"))
     for name in names:
-        h.update(name.encode() + b"\n")
+        h.update(name.encode("utf-8", "surrogateescape") + b"\n")
     return h.hexdigest()[:16]
 
 
@@ -327,7 +328,7 @@ class FeatureStore:
         # Absolute: the tasks may run in worker processes with another working directory.
         self.images = [Path(p).absolute() for p in images]
         self.block_size = int(block_size)
-        self.cache_dir = (Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()).absolute()
+        self.cache_dir = cache_root(cache_dir).absolute()
         names = [p.name for p in self.images]
         self.id = store_id(Path(root), names, self.block_size)
         self.path = self.cache_dir / "features" / config.key() / STORE_DIR / self.id
@@ -474,12 +475,15 @@ def store_usage(cache_dir: str | Path | None = None) -> list[dict[str, Any]]:
         ``{"path", "settings", "root", "images", "blocks", "complete_blocks", "bytes", "last_used"}``;
         ``last_used`` is a Unix time (the latest access or modification of its files).
     """
-    root = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    root = cache_root(cache_dir)
     out = []
     for store in sorted(root.glob(STORE_GLOB)):
-        if not store.is_dir() or store.name.startswith("."):  # hidden: being removed by clean_cache
+        # Never through a link: what a planted link points at is not the cache's (issue #41).
+        if (not store.is_dir() or store.name.startswith(".")  # hidden: being removed by clean_cache
+                or any(p.is_symlink() for p in (store, store.parent, store.parent.parent))):
             continue
-        files = [f for f in store.rglob("*") if f.is_file()]
+        files = [sub / n for sub, _, names in walk_no_links(store) for n in names
+                 if not os.path.islink(sub / n)]
         stats = [f.stat() for f in files]
         try:
             manifest = json.loads((store / "store.json").read_text())

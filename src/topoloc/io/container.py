@@ -29,10 +29,12 @@ whole folder, and a cache folder of 10,000 files made every write 11 ms slower
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
+import stat
 import struct
 import tempfile
 import threading
@@ -86,9 +88,11 @@ def _sweep_once(folder: Path) -> None:
 def atomic_write_bytes(path: str | Path, chunks: Iterable[bytes | memoryview] | bytes) -> None:
     """Write ``chunks`` to ``path`` atomically (temporary file, fsync, rename).
 
-    The file gets the permissions of any file the user creates (``0666`` less
+    A new file gets the permissions of any file the user creates (``0666`` less
     the umask), not the private ``0600`` of a temporary file, so that a shared
-    cache or map can be read by the others it is shared with.
+    cache or map can be read by the others it is shared with; a file replaced
+    keeps its own mode (and owner and group, where the system allows it), so a
+    private map stays private.
 
     Raises
     ------
@@ -104,8 +108,15 @@ def atomic_write_bytes(path: str | Path, chunks: Iterable[bytes | memoryview] | 
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         _sweep_once(path.parent)
+        try:  # a file replaced keeps its mode, owner and group (issue #41: a 0600 map became 0644)
+            old: os.stat_result | None = os.stat(path)
+        except OSError:
+            old = None
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{writer_tag()}-", suffix=".tmp", dir=path.parent)
-        os.fchmod(fd, _FILE_MODE)
+        os.fchmod(fd, _FILE_MODE if old is None else stat.S_IMODE(old.st_mode))
+        if old is not None and (old.st_uid, old.st_gid) != (os.geteuid(), os.getegid()):
+            with contextlib.suppress(OSError):  # allowed to root, or to a member of the group
+                os.fchown(fd, old.st_uid, old.st_gid)
         with os.fdopen(fd, "wb") as fh:
             for chunk in chunks:
                 fh.write(chunk)

@@ -251,6 +251,12 @@ def remove_stale(folder: Path, pattern: re.Pattern[str], remove: Callable[[Path]
         m = pattern.match(entry.name)
         if m is None:
             continue
+        try:
+            st = entry.stat(follow_symlinks=False)
+        except OSError:
+            continue
+        if entry.is_symlink() or st.st_uid != os.geteuid():
+            continue  # planted by someone else (issue #41): never followed, never removed
         path = Path(entry.path)
         tagged = m if m.groupdict().get("pid") is not None else None
         if is_stale(path, tagged):

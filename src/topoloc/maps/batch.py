@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
@@ -28,9 +28,51 @@ from topoloc.cluster import Executor
 from topoloc.errors import TopolocError
 from topoloc.maps.frame_resources import FrameResources, describe
 
-if TYPE_CHECKING:  # the map module calls this one; the map class travels with each batch instead
+if TYPE_CHECKING:
     from topoloc.features import FeatureSet
-    from topoloc.maps.map import Localizer, Map
+
+# What this module needs of a map and its localiser, as protocols: the map module calls this one, so this one
+# does not import it, not even for annotations (an import circle, issue #41); the map class travels with each
+# batch instead.
+class Map(Protocol):
+    """A saved map (:class:`topoloc.maps.map.Map`): its file, recogniser and description settings."""
+
+    @property
+    def path(self) -> Path | None: ...
+
+    @property
+    def recognizer(self) -> Any: ...
+
+    @property
+    def features(self) -> Any: ...
+
+    @property
+    def vocabulary(self) -> Any: ...
+
+
+class MapType(Protocol):
+    """The class that opens a map file (:class:`topoloc.maps.map.Map`)."""
+
+    def load(self, path: str | Path) -> Map: ...
+
+
+class Localizer(Protocol):
+    """The online localiser of a map (:class:`topoloc.maps.map.Localizer`)."""
+
+    @property
+    def map(self) -> Map: ...
+
+    @property
+    def verifier(self) -> Any: ...
+
+    workers: int
+    ms_overlap: float
+
+    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]: ...
+
+    def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
+                    ms_features: float = 0.0, ms_matching: float = 0.0,
+                    features: FeatureSet | None = None) -> dict[str, Any]: ...
 
 BATCH_FRAMES = 16
 """Frames per task: SIFT describes 15.5 frames of 640 x 480 per second and thread
@@ -50,7 +92,7 @@ class FrameBatch:
     stamp: tuple[int, int]
     first: int
     frames: tuple[np.ndarray, ...]
-    map_type: type[Map]
+    map_type: MapType
     keep_features: bool = False
 
 
@@ -63,7 +105,7 @@ def _stamp(path: str | Path) -> tuple[int, int]:
     return int(st.st_size), int(st.st_mtime_ns)
 
 
-def _worker_map(path: str, stamp: tuple[int, int], map_type: type[Map]) -> Map:
+def _worker_map(path: str, stamp: tuple[int, int], map_type: MapType) -> Map:
     """The map of ``path``, opened once per worker process."""
     with _maps_lock:
         m = _maps.get((path, stamp))
@@ -136,7 +178,8 @@ def localize_on(executor: Executor, loc: Localizer,
         decode_s = time.perf_counter() - t0
         if not chunk:
             return
-        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]), type(m),
+        map_type = cast(MapType, type(m))
+        batches = [FrameBatch(path, stamp, first + a, tuple(f[2] for f in chunk[a:a + batch_frames]), map_type,
                               keep_features=loc.verifier is not None)
                    for a in range(0, len(chunk), batch_frames)]
         first += len(chunk)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -39,7 +40,7 @@ from topoloc.maps.place_images import PlaceImages
 from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
-from topoloc.methods.shards import build_from_shards
+from topoloc.methods.shard_build import build_from_shards
 from topoloc.progress import ProgressFactory
 from topoloc.ranking import threshold_sweep, top_rows
 from topoloc.resources import CachedResources, InMemoryResources, Resources
@@ -79,6 +80,8 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
         rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
     if tour.source is not None:
         rec["source"] = dict(tour.source)  # a recording: its file and frame selection
+        if "file" in rec["source"]:
+            rec["source"]["file"] = os.path.abspath(rec["source"]["file"])
     return rec
 
 
@@ -103,8 +106,11 @@ def reload_tour(rec: dict[str, Any], *, purpose: str = "to add a tour") -> Trave
                        every_m=src.get("every_m"), pose_topic=src.get("pose_topic"))
     else:
         if not Path(root).is_dir():
+            where = ("" if Path(root).is_absolute() else
+                     f" from {Path.cwd()} (the map recorded it relative to the folder it was built in; run from "
+                     "there, or build it again)")
             raise input_error(f"tour {rec.get('name')!r} of the map is needed again {purpose}, but its "
-                              "folder is gone", root)
+                              f"folder is gone{where}", root)
         t = load_traverse(root)
     if t.fingerprint() != rec["fingerprint"]:
         raise input_error(f"tour {rec.get('name')!r} has changed since the map was built (other images or "
@@ -114,10 +120,11 @@ def reload_tour(rec: dict[str, Any], *, purpose: str = "to add a tour") -> Trave
 
 def _tour_root(tour: Traverse) -> str:
     """A tour's folder, the recording it was read from, or ``<images in memory>``."""
+    # Absolute: ``map add`` may run from another folder than ``map build`` (issue #41).
     if tour.kind == "files":
-        return str(tour.root)
+        return os.path.abspath(tour.root)
     if tour.source is not None and "file" in tour.source:
-        return str(tour.source["file"])
+        return os.path.abspath(tour.source["file"])
     return f"<{tour.kind} in memory>"
 
 
@@ -394,7 +401,7 @@ class Map:
         to finish, up to ``timeout`` seconds (default ``$TOPOLOC_LOCK_TIMEOUT``, else
         an hour), then replaces it.
         """
-        path = Path(path)
+        path = _through_link(Path(path))
         if path.is_dir():
             raise input_error("map output is a folder, not a file", path)
         with file_lock(path, timeout=timeout):
@@ -414,7 +421,7 @@ class Map:
                         "descriptor_kind": self.vocabulary.descriptor_kind_,
                         "provenance": self.vocabulary.provenance_,
                         "index": self.vocabulary.index, "ef_search": self.vocabulary.ef_search}
-        from topoloc import __version__
+        from topoloc._version import __version__
 
         for k, tour in enumerate(self.tours):
             pairs = tour.get("place_images")
@@ -454,7 +461,7 @@ class Map:
         TopolocError
             What :meth:`load` refuses, or another process still holds the file after ``timeout``.
         """
-        path = Path(path)
+        path = _through_link(Path(path))
         if not path.is_file():
             read_map_file(path)  # the one-line error of a missing map, before any lock
         # Large intermediates of the change (a tour merged into the map, its inverted files) as scratch
@@ -549,7 +556,7 @@ class Map:
         The first image of the place in the first tour recording one; ``place-<id>`` for a
         place no tour record names (maps saved before tours recorded ``place_images``).
         """
-        from topoloc.evaluation.pairs import place_names
+        from topoloc.datasets.image_names import place_names
 
         return place_names(self.place_ids, (t.get("place_images") or {} for t in self.tours))
 
@@ -893,6 +900,11 @@ class Map:
         if vocabulary is not None and (self.vocabulary is None or vocabulary_fingerprint(vocabulary)
                                        != vocabulary_fingerprint(self.vocabulary)):
             raise ParameterError("vocabulary", f"is not the one this map was built with{where}")
+
+
+def _through_link(path: Path) -> Path:
+    """The file a link named as the map points at: it is replaced there, and the link kept (issue #41)."""
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
 class Localizer:

@@ -53,7 +53,7 @@ class PlaceImages(Mapping[int, str]):
     def of(cls, pairs: Mapping[int, str] | Iterable[tuple[int, str]]) -> PlaceImages:
         """From ``{place: name}`` or ``[place, name]`` pairs (a tour record of an older map file)."""
         items = sorted((int(p), str(n)) for p, n in (pairs.items() if isinstance(pairs, Mapping) else pairs))
-        encoded = [n.encode() for _, n in items]
+        encoded = [n.encode("utf-8", "surrogateescape") for _, n in items]  # a name in any bytes
         return cls(np.asarray([p for p, _ in items], np.int64),
                    np.frombuffer(b"".join(encoded), np.uint8).copy(),
                    np.cumsum([len(e) for e in encoded], dtype=np.int64))
@@ -61,13 +61,13 @@ class PlaceImages(Mapping[int, str]):
     @classmethod
     def of_tour(cls, tour: Traverse) -> PlaceImages:
         """The first image of each place of ``tour`` (:func:`topoloc.evaluation.pairs.first_images`)."""
-        from topoloc.evaluation.pairs import first_images
+        from topoloc.datasets.image_names import first_images
 
         return cls.of(first_images(tour))
 
     def _name(self, k: int) -> str:
         start = int(self.ends[k - 1]) if k else 0
-        return bytes(self.names[start:int(self.ends[k])]).decode()
+        return bytes(self.names[start:int(self.ends[k])]).decode("utf-8", "surrogateescape")
 
     def __getitem__(self, place: int) -> str:
         k = int(np.searchsorted(self.place_ids, int(place)))
@@ -85,8 +85,8 @@ class PlaceImages(Mapping[int, str]):
         blob = bytes(np.asarray(self.names))
         ends = np.asarray(self.ends).tolist()
         starts = [0, *ends[:-1]]
-        return [(p, blob[s:e].decode()) for p, s, e in zip(np.asarray(self.place_ids).tolist(), starts, ends,
-                                                           strict=True)]
+        return [(p, blob[s:e].decode("utf-8", "surrogateescape"))
+                for p, s, e in zip(np.asarray(self.place_ids).tolist(), starts, ends, strict=True)]
 
     def arrays(self, k: int) -> dict[str, np.ndarray]:
         """The arrays of tour ``k`` of a map file."""

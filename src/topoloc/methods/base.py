@@ -293,7 +293,7 @@ class PlaceRecognizer(Configurable, ABC):
                   resources: Resources | None = None) -> ShardPart:
         """The partial model of one shard: every map tour cut to the place ids in ``[lo, hi)``.
 
-        An independent task (:func:`topoloc.methods.shards.build_from_shards`
+        An independent task (:func:`topoloc.methods.shard_build.build_from_shards`
         runs one per shard); :meth:`from_shards` merges the parts.
 
         Raises

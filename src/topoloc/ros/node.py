@@ -212,8 +212,8 @@ class LocalizerNode:
         return st.st_ino, st.st_size, st.st_mtime_ns
 
     def _load_map(self) -> Any:
-        from topoloc.cli.maps import warn_before_localizing
         from topoloc.maps import Map
+        from topoloc.maps.acceptance import warn_before_localizing
 
         m = Map.load(self.settings.map_file)
         warn_before_localizing(m, self.settings.map_file, self._sequence(m))

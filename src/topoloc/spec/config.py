@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import reprlib
+import types
+import typing
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-from topoloc.errors import TopolocError, input_error
+from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.spec.parts import PARTS
 
 S = TypeVar("S")
@@ -92,19 +95,106 @@ def spec_from_dict(cls: type[S], data: Mapping[str, Any], *, source: str | Path 
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
         if key not in fields:
-            raise TopolocError(f"unknown setting {key!r} for {_label(cls)}{where}; known: {', '.join(fields)}")
+            raise TopolocError(f"unknown setting {_short(key)} for {_label(cls)}{where}; known: {', '.join(fields)}")
         part = PARTS.get(key)
         if part is not None and isinstance(value, Mapping):
             known = {f.name for f in dataclasses.fields(part)}
-            extra = sorted(set(value) - known)
+            extra = sorted(set(value) - known, key=str)
             if extra:
-                raise TopolocError(f"unknown setting {key}.{extra[0]}{where}; known: "
+                raise TopolocError(f"unknown setting {key}.{str(extra[0])[:60]}{where}; known: "
                                    f"{', '.join(f'{key}.{k}' for k in sorted(known))}")
             default = fields[key].default_factory()  # type: ignore[operator]
             kwargs[key] = dataclasses.replace(default, **value)
         else:
             kwargs[key] = value
     return cls(**kwargs)
+
+
+def typed_config(cls: type, data: Mapping[str, Any], *, source: str | Path) -> dict[str, Any]:
+    """A configuration file's settings for the specification ``cls``, each checked against its type.
+
+    Names unknown to ``cls`` are left for :func:`spec_from_dict` to refuse;
+    a part given as anything but a table, and a value of another type than
+    its setting's, are one line naming the setting (as its flag on the command
+    line) and the file, as a bad flag is.  Paths come as strings, lists as
+    lists (one string for a list of one), floats as integers too.
+    """
+    where = f" ({source})"
+    fields = {f.name for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in fields:
+            out[key] = value
+            continue
+        part = PARTS.get(key)
+        if part is None:
+            out[key] = _typed(value, hints[key], key, where)
+            continue
+        if not isinstance(value, Mapping):
+            raise ParameterError(key, f"must be a table of settings ({key}.NAME = ...), got {_short(value)}{where}")
+        part_hints = typing.get_type_hints(part)
+        out[key] = {k: _typed(v, part_hints[k], f"{key}.{k}", where) if k in part_hints else v
+                    for k, v in value.items()}
+    return out
+
+
+def _short(value: Any) -> str:
+    """A value as an error line shows it: its repr, cut short (a value may be huge)."""
+    r = reprlib.Repr()
+    r.maxstring, r.maxother, r.maxlist, r.maxdict, r.maxtuple, r.maxlevel = 60, 60, 4, 4, 4, 2
+    return r.repr(value)
+
+
+def _typed(value: Any, hint: Any, param: str, where: str) -> Any:
+    """``value`` as the type ``hint`` of setting ``param`` takes it, or one line naming ``param``.
+
+    Files give numbers, strings, lists and tables; a path is a string, a tuple a
+    list (or one string), a float an integer too.  Values the flags give pass unchanged.
+    """
+    if hint is Any:
+        return value
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        problems = []
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _typed(value, arg, param, where)
+            except ParameterError as exc:
+                problems.append(exc.detail.split(", got")[0].removeprefix("must be "))
+        raise ParameterError(param, f"must be {' or '.join(problems)}, got {_short(value)}{where}")
+    if origin is tuple:
+        items = [value] if isinstance(value, str | Path) else value
+        if not isinstance(items, list | tuple):
+            raise ParameterError(param, f"must be a list, got {_short(value)}{where}")
+        return tuple(_typed(v, args[0], param, where) for v in items)
+    if origin is dict or hint is dict:
+        if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
+            raise ParameterError(param, f"must be a table of NAME = value, got {_short(value)}{where}")
+        return dict(value)
+    if hint is Path:
+        if isinstance(value, Path) or (isinstance(value, str) and value):
+            return Path(value)
+        raise ParameterError(param, f"must be a path, got {_short(value)}{where}")
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise ParameterError(param, f"must be true or false, got {_short(value)}{where}")
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ParameterError(param, f"must be a whole number, got {_short(value)}{where}")
+    if hint is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        raise ParameterError(param, f"must be a number, got {_short(value)}{where}")
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        raise ParameterError(param, f"must be text, got {_short(value)}{where}")
+    return value
 
 
 def spec_from_flat(cls: type[S], flat: Mapping[str, Any], *, names: Mapping[str, str] | None = None) -> S:
@@ -136,36 +226,109 @@ def _label(cls: type) -> str:
     return cls.__name__.removesuffix("Spec")
 
 
+#: Largest configuration file read (a run's metrics.json is a few kB; docs/results/runs).
+CONFIG_MAX_BYTES = 1 << 20
+#: Deepest nesting of tables and lists a configuration file may have (a specification has 3 levels).
+CONFIG_MAX_DEPTH = 16
+#: Most values a configuration file may hold once YAML's aliases are expanded: an alias bomb of a few
+#: hundred bytes expands to billions (issue #41), a real configuration to a few hundred.
+CONFIG_MAX_VALUES = 100_000
+
+#: Outputs a configuration never names: a run's metrics.json records them, and a new run taking them
+#: from it would replace the run it was read from (issue #41).  Name them on the command line.
+OUTPUT_FIELDS = ("out", "html", "pairs_out")
+
+
+def _yaml_load(text: str, path: Path) -> Any:
+    """YAML's safe loader, after checking the document's size with its aliases expanded and its depth."""
+    import yaml
+
+    nodes = list(yaml.compose_all(text, Loader=yaml.SafeLoader))
+    if len(nodes) > 1:
+        raise input_error("configuration file holds several YAML documents: give one", path)
+    if not nodes:
+        return None
+    sizes: dict[int, tuple[int, int]] = {}
+
+    def measure(node: Any, depth: int) -> tuple[int, int]:
+        """(values when expanded, depth below), each node measured once: aliases share their node."""
+        if depth > CONFIG_MAX_DEPTH:
+            raise input_error(f"configuration file is nested more than {CONFIG_MAX_DEPTH} levels deep", path)
+        if id(node) in sizes:
+            return sizes[id(node)]
+        children = ([c for pair in node.value for c in pair] if isinstance(node, yaml.MappingNode)
+                    else node.value if isinstance(node, yaml.SequenceNode) else [])
+        total, deep = 1, 0
+        for child in children:
+            n, d = measure(child, depth + 1)
+            total, deep = total + n, max(deep, d + 1)
+        if total > CONFIG_MAX_VALUES:
+            raise input_error(f"configuration file expands to more than {CONFIG_MAX_VALUES} values (YAML aliases)",
+                              path)
+        sizes[id(node)] = (total, deep)
+        return total, deep
+
+    measure(nodes[0], 0)
+    return yaml.SafeLoader(text).get_single_data()
+
+
+def _depth(value: Any, path: Path, level: int = 0) -> None:
+    if level > CONFIG_MAX_DEPTH:
+        raise input_error(f"configuration file is nested more than {CONFIG_MAX_DEPTH} levels deep", path)
+    if isinstance(value, Mapping):
+        for v in value.values():
+            _depth(v, path, level + 1)
+    elif isinstance(value, list | tuple):
+        for v in value:
+            _depth(v, path, level + 1)
+
+
 def load_config(path: str | Path) -> dict[str, Any]:
     """A configuration file's nested settings: TOML, YAML or JSON (``metrics.json``: its ``run.spec``).
+
+    A configuration file is untrusted input: at most :data:`CONFIG_MAX_BYTES`,
+    :data:`CONFIG_MAX_DEPTH` levels deep and (YAML aliases expanded)
+    :data:`CONFIG_MAX_VALUES` values; its values are checked against the types of the
+    settings by :func:`spec_from_dict`.  A run's ``metrics.json`` gives its
+    settings, not its outputs (:data:`OUTPUT_FIELDS`).
 
     Raises
     ------
     TopolocError
-        One line naming the file: missing, unreadable, not a mapping, or of another format.
+        One line naming the file: missing, unreadable, too large or deep, not a mapping, or of another format.
     """
     path = Path(path)
     if not path.is_file():
-        raise input_error("configuration file not found", path)
+        # A named pipe or a device is never opened: reading one would wait, or never end.
+        raise input_error("configuration file is not a regular file" if path.exists() else
+                          "configuration file not found", path)
     suffix = path.suffix.lower()
+    if suffix not in (".toml", ".yaml", ".yml", ".json"):
+        raise input_error("configuration file must be .toml, .yaml, .yml or .json", path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as fh:
+            raw = fh.read(CONFIG_MAX_BYTES + 1)
+        if len(raw) > CONFIG_MAX_BYTES:
+            raise input_error(f"configuration file is larger than {CONFIG_MAX_BYTES >> 10} KiB", path)
+        text = raw.decode("utf-8")
         if suffix == ".toml":
             import tomllib
 
             data: Any = tomllib.loads(text)
         elif suffix in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text)
-        elif suffix == ".json":
+            data = _yaml_load(text, path)
+        else:
             data = json.loads(text)
             if isinstance(data, dict) and isinstance(data.get("run"), dict) and "spec" in data["run"]:
                 data = data["run"]["spec"]  # a run's metrics.json: made again from its record
-        else:
-            raise input_error("configuration file must be .toml, .yaml, .yml or .json", path)
+                if isinstance(data, dict):
+                    data = {k: v for k, v in data.items() if k not in OUTPUT_FIELDS}
+        _depth(data, path)
+    except RecursionError:
+        raise input_error(f"configuration file is nested more than {CONFIG_MAX_DEPTH} levels deep", path) from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise input_error(f"configuration file cannot be read ({type(exc).__name__}: {exc})", path) from None
+        raise input_error(f"configuration file cannot be read ({type(exc).__name__}: {str(exc)[:200]})",
+                          path) from None
     except Exception as exc:  # yaml.YAMLError without importing yaml where it is not needed
         if type(exc).__module__.startswith("yaml"):
             raise input_error(f"configuration file cannot be read ({type(exc).__name__})", path) from None
@@ -177,5 +340,5 @@ def load_config(path: str | Path) -> dict[str, Any]:
 
 __all__ = [
     "DOTTED_NAMES", "FLAT_NAMES", "load_config", "merge", "nest", "spec_from_dict",
-    "spec_from_flat", "spec_to_dict",
+    "spec_from_flat", "spec_to_dict", "typed_config",
 ]

@@ -294,19 +294,20 @@ class InputSpec:
                            pose_topic=self.pose_topic) for p in items]
 
     def frames(self, inputs: Sequence[str | Path], *, on_frame: Callable[[str], None] | None = None,
+               check_name: Callable[[str, Path], None] | None = None,
                ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
         """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
 
         Every input is opened and checked before the first frame; bags and
         videos are then streamed (one frame decoded at a time, nothing kept).
-        ``on_frame``: see :func:`topoloc.datasets.frames.frame_stream`.
+        ``on_frame``, ``check_name``: see :func:`topoloc.datasets.frames.frame_stream`.
         """
         from topoloc.datasets.frames import frame_stream
 
         items = [Path(p) for p in inputs]
         self.check(items)
         return frame_stream(items, topic=self.topic, every_s=self.every_s, every_m=self.every_m,
-                            pose_topic=self.pose_topic, on_frame=on_frame)
+                            pose_topic=self.pose_topic, on_frame=on_frame, check_name=check_name)
 
 
 # -- ground truth ---------------------------------------------------------------------------------------

@@ -280,13 +280,18 @@ class LocalizeSpec(_ChecksOutputs):
         """The map file (memory-mapped while the run writes) and the images, folders or recordings."""
         return _present(self.map_file, *self.images)
 
+    @property
+    def to_stdout(self) -> bool:
+        """``out`` is ``-``: the lines go to standard output (and the summary to standard error)."""
+        return str(self.out) == "-"
+
     def outputs(self) -> tuple[Output, ...]:
-        """The JSON-lines file and the pairs file."""
+        """The JSON-lines file (none for standard output) and the pairs file."""
         assert self.out is not None
-        lines = Output(self.out, what="output", earlier=jsonl_marker("frame"))
+        lines = () if self.to_stdout else (Output(self.out, what="output", earlier=jsonl_marker("frame")),)
         if self.pairs_out is None:
-            return (lines,)
-        return lines, Output(self.pairs_out, what="pairs file", earlier=pairs_marker())
+            return lines
+        return (*lines, Output(self.pairs_out, what="pairs file", earlier=pairs_marker()))
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from topoloc.cluster import Executor
 from topoloc.datasets.traverse import Traverse, find_images
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig, FeatureExtractor
+from topoloc.features.cache import cache_root
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
@@ -188,7 +189,7 @@ def tours_vocabulary(
     key_src = {"schema": VOCAB_SCHEMA, "tours": [t.fingerprint() for t in tours], "features": extractor.config.key(),
                **{k: v for k, v in proto.get_params().items() if k != "ef_search"}, "kmeans": "lloyd-hnsw"}
     key = hashlib.sha1(json.dumps(key_src, sort_keys=True).encode()).hexdigest()[:20]
-    root = Path(cache_dir).expanduser() if cache_dir is not None else extractor.cache_dir
+    root = cache_root(cache_dir) if cache_dir is not None else extractor.cache_dir
     file = root / "vocab" / f"tours-{key}.tlv"
     if file.is_file():
         try:

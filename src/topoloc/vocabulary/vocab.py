@@ -910,7 +910,7 @@ def vocabulary_cache_key(
     h = hashlib.sha1()
     for p in sorted(str(p.resolve()) for p in images):
         st = os.stat(p)
-        h.update(f"{p}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        h.update(f"{p}\0{st.st_size}\0{st.st_mtime_ns}\n".encode("utf-8", "surrogateescape"))
     h.update(
         json.dumps(
             {"schema": VOCAB_SCHEMA, "features": feature_key, "n_words": n_words, "seed": seed,
@@ -964,7 +964,9 @@ def cached_vocabulary(
         images, feature_key=extractor.config.key(), n_words=n_words, seed=seed, n_iter=n_iter,
         max_descriptors=max_descriptors,
     )
-    root = Path(cache_dir).expanduser() if cache_dir is not None else extractor.cache_dir
+    from topoloc.features.cache import cache_root
+
+    root = cache_root(cache_dir) if cache_dir is not None else extractor.cache_dir
     file = root / "vocab" / f"{key}.tlv"
     if file.is_file():
         try:

@@ -138,9 +138,9 @@ def is_stream_input(path: str | Path, *, images_are_files: bool = True) -> bool:
         return False
     if not images_are_files:
         return True
-    import cv2
+    from topoloc.datasets.decode import has_image_reader
 
-    return p.stat().st_size > 0 and not cv2.haveImageReader(str(p))
+    return p.stat().st_size > 0 and not has_image_reader(p)
 
 
 def stream_traverse(source: FrameSource, *, name: str | None = None) -> Traverse:

@@ -143,6 +143,8 @@ class BagSource:
             raise input_error(f"topic {topic} is {topics[topic][0]}, not an image topic ({listed})", path)
         self.topic = topic
         self._count = int(topics[topic][1])
+        if not self._count:  # localize gave no line and exit 0 (issue #41); map build refused later
+            raise input_error(f"image topic {topic} has no messages", path)
         poses = sorted((t for t, (ty, n) in topics.items() if ty in POSE_TYPES and n),
                        key=lambda t: (POSE_TYPES.index(topics[t][0]), t))
         if pose_topic is not None:

@@ -58,6 +58,10 @@ class VideoSource:
         return f"VideoSource({str(self.path)!r})"
 
     def _capture(self) -> cv2.VideoCapture:
+        try:
+            str(self.path).encode("utf-8")
+        except UnicodeEncodeError:  # OpenCV takes names as UTF-8: another encoding's bytes crashed it (issue #41)
+            raise input_error("video file name is not UTF-8, which OpenCV cannot open: rename it", self.path) from None
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             cap.release()

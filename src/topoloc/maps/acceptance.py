@@ -1,0 +1,51 @@
+"""Warnings before localising with a map whose acceptance threshold will not hold as calibrated.
+
+Shared by ``topoloc localize`` and the ROS node (:mod:`topoloc.ros.node`), which sit side by side
+on the top layer: here, below both, neither imports the other (issue #41).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from topoloc.maps.map import Map
+    from topoloc.spec import SequenceSpec
+
+log = logging.getLogger(__name__)
+
+
+def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: SequenceSpec,
+                           verify: bool | None = None) -> None:
+    """The warnings of a map whose acceptance will not hold: not calibrated, stale, another sequence or verification.
+
+    For loop closure an accepted false match breaks the map: ``localize`` and
+    the ROS node say so before the first frame.
+    """
+    if m.threshold is None:
+        log.warning("%s is not calibrated: every frame is marked accepted; run `topoloc map calibrate %s "
+                    "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
+                    map_file, map_file)
+    elif m.calibration_stale:
+        assert m.calibration is not None
+        log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
+                    "`topoloc map calibrate %s --query FOLDER` again", map_file,
+                    ", ".join(m.calibration.get("tours_added_since", [])), map_file)
+    if m.threshold is not None and sequence != m.calibrated_sequence:
+        cal = m.calibrated_sequence
+        log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
+                    "hold; run `topoloc map calibrate` with the same --sequence", map_file,
+                    _sequence_words(cal.length, cal.mode), _sequence_words(sequence.length, sequence.mode))
+    if m.threshold is not None and verify is not None and verify != m.default_verify:
+        log.warning("%s: the threshold was calibrated %s verification, and this run matches %s: its precision "
+                    "does not hold; run `topoloc map calibrate` with the same --verify/--no-verify", map_file,
+                    "with" if m.default_verify else "without", "with" if verify else "without")
+
+
+def _sequence_words(length: int, mode: str) -> str:
+    return f"sequences of {length + 1} frames ({mode})" if length else "single images"
+
+
+__all__ = ["warn_before_localizing"]
