@@ -216,6 +216,9 @@ def localize(tmp: Path) -> dict[str, Any]:
     tlm = tmp / "gp.tlm"
     subprocess.run([str(TOPOLOC), "map", "build", "-q", "--method", "coocmap", "--map", str(GP / "day_left"),
                     "--features", FEATURES, "--out", str(tlm)], check=True, stdout=subprocess.DEVNULL)
+    # One run first, untimed: Cooc-Map's compiled matcher is built (and cached) by the first process that uses it.
+    subprocess.run([str(TOPOLOC), "localize", "-q", str(tlm), str(GP / "day_right"), "--verify", "--out",
+                    str(tmp / "warm.jsonl")], check=True, capture_output=True)
     out: dict[str, Any] = {}
     for n_busy in (0, 3):
         for flag in ("--no-verify", "--verify"):
@@ -343,7 +346,7 @@ def render(res: dict[str, Any]) -> str:
                   "| --- | --- | --- | --- | --- | --- | --- | --- |"]
         for key, x in loc.items():
             load = "quiet" if key.startswith("busy0") else "3 busy"
-            lines.append(f"| {load} | {'on' if key.endswith('_verify') else 'off'} | {x['fps']} | "
+            lines.append(f"| {load} | {'off' if key.endswith('_no_verify') else 'on'} | {x['fps']} | "
                          f"{x['ms_features_mean']} | {x['ms_matching_mean']} | {x.get('ms_verify_mean') or '-'} | "
                          f"{x.get('verified') if x.get('verified') is not None else '-'} | {x['ms_cpu_mean']} |")
         lines.append("")

@@ -139,13 +139,13 @@ def chance_inliers(n_matches: int, image_shape: tuple[int, int], threshold: floa
     return MIN_SAMPLE + int(binom.isf(alpha, n_matches - MIN_SAMPLE, p)) + 1
 
 
-def fundamental_inliers(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, max_iters: int = 2000,
+def fundamental_inliers(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, max_iters: int = 1000,
                         seed: int = 0) -> int:
     """Number of inliers of :func:`fundamental_mask`."""
     return int(np.count_nonzero(fundamental_mask(xy_a, xy_b, threshold, max_iters=max_iters, seed=seed)))
 
 
-def fundamental_mask(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, max_iters: int = 2000,
+def fundamental_mask(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, max_iters: int = 1000,
                      seed: int = 0) -> np.ndarray:
     """Inlier mask of the fundamental matrix USAC MAGSAC++ fits to corresponding points.
 
@@ -177,7 +177,7 @@ def fundamental_mask(xy_a: np.ndarray, xy_b: np.ndarray, threshold: float, *, ma
 
 
 def check_pair(xy_q: np.ndarray, desc_q: np.ndarray, xy_m: np.ndarray, desc_m: np.ndarray,
-               shape_m: tuple[int, int], *, max_iters: int = 2000,
+               shape_m: tuple[int, int], *, max_iters: int = 1000,
                matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, int]:
     """Steps 1-4 of the module docstring for one query and one map image.
 
