@@ -1,6 +1,6 @@
 """Regenerate docs/results/verification.md (+ .json, verification_pr.png): every method with and without verification.
 
-    .venv/bin/python -m benchmarks.bench_verification [--parts quality,consistency,slam,speed,localize]
+    .venv/bin/python -m benchmarks.bench_verification [--parts quality,knobs,consistency,slam,speed,localize]
         [--rows gp_day,...] [--methods coocmap,...] [--runs DIR]
 
 Parts (development data, ``../shared/data``; every setting a default, XFeat features):
@@ -18,6 +18,8 @@ Parts (development data, ``../shared/data``; every setting a default, XFeat feat
   tours -> queries, 0:0; Cooc-Map, bag of words and FAB-MAP 2.0 only, as in
   ``learned_features.md``).  SeqSLAM matches sequences itself: no sequence row,
   no webcam row (its queries are not a sequence).
+- ``knobs``: RANSAC iterations per candidate (1,000 the default, 2,000 and 500) for Cooc-Map on the
+  day, night and webcam rows: quality and the stage's ms per query.
 - ``consistency``: temporal consistency (DLoopDetector's, Sec. VI-B): a frame's
   verified answer counts as confirmed when the previous frame's answer lies within
   its peak; the confidence of an unconfirmed answer drops below every confirmed
@@ -147,6 +149,29 @@ def _cli_check(method: str, row: str, runs: Path, S_bench: np.ndarray) -> bool:
     d = run(method, maps, query, runs / f"cli_{method}_{row}", vocab_train=[], tolerance=tol, sequence=seq,
             options=["--features", FEATURES, "--verify"])
     return bool(np.allclose(np.load(d / "S.npy"), S_bench, rtol=0, atol=1e-6))
+
+
+KNOB_ITERS = (500, 1000, 2000)
+
+
+def knobs(rows: Sequence[str], runs: Path) -> dict[str, Any]:
+    """Cooc-Map's verified quality and stage time by the RANSAC iterations allowed per candidate."""
+    out: dict[str, Any] = {}
+    for row in rows:
+        if row == "gp_night_seq10":
+            continue
+        d = _base_run("coocmap", row, runs)
+        S = np.load(d / "S.npy")
+        gt = GroundTruth(np.load(d / "gt_hard.npy"), np.load(d / "gt_soft.npy"))
+        v, qf = _verifier(row, np.load(d / "places.npy"))
+        v.verify(S[:, :3], qf[:3])  # the map tours' features read once
+        for iters in KNOB_ITERS:
+            v.max_iters = iters
+            block = v.verify(S, qf)
+            sc = _scores(block.S, gt)
+            out.setdefault(row, {})[str(iters)] = {k: sc[k] for k in ("auc", "r100p", "r1")} | {
+                "ms_median": round(float(np.median(block.ms)), 2)}
+    return out
 
 
 def consistency(rows: Sequence[str], runs: Path) -> dict[str, Any]:
@@ -308,6 +333,15 @@ def render(res: dict[str, Any]) -> str:
                       ""]
         lines += ["Stage times above were taken while the rest of the benchmark ran (load: see `speed` for the "
                   "stage timed on its own).", "", "![PR curves](verification_pr.png)", ""]
+    kn = res.get("knobs")
+    if kn:
+        lines += ["## RANSAC iterations per candidate (Cooc-Map; AUC / R@100P / R@1, stage ms/query median)", "",
+                  "| row | " + " | ".join(f"{i} iterations" for i in KNOB_ITERS) + " |",
+                  "| --- |" + " --- |" * len(KNOB_ITERS)]
+        for row, cells in kn.items():
+            lines.append(f"| {row} | " + " | ".join(
+                f"{_cell(cells[str(i)])}, {cells[str(i)]['ms_median']:.1f} ms" for i in KNOB_ITERS) + " |")
+        lines += ["", "Measured one after the other in one process (the rest of the benchmark was not running).", ""]
     c = res.get("consistency")
     if c:
         lines += ["## Temporal consistency (AUC / R@100P / R@1)", "",
@@ -355,14 +389,14 @@ def render(res: dict[str, Any]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--parts", default="quality,consistency,slam,speed,localize")
+    ap.add_argument("--parts", default="quality,knobs,consistency,slam,speed,localize")
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--runs", type=Path, default=None, help="Keep (and reuse) the evaluate runs here.")
     args = ap.parse_args(argv)
     parts = args.parts.split(",")
     rows = args.rows.split(",")
-    known = {"quality", "consistency", "slam", "speed", "localize"}
+    known = {"quality", "knobs", "consistency", "slam", "speed", "localize"}
     unknown = sorted(set(rows) - set(ROWS)) + sorted(set(parts) - known)
     if unknown:
         raise SystemExit(f"unknown part or row: {', '.join(unknown)}")
@@ -383,6 +417,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             res["quality"] = {r: {**old.get("quality", {}).get(r, {}), **fresh.get(r, {})}
                               for r in ROWS if r in fresh or r in old.get("quality", {})}
             pr_figure(res["quality"], OUT_PNG)
+        if "knobs" in parts:
+            res["knobs"] = knobs(rows, runs)
         if "consistency" in parts:
             fresh = consistency(rows, runs)
             _thin_curves(fresh)

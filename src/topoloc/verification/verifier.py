@@ -45,8 +45,8 @@ def default_candidates(sequence: int) -> int:
     """Distinct peaks verified per query: :data:`DEFAULT_CANDIDATES` for single images, 1 with ``--sequence N``."""
     return SEQUENCE_CANDIDATES if sequence else DEFAULT_CANDIDATES
 #: RANSAC iterations per candidate: they bound the stage's time on wrong pairs, which run all of them.  1,000
-#: rather than 2,000: the same or better R@100P on every row tried and a quarter less time (development data,
-#: gardens_point and webcams, measured while choosing it; verification.md gives the stage's time at 1,000).
+#: rather than 2,000: the same or better R@100P and less time on the development data (verification.md, part
+#: ``knobs``, benchmarks/bench_verification.py).
 DEFAULT_MAX_ITERS = 1000
 
 
