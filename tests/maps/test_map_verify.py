@@ -104,25 +104,12 @@ def test_a_map_whose_tour_is_gone_cannot_verify(tiny_route: dict[str, Any], tmp_
 
 def test_a_method_that_checks_geometry_itself_is_verified_only_when_asked(tiny_route: dict[str, Any], tmp_path: Path,
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    import dataclasses
+
     monkeypatch.delenv("TOPOLOC_VERIFY")
-    built = Map.build(method="voting", tours=[tiny_route["map"]], cache_dir=tmp_path / "cache")
-    m = Map.load(built.save(tmp_path / "voting.tlm"))
-    assert m.recognizer.tags.verifies_geometry
+    m = _saved(tiny_route, tmp_path)
+    assert not m.recognizer.tags.verifies_geometry and m.localizer().verifier is not None
+    cls = type(m.recognizer)
+    monkeypatch.setattr(cls, "tags", dataclasses.replace(cls.tags, verifies_geometry=True))
     assert m.localizer().verifier is None
     assert m.localizer(verify=True).verifier is not None
-    # bag of words does not: the same default verifies it.
-    assert not _saved(tiny_route, tmp_path).recognizer.tags.verifies_geometry
-
-
-def test_online_temporal_consistency_equals_the_batch(tiny_route: dict[str, Any], tmp_path: Path) -> None:
-    from topoloc.verification import confirmed, demote_unconfirmed
-
-    m = _saved(tiny_route, tmp_path)
-    frames = [(f"q{k}", None, f) for k, f in enumerate(tiny_route["query_frames"])]
-    lines = list(m.localizer(top_k=3, verify=True, confirm=True).stream(frames))
-    res = m.resources(cache_dir=tmp_path / "cache")
-    Sv = m.verifier(resources=res).verify(m.similarity(tiny_route["query"], resources=res),
-                                          res.features(tiny_route["query"])).S
-    ok = confirmed(Sv)
-    assert [r["confirmed"] for r in lines] == ok.tolist() and not lines[0]["confirmed"]
-    np.testing.assert_allclose([r["score"] for r in lines], demote_unconfirmed(Sv, ok).max(axis=0), rtol=1e-6)

@@ -69,10 +69,6 @@ class ImageVoting(PlaceRecognizer):
     """
 
     name: ClassVar[str] = "voting"
-    # Its votes are the RANSAC inliers of its best map images: already a geometric check.  The verification
-    # stage on top lowered its R@100P on gardens_point day_left -> day_right (docs/results/verification.md,
-    # benchmarks/bench_verification.py), so it is added only when asked.
-    verifies_geometry: ClassVar[bool] = True
     index_: faiss.IndexFlatL2
     image_place_: np.ndarray
     desc_image_: np.ndarray
