@@ -104,3 +104,27 @@ def test_lines_and_S_are_identical_whatever_the_threads_and_the_load(method: str
         for s in sequences:
             lines, S = _outputs(m, query, frames, sequence=s, prefetch=0)
             assert (lines, S) == reference[s], f"{method}: another schedule of the matcher changed the output"
+
+
+@pytest.mark.parametrize("method,sequence", [("coocmap", 0), ("bow", 3)])
+def test_verified_lines_are_identical_whatever_the_threads_and_the_load(method: str, sequence: int,
+                                                                        tiny_route: dict[str, Any],
+                                                                        tmp_path: Path) -> None:
+    """Verification (issue #40): matching and MAGSAC are seeded and run on one BLAS thread, on the matching thread."""
+    m = Map.build(method=method, tours=[tiny_route["map"]], params=_PARAMS.get(method, {}),
+                  vocabulary=tiny_route["vocabulary"], cache_dir=tmp_path / "cache")
+    frames = [(f"q{k}.jpg", None, f) for k, f in enumerate(tiny_route["query_frames"])]
+
+    def lines(prefetch: int) -> list[str]:
+        loc = m.localizer(top_k=4, sequence=sequence, verify=True, prefetch=prefetch)
+        return [json.dumps(line) for line in loc.stream(iter(frames))]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(os, "cpu_count", lambda: 1)
+        reference = lines(0)
+    assert all('"verified"' in x for x in reference)
+    with _busy():
+        for cores in (2, 8):
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(os, "cpu_count", lambda cores=cores: cores)
+                assert lines(-1) == reference, f"{method}: verified lines differ on {cores} cores beside busy processes"

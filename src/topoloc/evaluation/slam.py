@@ -215,15 +215,13 @@ def run_slam(
 
 def _loop_check(features: Sequence[Any], founder: Any) -> Any:
     """``verify(image, place)`` for :class:`FabMapSlam`: the image against the place's founding image."""
-    from topoloc.verification import check_pair, prepare_descriptors
+    from topoloc.verification import Verifier
+
+    checker = Verifier(lambda place: [features[founder(place)]])
 
     def verify(k: int, place: int) -> bool:
-        q, m = features[k], features[founder(place)]
-        pairs, needed = check_pair(np.ascontiguousarray(q.keypoints[:, :2], np.float64),
-                                   prepare_descriptors(q.descriptors),
-                                   np.ascontiguousarray(m.keypoints[:, :2], np.float64),
-                                   prepare_descriptors(m.descriptors), m.image_shape)
-        return len(pairs) >= needed and len(pairs) > 0
+        inliers, needed, _, _ = checker.check(features[k], place)
+        return inliers >= needed and inliers > 0
 
     return verify
 

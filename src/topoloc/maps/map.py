@@ -664,9 +664,9 @@ class Map:
         """Whether the map can verify answers, and the memory its map images' features then take."""
         why = self.verification_blocker()
         n_images = sum(int(t.get("n_images", 0) or 0) for t in self.tours)
-        _, dim, dtype = self.features.descriptor_kind.rsplit("-", 2)
-        # keypoints: 5 float32 columns; descriptors: dim columns of dtype
-        per_image = int(self.features.max_features) * (20 + int(dim) * np.dtype(dtype).itemsize)
+        # keypoints: 5 float32 columns; descriptors: descriptor_dim columns of descriptor_dtype
+        f = self.features
+        per_image = int(f.max_features) * (20 + f.descriptor_dim * np.dtype(f.descriptor_dtype).itemsize)
         return {"can_verify": not why, **({"why_not": why} if why else {}),
                 "default": self.default_verify, "map_images": n_images,
                 "features_bytes_at_most": n_images * per_image}

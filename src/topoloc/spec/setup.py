@@ -274,24 +274,33 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
             raise ParameterError("verification.enabled", f"{what} cannot be verified: {why} (use --no-verify)")
         log.info("%s cannot be verified (%s): answers are not verified", what, why)
         return None
-    rows_of: list[list[tuple[int, int]]] = [[] for _ in range(len(place_ids))]
-    for ti, t in enumerate(tours):
-        rows = np.searchsorted(place_ids, t.places)
-        for k, r in enumerate(rows.tolist()):
-            if r < len(place_ids) and place_ids[r] == t.places[k]:
-                rows_of[r].append((ti, k))
+    # Every map image as (row, tour, index in the tour), sorted by row: a place's images are one slice.
+    n = len(place_ids)
+    row = np.concatenate([np.searchsorted(place_ids, t.places) for t in tours]) if tours else np.zeros(0, np.int64)
+    tour = np.concatenate([np.full(len(t), ti) for ti, t in enumerate(tours)]) if tours else row
+    index = np.concatenate([np.arange(len(t)) for t in tours]) if tours else row
+    places = np.concatenate([t.places for t in tours]) if tours else row
+    known = row < n
+    known[known] = place_ids[row[known]] == places[known]
+    order = np.argsort(row[known], kind="stable")
+    row, tour, index = row[known][order], tour[known][order], index[known][order]
+    starts = np.searchsorted(row, np.arange(n + 1))
     feats: dict[int, list[Any]] = {}
 
-    def place_images(row: int) -> list[Any]:
+    def images_of(r: int) -> list[tuple[int, int]]:
+        a, b = starts[r], starts[r + 1]
+        return list(zip(tour[a:b].tolist(), index[a:b].tolist(), strict=True))
+
+    def place_images(r: int) -> list[Any]:
         out = []
-        for ti, k in rows_of[row]:
+        for ti, k in images_of(r):
             if ti not in feats:  # a tour's features at its first candidate: from the feature store, extracted once
                 feats[ti] = resources.features(tours[ti], timed=False)
             out.append(feats[ti][k])
         return out
 
-    def image_names(row: int) -> list[str]:
-        return [str(tours[ti].images[k]) for ti, k in rows_of[row]]
+    def image_names(r: int) -> list[str]:
+        return [str(tours[ti].images[k]) for ti, k in images_of(r)]
 
     candidates = spec.candidates if spec.candidates is not None else default_candidates(sequence)
     return Verifier(place_images, candidates=candidates, image_names=image_names)

@@ -20,10 +20,9 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
 from topoloc.verification.pairs import check_pair, mutual_matches, prepare_descriptors
 from topoloc.verification.rerank import candidate_rows, verified_scores
@@ -38,7 +37,15 @@ SEQUENCE_CANDIDATES = 1
 # The descriptor products are small (a few hundred to a thousand rows): OpenBLAS's thread team costs more than
 # it saves there, and on a busy machine it waits at its barriers for descheduled threads, so the stage runs them
 # on one thread (the ``speed`` part of benchmarks/bench_verification.py times the stage beside busy processes).
-_BLAS = ThreadpoolController()
+_BLAS: list[Any] = []  # the ThreadpoolController, made at the first verification (it inspects loaded libraries)
+
+
+def _one_blas_thread() -> Any:
+    if not _BLAS:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
 
 
 def default_candidates(sequence: int) -> int:
@@ -59,6 +66,11 @@ class HasFeatures(Protocol):
     def descriptors(self) -> np.ndarray: ...
     @property
     def image_shape(self) -> tuple[int, int]: ...
+
+
+def _prepared(f: HasFeatures) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoint positions (float64) and descriptors as :func:`~topoloc.verification.pairs.mutual_matches` takes them."""
+    return np.ascontiguousarray(f.keypoints[:, :2], np.float64), prepare_descriptors(f.descriptors)
 
 
 @dataclass(frozen=True)
@@ -130,8 +142,7 @@ class Verifier:
     def _images(self, row: int) -> list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
         got = self._prepared.get(row)
         if got is None:
-            got = [(np.ascontiguousarray(f.keypoints[:, :2], np.float64), prepare_descriptors(f.descriptors),
-                    f.image_shape) for f in self.place_images(row)]
+            got = [(*_prepared(f), f.image_shape) for f in self.place_images(row)]
             if len(self._prepared) > 4096:  # a long stream visits the whole map: bound what is kept
                 self._prepared.clear()
             self._prepared[row] = got
@@ -151,9 +162,7 @@ class Verifier:
         x, y, map x, y, index of that image in place_images(row))``; the image
         index is -1 when the place has none.
         """
-        xy_q = np.ascontiguousarray(query.keypoints[:, :2], np.float64)
-        dq = prepare_descriptors(query.descriptors)
-        return self._check(xy_q, dq, row)
+        return self._check(*_prepared(query), row)
 
     def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int) -> tuple[int, int, np.ndarray, int]:
         best: tuple[np.ndarray, np.ndarray, int] | None = None
@@ -185,7 +194,7 @@ class Verifier:
         S = np.asarray(S)
         if S.ndim != 2 or S.shape[1] != len(queries):
             raise ValueError(f"S of shape {S.shape} needs one column per query; {len(queries)} queries given")
-        with _BLAS.limit(limits=1, user_api="blas"):
+        with _one_blas_thread():
             return self._verify(S, queries)
 
     def _verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
@@ -196,8 +205,7 @@ class Verifier:
         found: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
         for j, q in enumerate(queries):
             t0 = time.perf_counter()
-            xy_q = np.ascontiguousarray(q.keypoints[:, :2], np.float64)
-            dq = prepare_descriptors(q.descriptors)
+            xy_q, dq = _prepared(q)
             for c, r in enumerate(rows[j]):
                 if r >= 0:
                     inl[j, c], need[j, c], pairs, k = self._check(xy_q, dq, int(r))
