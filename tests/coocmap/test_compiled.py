@@ -184,13 +184,50 @@ def test_a_descheduled_helper_never_stalls_the_query(monkeypatch: pytest.MonkeyP
         par, g2 = match_compiled(model, w, xy, top_k=3, spatial_tolerance=1, threads=2)
         assert claimed.is_set() and not release.is_set()  # it returned while the helper still held its location
         job = held[0]
-        assert job is not None and job[1] - job[0] == compiled.FIRST_CHUNK
+        assert job is not None and job[1] - job[0] == 1  # no location had finished: one at a time
     finally:
         release.set()
     assert time.perf_counter() - t0 < 10
     np.testing.assert_array_equal(serial.scores, par.scores)
     np.testing.assert_array_equal(serial.exact, par.exact)
     np.testing.assert_array_equal(g1, g2)
+
+
+@pytest.mark.parametrize("helpers", [False, True])
+def test_claims_are_one_location_until_top_k_have_finished(helpers: bool) -> None:
+    """With helpers, no chunk is matched without a threshold: one location a claim until top_k have finished.
+
+    Alone, the calling thread's chunk raises its own threshold as it goes, so it claims chunks from the start.
+    """
+    from topoloc.coocmap import compiled
+
+    rng = np.random.default_rng(11)
+    model, w, xy = _case(rng, n_loc=300, position_bits=6)
+    qptr, qf, qx, qy = compiled._query_table(model, w, xy)
+    n_cand = compiled._candidate_counts(model.wloc_ptr, model.wloc, w[qf], model.n_locations)
+    order = compiled._order_by_count(n_cand)
+    args = (model.loc_ptr, model.word, model.xy, model.group_masks(None), qptr, qf, qx, qy, 1, int(model.grid_x),
+            int(model.grid_y), 0, compiled._triple_capacity(model.loc_ptr, qptr), *compiled._cell_tables(model))
+    top_k = 5
+    shared = compiled._Shared(order, n_cand, args, top_k, compiled.SEED_FIRST, len(w), helpers=helpers)
+    sizes, finished_before = [], []
+    while (job := shared.claim(helper=False)) is not None:
+        sizes.append(job[1] - job[0])
+        finished_before.append(shared.n_fin)
+        shared.run(*job)
+    sizes_arr, fin = np.array(sizes), np.array(finished_before)
+    if helpers:
+        assert (sizes_arr[fin < top_k] == 1).all() and (fin < top_k).sum() >= top_k
+        assert sizes_arr[fin >= top_k][0] == compiled.FIRST_CHUNK
+    else:
+        assert sizes_arr[0] == compiled.FIRST_CHUNK
+    # Either way the same S as the serial matcher.
+    scores = np.full(model.n_locations, -1.0)
+    for p0, end, sc, _, _ in shared.records:
+        scores[shared.order[p0:end]] = sc
+    serial, _ = match_compiled(model, w, xy, top_k=top_k, spatial_tolerance=1, parallel=False)
+    exact = serial.exact
+    np.testing.assert_array_equal(scores[exact], serial.scores[exact])
 
 
 def _textured_case(seed: int, *, n_loc: int = 40, nw: int = 12, n: int = 70, tours: int = 3) -> tuple[

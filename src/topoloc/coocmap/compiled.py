@@ -62,7 +62,12 @@ finishes), with the loops that cannot be vectorised compiled by numba:
 * Threads: the calling thread and ``threads - 1`` helpers claim chunks of
   locations from a shared cursor (:data:`FIRST_CHUNK` first, doubling up to
   :data:`MAX_CHUNK` and a small share of the map) and match each chunk in one compiled loop, so the
-  interpreter is entered once per chunk, not once per location; no thread
+  interpreter is entered once per chunk, not once per location.  Until ``top_k`` locations have
+  finished there is no threshold and a chunk would build every ``J`` it holds, so the threads then
+  claim one location at a time: between them they finish the first ``top_k`` as the serial loop
+  does and share its threshold at once (with ``top_k = 10`` on a 100-place map, chunks of 8 had two
+  threads build ``J`` for about twice the locations one thread builds: the gardens_point rows of
+  docs/results/coocmap_speed.md, ``benchmarks/bench_coocmap_speed.py``); no thread
   ever waits for another (no batch barrier), so on a machine whose cores
   are busy with other work the query runs at the serial loop's pace instead
   of stalling behind a descheduled thread (``benchmarks/bench_load.py``,
@@ -902,7 +907,7 @@ class _Shared:
     """
 
     def __init__(self, order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[Any, ...], top_k: int,
-                 seed_first: int, F: int) -> None:
+                 seed_first: int, F: int, helpers: bool = False) -> None:
         self.lock = threading.Lock()
         self.order = order  # by decreasing count; from ``head`` on, replaced by the tail in location order
         self.n_cand = n_cand
@@ -915,6 +920,7 @@ class _Shared:
         self.next = 0  # the next position of ``order`` nobody has claimed
         self.max_chunk = max(FIRST_CHUNK, min(MAX_CHUNK, len(order) // CHUNK_SHARE))
         self.chunk = min(FIRST_CHUNK, self.max_chunk)
+        self.helpers = helpers  # whether helper threads share the loop
         self.stopped = False
         self.visited = 0  # locations matched or bounded: every one whose candidate count reached the threshold
         self.helper_chunks: list[tuple[int, int]] = []  # claimed by a helper: (p0, p1)
@@ -952,9 +958,14 @@ class _Shared:
                     self.stopped = True
                     return None
             p0 = self.next
-            p1 = min(p0 + self.chunk, self.head if p0 < self.head else len(self.order))
+            # Until top_k locations have finished there is no threshold, and a chunk matched without one
+            # builds every J it holds: one location at a time then, so that the threads between them
+            # finish the first top_k as the serial loop would and share its threshold at once.
+            one = self.helpers and self.n_fin < self.top_k
+            p1 = min(p0 + (1 if one else self.chunk), self.head if p0 < self.head else len(self.order))
             self.next = p1
-            self.chunk = min(2 * self.chunk, self.max_chunk)
+            if not one:
+                self.chunk = min(2 * self.chunk, self.max_chunk)
             if helper:
                 self.helper_chunks.append((p0, p1))
             return p0, p1, self.top.copy(), self.n_fin
@@ -1029,7 +1040,8 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     ``top_k``-th best score is left out).  Locations are claimed in chunks
     (:data:`FIRST_CHUNK` locations first, twice as many each claim, at most
     :data:`MAX_CHUNK` and 1 / :data:`CHUNK_SHARE` of the locations, or
-    :data:`FIRST_CHUNK`), by the
+    :data:`FIRST_CHUNK`; one at a time while fewer than ``top_k`` have
+    finished and helpers share the loop), by the
     calling thread and by ``threads - 1`` helper threads; a chunk is matched
     in one compiled loop (:func:`_match_chunk`) against the threshold known
     when it is claimed, raised by its own finished locations (the
@@ -1053,7 +1065,7 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     head = _head_bounds(order, S, loc_ptr, word, xy, qptr, qf, qx, qy, tol, gx, gy, cap)
     order = order.copy()
     order[:S] = order[:S][np.argsort(-head, kind="mergesort")]
-    shared = _Shared(order, n_cand, kernel_args, top_k, S, F)
+    shared = _Shared(order, n_cand, kernel_args, top_k, S, F, helpers=threads > 1)
     if threads > 1:
         pool = _helpers(threads - 1)
         for _ in range(threads - 1):
