@@ -383,7 +383,8 @@ def write_pages(data: dict[str, Any], out: Path) -> None:
                  "SIFT descriptors, k-means working on that), then stays. ms per query are measured in one "
                  "process, one frame at a time, from the map "
                  "file (after one warm-up query), matching excluding feature extraction.\n")
-    lines.append(_growth_sentence(runs, peaks))
+    if len({r["places"] for r in runs}) > 1:  # growth needs two route lengths (one `--places` has one)
+        lines.append(_growth_sentence(runs, peaks))
     lines.append(_query_sentence(runs))
     gen = runs[-1]["generation_s"] * TARGET_PLACES / runs[-1]["places"]
     one = sum(e["hours"] for e in ext if e["machines"] == 1)

@@ -53,10 +53,15 @@ from benchmarks.common import RESULTS
 from benchmarks.peak_run import proc_mib, reset_vm_hwm, vm_hwm_mib, vm_rss_mib
 
 METHODS = ("bow", "fabmap2", "coocmap", "landmarks")
-TARGET_MS = {"bow": 20.0, "fabmap2": 20.0, "coocmap": 50.0, "landmarks": 50.0}
+TARGET_MS = {"bow": 20.0, "fabmap2": 20.0, "coocmap": 20.0, "landmarks": 50.0}
 """Median ms per query each method must stay under at 100,000 places (issue 30: 20 ms for the
-inverted-file methods; Cooc-Map's and landmarks' 50 ms is the target set here: at 10 frames/s a frame
-has 100 ms, of which features take about 50 on one core (the camera-rate section of performance.md))."""
+inverted-file methods; issue 38: 20 ms for Cooc-Map; landmarks' 50 ms is the target set here: at 10
+frames/s a frame has 100 ms, of which features take about 50 on one core (the camera-rate section of
+performance.md))."""
+
+TARGET_P95_MS = {"coocmap": 41.0}
+"""p95 ms per query a method must also stay under at 100,000 places (issue 38: half the 82 ms the
+Cooc-Map paper gives per localisation)."""
 
 LANDMARK_INDEX = "hnsw"
 """The index every size is timed with.  The exact ``"flat"`` index (the paper's nearest-neighbour
@@ -500,10 +505,12 @@ def render_page(meta: dict[str, Any], rows: Sequence[dict[str, Any]], lm: Sequen
     ]
     for r in rows:
         target = TARGET_MS[r["method"]]
+        p95 = TARGET_P95_MS.get(r["method"], float("inf"))
         name = f"{r['method']} ({r['index']})" if "index" in r else r["method"]
+        bound = f"{target:.0f} ms" + (f" (p95 {p95:.0f} ms)" if p95 < float("inf") else "")
         text.append(f"| {name} | {r['places']:,} | {r['images']:,} | {r['fit_s']:.1f} | {r['ms_median']:.1f} | "
-                    f"{r['ms_p95']:.1f} | {r['cpu_ms_median']:.1f} | "
-                    f"{target:.0f} ms | {_yes(r['ms_median'] < target)} / {_yes(r['cpu_ms_median'] < target)} | "
+                    f"{r['ms_p95']:.1f} | {r['cpu_ms_median']:.1f} | {bound} | "
+                    f"{_yes(r['ms_median'] < target and r['ms_p95'] < p95)} / {_yes(r['cpu_ms_median'] < target)} | "
                     f"{r['right']:.2f} | {r['load']:.2f} |\n")
     if any(r["method"] != "landmarks" for r in rows):
         text.append(

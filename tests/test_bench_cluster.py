@@ -70,3 +70,22 @@ def test_a_missing_out_folder_is_created_before_the_work(benchmark_module: Calla
                                                         tmp_path: Any) -> None:
     common = benchmark_module("common")
     assert common.output_folder(tmp_path / "new" / "results").is_dir()
+
+
+def test_one_route_length_writes_the_page_without_a_growth_sentence(cluster: ModuleType, tmp_path: Any) -> None:
+    """`--places 20000` alone: the page was never written (growth divided by the difference of two lengths)."""
+    stages = [{"stage": name, "items": 1000, "seconds": 10.0, "items_per_s": 100.0, "client_peak_mib": 300.0,
+               "worker_peak_mib": 400.0, "disk_bytes": 2**20, "load": 1.0}
+              for name in ("vocab train", "map build", "map add", "localize")]
+    run = {"places": 20_000, "map_images": 23_000, "add_images": 5_750, "query_images": 1_150, "shards": 10,
+           "stages": stages, "map_bytes": 55 * 2**20, "store_bytes": 2**29, "cache_bytes": 2**29,
+           "per_image_cache_files": 0, "store_bytes_per_image": 17_800.0, "images_described": 29_900,
+           "local": {"open_s": 0.5, "queries": 50, "ms_features_median": 5.8, "ms_matching_median": 10.8,
+                     "ms_matching_p95": 12.9, "load": 1.0, "date": "2026-11-27"},
+           "query_right_within_1": 0.68, "generation_s": 240.0, "date": "2026-11-27"}
+    meta = {"date": "2026-11-27", "machine": "x86_64", "cores": 2, "python": "3.11", "load_before": 0.5,
+            "load_after": 1.0, "places": [20_000], "words": 2000, "max_features": 300, "workers": 2,
+            "image_size": [160, 120]}
+    cluster.write_pages({"meta": meta, "runs": [run], "extrapolated": cluster.extrapolate(run)}, tmp_path)
+    page = (tmp_path / "cluster.md").read_text()
+    assert "| 20,000 | `map build` |" in page and "**Growth.**" not in page
