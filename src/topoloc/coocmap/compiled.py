@@ -44,8 +44,13 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   enumeration of (query feature, stored feature) pairs as
   :func:`~topoloc.coocmap.matching.consistency_graphs` (exact), skipping the
   spatial test of a pair of candidates already known to be consistent (a
-  candidate's triples in one bucket are one run, skipped at once); no
-  edge list is formed, so nothing needs deduplicating.
+  candidate's triples in one bucket are one run, skipped at once); where
+  the triples crowd into few buckets (a place that matches, with learned
+  features: hundreds of runs a bucket), a bucket at a time through bitsets
+  of the candidates in it and of those each candidate is known consistent
+  with, whichever costs less from how the buckets are filled
+  (:func:`_bucket_sweep_pays`); no edge list is formed, so nothing needs
+  deduplicating.
 * Bounds of Sec. II-D before and during elimination: a mutually consistent
   group of ``k`` needs ``k`` candidates with at least ``k - 1`` consistent
   partners each (an ``h``-index of the row sums of ``J_i``, at most the
@@ -507,9 +512,192 @@ def _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, roun
 
 
 @njit(cache=True, nogil=True)
+def _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq, qx, qy, ctab, C, lattice, gx, gy,
+                tol, J, deg):
+    """Fill ``J`` and its row sums ``deg`` sweeping each triple's later partners run by run; returns the pair tests.
+
+    A run (a candidate's triples in one bucket) whose candidate is known consistent with the triple's is
+    skipped at once; the others are tested triple by triple until one pair is consistent.
+    """
+    r = tol + 1
+    BX = 2 * gx
+    BYg = 2 * gy
+    tests = 0
+    lim = (tol + 1) * NORM
+    for i in range(nt):
+        ci = sc[i]
+        bi = sb[i]
+        bxi = bi // BYg
+        byi = bi - bxi * BYg
+        y0 = max(byi - r, 0)
+        y1 = min(byi + r, BYg - 1)
+        for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
+            j = i + 1 if bxb == bxi else bcount[bxb * BYg + y0]
+            j1 = bcount[bxb * BYg + y1 + 1]
+            while j < j1:
+                cj = sc[j]
+                if ci == cj or J[ci, cj]:
+                    j = run_end[j]  # nothing left to learn from cj's other triples in this bucket
+                    continue
+                if (abs(tx[j] - tx[i]) * gx >= lim or abs(ty[j] - ty[i]) * gy >= lim or sa[i] == sa[j]
+                        or (sg[i] & sg[j]) == 0):
+                    j += 1
+                    continue
+                tests += 1
+                fi = sf[i]
+                fj = sf[j]
+                # Evaluate in the direction f < g, as the reference does.
+                if lattice:
+                    if fi < fj:
+                        ks = ps[j] - ps[i] + C
+                        kq = pq[j] - pq[i] + C
+                    else:
+                        ks = ps[i] - ps[j] + C
+                        kq = pq[i] - pq[j] + C
+                    ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
+                else:
+                    if fi < fj:
+                        ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
+                        mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
+                    else:
+                        ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
+                        mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
+                    ok = abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol
+                if ok:
+                    J[ci, cj] = 1
+                    J[cj, ci] = 1
+                    deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
+                    deg[cj] += 1
+                    j = run_end[j]
+                else:
+                    j += 1
+    return tests
+
+
+@njit(cache=True, nogil=True)
+def _bucket_sweep_pays(bcount, run_end, n, gx, gy, r):
+    """Whether :func:`_sweep_buckets` costs less than :func:`_sweep_runs` here, from how the triples fill the buckets.
+
+    Run by run, a triple visits every run in the buckets after it within ``r``; bucket by bucket, it
+    spends ``n / 64`` word operations on each non-empty one (then tests, in both, the same pairs).
+    Where the triples crowd into a few buckets (a place that matches: most correspondences share one
+    translation), a bucket holds hundreds of runs and the bitsets win; spread out, with few runs a
+    bucket, the runs do.
+    """
+    BX = 2 * gx
+    BYg = 2 * gy
+    NB = BX * BYg
+    runs = np.zeros(NB, np.int64)
+    for b in range(NB):
+        d = bcount[b]
+        while d < bcount[b + 1]:
+            runs[b] += 1
+            d = run_end[d]
+    nw = (n + 63) >> 6
+    by_runs = 0
+    by_words = 0
+    for b in range(NB):
+        occ = bcount[b + 1] - bcount[b]
+        if occ == 0:
+            continue
+        bx = b // BYg
+        by = b - bx * BYg
+        reach = 0
+        filled = 0
+        for bxb in range(bx, min(bx + r, BX - 1) + 1):
+            for byb in range(by if bxb == bx else max(by - r, 0), min(by + r, BYg - 1) + 1):
+                k = runs[bxb * BYg + byb]
+                reach += k
+                filled += k > 0
+        by_runs += occ * reach
+        by_words += occ * filled * (nw + 1)
+    return by_words < by_runs
+
+
+@njit(cache=True, nogil=True)
+def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J, deg):
+    """:func:`_sweep_runs`'s pairs, a bucket at a time: only the runs of candidates not yet known consistent.
+
+    On the position lattice only (its table of signed cells, ``ps``, ``pq`` and ``C`` as in :func:`_sweep_runs`).
+
+    Each bucket's candidates are a bitset, and each candidate's known partners (and itself) another;
+    a triple meets a bucket's runs only for the candidates in the first and not in the second, each
+    found at once from a table of where each candidate's run in each bucket starts.
+    """
+    r = tol + 1
+    BX = 2 * gx
+    BYg = 2 * gy
+    NB = BX * BYg
+    nw = (n + 63) >> 6
+    present = np.zeros((NB, nw), np.uint64)
+    first = np.empty(NB * n, np.int32)  # only read where ``present`` says the run exists
+    for d in range(nt):
+        c = sc[d]
+        if d == 0 or sb[d] != sb[d - 1] or sc[d - 1] != c:
+            first[sb[d] * n + c] = d
+            present[sb[d], c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    known = np.zeros((n, nw), np.uint64)
+    for c in range(n):
+        known[c, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    tests = 0
+    lim = (tol + 1) * NORM
+    for i in range(nt):
+        ci = sc[i]
+        fi = sf[i]
+        txi = tx[i]
+        tyi = ty[i]
+        sai = sa[i]
+        sgi = sg[i]
+        bi = sb[i]
+        bxi = bi // BYg
+        byi = bi - bxi * BYg
+        y0 = max(byi - r, 0)
+        y1 = min(byi + r, BYg - 1)
+        for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
+            for byb in range(byi if bxb == bxi else y0, y1 + 1):
+                b = bxb * BYg + byb
+                if bcount[b + 1] == bcount[b]:
+                    continue
+                for k in range(nw):
+                    u = present[b, k] & ~known[ci, k]
+                    while u:
+                        low = u & (~u + np.uint64(1))
+                        u ^= low
+                        cj = (k << 6) + np.int64(_popcount(low - np.uint64(1)))
+                        j = np.int64(first[b * n + cj])
+                        e = run_end[j]
+                        if b == bi and j <= i:
+                            j = i + 1  # in its own bucket, only the triples after it (cj's run lies after i or
+                            # before it: candidates are in order within a bucket)
+                        while j < e:
+                            # :func:`_sweep_runs`'s tests, on the lattice's table of signed cells.
+                            if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim or sai == sa[j]
+                                    or (sgi & sg[j]) == 0):
+                                j += 1
+                                continue
+                            tests += 1
+                            if fi < sf[j]:
+                                ks = ps[j] - ps[i] + C
+                                kq = pq[j] - pq[i] + C
+                            else:
+                                ks = ps[i] - ps[j] + C
+                                kq = pq[i] - pq[j] + C
+                            if abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol:
+                                J[ci, cj] = 1
+                                J[cj, ci] = 1
+                                deg[ci] += 1
+                                deg[cj] += 1
+                                known[ci, k] |= low
+                                known[cj, ci >> 6] |= np.uint64(1) << np.uint64(ci & 63)
+                                break
+                            j += 1
+    return tests
+
+
+@njit(cache=True, nogil=True)
 def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy, tol, gx, gy, seed, tag,
                     stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, tb_prune, pairwise_max,
-                    partners_max, shift, ctab):
+                    partners_max, shift, ctab, sweep=0):
     """Match one location (Sec. II-C) unless a bound of Sec. II-D falls below ``thr``.
 
     Returns ``(score, exact, elimination steps, pair tests, dropped by the
@@ -518,12 +706,12 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     (``stamp`` .. ``hist``) are those of :func:`_new_scratch`, ``t_*`` large
     enough for the location's triples; ``tag`` differs between the calls that
     share them.  ``tb_prune=False`` skips the bounds before J (for profiling);
-    :func:`_partner_bound` is computed only for at most ``partners_max`` triples.
+    :func:`_partner_bound` is computed only for at most ``partners_max`` triples.  ``sweep`` picks how
+    ``J``'s pairs are swept: 0 the cheaper way for the location (:func:`_bucket_sweep_pays`), 1 run by
+    run, 2 bucket by bucket (on the position lattice; for tests and profiling).
     """
     r = tol + 1
     NB = (2 * gx) * (2 * gy)
-    BYg = 2 * gy
-    lim = (tol + 1) * NORM
     n, nt = _triples(loc_ptr[loc], loc_ptr[loc + 1], word, xy, qptr, qf_sorted, qx, gx, tag, stamp, cand, cof,
                      t_f, t_a, t_x)
     if n == 0:
@@ -584,10 +772,13 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
         tx[d] = qx[f] - sx[d]
         ty[d] = qy[f] - sy[d]
         sg[d] = groups[a]
-    run_end = np.empty(nt, np.int64)
+    sb = np.empty(nt, np.int64)
+    for d in range(nt):
+        sb[d] = t_b[perm[d]]
+    run_end = np.empty(nt, np.int64)  # a candidate's triples in one bucket are one run: its end
     for d in range(nt - 1, -1, -1):
         nxt = d + 1
-        run_end[d] = run_end[nxt] if nxt < nt and sc[nxt] == sc[d] and t_b[perm[nxt]] == t_b[perm[d]] else nxt
+        run_end[d] = run_end[nxt] if nxt < nt and sc[nxt] == sc[d] and sb[nxt] == sb[d] else nxt
     # On a coarse position lattice (the method's default) an offset is one of few lattice steps, and
     # its signed cells come from a table (:func:`_cell_tables`) instead of being computed per test.
     lattice = ctab.shape[1] > 0
@@ -604,64 +795,19 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
             pq[d] = (qx[f] >> shift) * W + (qy[f] >> shift)
     J = np.zeros((n, n), np.uint8)
     deg = np.zeros(n, np.int64)
-    # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py).
-    tests = 0
-    # For a triple in bucket (bx, by), the buckets within r that come after it in bucket order are, in
-    # each of the columns bx .. bx + r, one range of rows: so its partners are r + 1 contiguous ranges of
-    # the sorted triples (in its own column, from the next triple on), each swept in one loop.
-    BX = 2 * gx
-    for i in range(nt):
-        fi = sf[i]
-        ci = sc[i]
-        txi = tx[i]
-        tyi = ty[i]
-        sai = sa[i]
-        sgi = sg[i]
-        bi = t_b[perm[i]]
-        bxi = bi // BYg
-        byi = bi - bxi * BYg
-        y0 = max(byi - r, 0)
-        y1 = min(byi + r, BYg - 1)
-        for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
-            j = i + 1 if bxb == bxi else bcount[bxb * BYg + y0]
-            j1 = bcount[bxb * BYg + y1 + 1]
-            while j < j1:
-                cj = sc[j]
-                if ci == cj or J[ci, cj]:
-                    j = run_end[j]  # nothing left to learn from cj's other triples in this bucket
-                    continue
-                # Necessary: translations less than tol + 1 squares apart.
-                if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim
-                        or sai == sa[j] or (sgi & sg[j]) == 0):
-                    j += 1
-                    continue
-                tests += 1
-                fj = sf[j]
-                # Evaluate in the direction f < g, as the reference does.
-                if lattice:
-                    if fi < fj:
-                        ks = ps[j] - ps[i] + C
-                        kq = pq[j] - pq[i] + C
-                    else:
-                        ks = ps[i] - ps[j] + C
-                        kq = pq[i] - pq[j] + C
-                    ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
-                else:
-                    if fi < fj:
-                        ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
-                        mq = _cells(qx[fj] - qx[fi], qy[fj] - qy[fi], gx, gy)
-                    else:
-                        ms = _cells(sx[i] - sx[j], sy[i] - sy[j], gx, gy)
-                        mq = _cells(qx[fi] - qx[fj], qy[fi] - qy[fj], gx, gy)
-                    ok = abs(ms[0] - mq[0]) <= tol and abs(ms[1] - mq[1]) <= tol
-                if ok:
-                    J[ci, cj] = 1
-                    J[cj, ci] = 1
-                    deg[ci] += 1  # J[ci, cj] was 0: row sums kept as J fills
-                    deg[cj] += 1
-                    j = run_end[j]
-                else:
-                    j += 1
+    # Pairs of triples in buckets at most r apart (Hough-like, exact; see matching.py): each triple
+    # against those after it in bucket order within r buckets, which are, in each of the columns
+    # bx .. bx + r, one range of rows (in its own column, from the next triple on).  Two ways to sweep
+    # them, the same pairs tested wherever the pair of candidates is not yet known consistent (so the
+    # same J): run by run (:func:`_sweep_runs`), or bucket by bucket through bitsets of the candidates
+    # in each bucket and of those each candidate is known consistent with (:func:`_sweep_buckets`).
+    # Which costs less follows from how the triples fill the buckets (:func:`_bucket_sweep_pays`).
+    if lattice and (sweep == 2 or (sweep == 0 and _bucket_sweep_pays(bcount, run_end, n, gx, gy, r))):
+        tests = _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J,
+                               deg)
+    else:
+        tests = _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq, qx, qy, ctab, C, lattice,
+                            gx, gy, tol, J, deg)
     # The h-index bound from the row sums.
     hist = np.zeros(n + 1, np.int64)
     for i in range(n):
@@ -860,11 +1006,11 @@ def _triple_capacity(loc_ptr: np.ndarray, qptr: np.ndarray) -> int:
 
 def _one_location(model: CoocModel, loc: int, thr: float, words: np.ndarray, xy: np.ndarray, *, tol: int = 0,
                   seed: int = 0, interpolate: bool | None = None, tb_prune: bool = True,
-                  pairwise_max: int = _PAIRWISE_MAX) -> tuple[float, bool, int, int, int, np.ndarray]:
+                  pairwise_max: int = _PAIRWISE_MAX, sweep: int = 0) -> tuple[float, bool, int, int, int, np.ndarray]:
     """One location's :func:`_match_location`, for tests and profiling: its result and the group's query features.
 
     ``xy`` as :func:`match_compiled` takes it; ``pairwise_max`` picks how the
-    translation bound counts (see :func:`_translation_bound`).
+    translation bound counts (see :func:`_translation_bound`), ``sweep`` how J's pairs are swept.
     """
     qptr, qf, qx, qy = _query_table(model, words, xy)
     F = len(qx)
@@ -874,7 +1020,7 @@ def _one_location(model: CoocModel, loc: int, thr: float, words: np.ndarray, xy:
     res = _match_location(int(loc), float(thr), model.loc_ptr, model.word, model.xy, model.group_masks(interpolate),
                           qptr, qf, qx, qy, int(tol), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
                           0, stamp, cand, cof, U, t_f, t_a, t_b, t_x, t_y, P, hist, keep, bool(tb_prune),
-                          int(pairwise_max), _PARTNERS_MAX, *_cell_tables(model))
+                          int(pairwise_max), _PARTNERS_MAX, *_cell_tables(model), int(sweep))
     return (*res, np.flatnonzero(keep))
 
 
