@@ -664,11 +664,12 @@ def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, c
                         low = u & (~u + np.uint64(1))
                         u ^= low
                         cj = (k << 6) + np.int64(_popcount(low - np.uint64(1)))
-                        j = np.int64(first[b * n + cj])
+                        j = int(first[b * n + cj])
                         e = run_end[j]
                         if b == bi and j <= i:
-                            j = i + 1  # in its own bucket, only the triples after it (cj's run lies after i or
-                            # before it: candidates are in order within a bucket)
+                            # In its own bucket only the triples after it (cj's run lies wholly after i or
+                            # before it: candidates are in order within a bucket).
+                            j = i + 1
                         while j < e:
                             # :func:`_sweep_runs`'s tests, on the lattice's table of signed cells.
                             if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim or sai == sa[j]
