@@ -615,6 +615,56 @@ def _bucket_sweep_pays(bcount, run_end, n, gx, gy, r):
 
 
 @njit(cache=True, nogil=True)
+def _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, deg):
+    """Set in ``J`` the pairs of candidates with triples in one translation bucket that need no test.
+
+    Two triples in one bucket have translations less than a square apart in both directions, so the
+    offsets they give (query and stored) differ by less than a square and their signed cells by at
+    most one: with ``tol >= 1`` the pair is consistent unless its stored features are one feature or
+    share no group.  In a bucket whose triples have a group in common, a triple whose stored feature
+    no other triple of the bucket has makes its candidate consistent with every other candidate in
+    the bucket; so every pair of candidates of which one has such a triple there is set at once
+    (through the bitsets of :func:`_sweep_buckets`), and the rest is left to the sweep.  Where a place
+    matches, most of its triples share a bucket, so most of ``J`` is set here without a test.
+    """
+    NB = len(bcount) - 1
+    unique = np.zeros(nw, np.uint64)  # the bucket's candidates with a triple of a stored feature of its own
+    for b in range(NB):
+        s0 = bcount[b]
+        s1 = bcount[b + 1]
+        if s1 - s0 < 2:
+            continue
+        common = sg[s0]
+        for d in range(s0 + 1, s1):
+            common &= sg[d]
+        if common == 0:
+            continue
+        by_feature = np.argsort(sa[s0:s1])
+        for k in range(nw):
+            unique[k] = 0
+        m = s1 - s0
+        for q in range(m):
+            d = s0 + by_feature[q]
+            if (q == 0 or sa[s0 + by_feature[q - 1]] != sa[d]) and (q == m - 1 or sa[s0 + by_feature[q + 1]] != sa[d]):
+                c = sc[d]
+                unique[c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+        d = s0
+        while d < s1:  # one run a candidate: its partners here not yet known (the other way round in its turn)
+            c = sc[d]
+            own = (unique[c >> 6] >> np.uint64(c & 63)) & np.uint64(1)
+            for k in range(nw):
+                new = (present[b, k] if own else unique[k]) & ~known[c, k]
+                known[c, k] |= new
+                while new:
+                    low = new & (~new + np.uint64(1))
+                    new ^= low
+                    cj = (k << 6) + np.int64(_popcount(low - np.uint64(1)))
+                    J[c, cj] = 1
+                    deg[c] += 1
+            d = run_end[d]
+
+
+@njit(cache=True, nogil=True)
 def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J, deg):
     """:func:`_sweep_runs`'s pairs, a bucket at a time: only the runs of candidates not yet known consistent.
 
@@ -639,6 +689,8 @@ def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, c
     known = np.zeros((n, nw), np.uint64)
     for c in range(n):
         known[c, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    if tol >= 1:
+        _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, deg)
     tests = 0
     lim = (tol + 1) * NORM
     for i in range(nt):
