@@ -575,31 +575,26 @@ def _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq,
 
 
 @njit(cache=True, nogil=True)
-def _bucket_sweep_pays(bcount, run_end, n, gx, gy, r):
+def _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy, r):
     """Whether :func:`_sweep_buckets` costs less than :func:`_sweep_runs` here, from how the triples fill the buckets.
 
     Run by run, a triple visits every run in the buckets after it within ``r``; bucket by bucket, it
     spends ``n / 64`` word operations on each non-empty one (then tests, in both, the same pairs).
     Where the triples crowd into a few buckets (a place that matches: most correspondences share one
     translation), a bucket holds hundreds of runs and the bitsets win; spread out, with few runs a
-    bucket, the runs do.
+    bucket, the runs do.  ``sb`` the triples' buckets in order, ``runs`` the runs in each bucket;
+    O(non-empty buckets), as a long route decides this for hundreds of small locations a query.
     """
     BX = 2 * gx
     BYg = 2 * gy
-    NB = BX * BYg
-    runs = np.zeros(NB, np.int64)
-    for b in range(NB):
-        d = bcount[b]
-        while d < bcount[b + 1]:
-            runs[b] += 1
-            d = run_end[d]
     nw = (n + 63) >> 6
     by_runs = 0
     by_words = 0
-    for b in range(NB):
+    d = 0
+    while d < nt:
+        b = sb[d]
         occ = bcount[b + 1] - bcount[b]
-        if occ == 0:
-            continue
+        d += occ
         bx = b // BYg
         by = b - bx * BYg
         reach = 0
@@ -829,9 +824,12 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     for d in range(nt):
         sb[d] = t_b[perm[d]]
     run_end = np.empty(nt, np.int64)  # a candidate's triples in one bucket are one run: its end
+    runs = np.zeros(NB, np.int64)  # runs a bucket
     for d in range(nt - 1, -1, -1):
         nxt = d + 1
         run_end[d] = run_end[nxt] if nxt < nt and sc[nxt] == sc[d] and sb[nxt] == sb[d] else nxt
+        if d == 0 or sc[d - 1] != sc[d] or sb[d - 1] != sb[d]:
+            runs[sb[d]] += 1
     # On a coarse position lattice (the method's default) an offset is one of few lattice steps, and
     # its signed cells come from a table (:func:`_cell_tables`) instead of being computed per test.
     lattice = ctab.shape[1] > 0
@@ -855,7 +853,7 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     # same J): run by run (:func:`_sweep_runs`), or bucket by bucket through bitsets of the candidates
     # in each bucket and of those each candidate is known consistent with (:func:`_sweep_buckets`).
     # Which costs less follows from how the triples fill the buckets (:func:`_bucket_sweep_pays`).
-    if lattice and (sweep == 2 or (sweep == 0 and _bucket_sweep_pays(bcount, run_end, n, gx, gy, r))):
+    if lattice and (sweep == 2 or (sweep == 0 and _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy, r))):
         tests = _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J,
                                deg)
     else:
