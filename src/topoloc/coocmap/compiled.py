@@ -610,7 +610,7 @@ def _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy, r):
 
 
 @njit(cache=True, nogil=True)
-def _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, deg):
+def _same_bucket_pairs(n, nw, nt, sb, bcount, runs, rank, run_end, sc, sa, sg, present, known, J, deg):
     """Set in ``J`` the pairs of candidates with triples in one translation bucket that need no test.
 
     Two triples in one bucket have translations less than a square apart in both directions, so the
@@ -620,14 +620,18 @@ def _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, de
     no other triple of the bucket has makes its candidate consistent with every other candidate in
     the bucket; so every pair of candidates of which one has such a triple there is set at once
     (through the bitsets of :func:`_sweep_buckets`), and the rest is left to the sweep.  Where a place
-    matches, most of its triples share a bucket, so most of ``J`` is set here without a test.
+    matches, most of its triples share a bucket, so most of ``J`` is set here without a test.  Only the
+    buckets of more than ``n / 64 + 1`` runs (``runs``), where a sweep would spend more than the bitsets
+    do; ``rank`` each bucket's row of ``present``.
     """
-    NB = len(bcount) - 1
     unique = np.zeros(nw, np.uint64)  # the bucket's candidates with a triple of a stored feature of its own
-    for b in range(NB):
+    nxt = 0
+    while nxt < nt:
+        b = sb[nxt]
         s0 = bcount[b]
         s1 = bcount[b + 1]
-        if s1 - s0 < 2:
+        nxt = s1
+        if runs[b] <= nw + 1:
             continue
         common = sg[s0]
         for d in range(s0 + 1, s1):
@@ -648,7 +652,7 @@ def _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, de
             c = sc[d]
             own = (unique[c >> 6] >> np.uint64(c & 63)) & np.uint64(1)
             for k in range(nw):
-                new = (present[b, k] if own else unique[k]) & ~known[c, k]
+                new = (present[rank[b], k] if own else unique[k]) & ~known[c, k]
                 known[c, k] |= new
                 while new:
                     low = new & (~new + np.uint64(1))
@@ -660,7 +664,7 @@ def _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, de
 
 
 @njit(cache=True, nogil=True)
-def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J, deg):
+def _sweep_buckets(nt, n, sb, bcount, runs, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J, deg):
     """:func:`_sweep_runs`'s pairs, a bucket at a time: only the runs of candidates not yet known consistent.
 
     On the position lattice only (its table of signed cells, ``ps``, ``pq`` and ``C`` as in :func:`_sweep_runs`).
@@ -674,18 +678,27 @@ def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, c
     BYg = 2 * gy
     NB = BX * BYg
     nw = (n + 63) >> 6
-    present = np.zeros((NB, nw), np.uint64)
-    first = np.empty(NB * n, np.int32)  # only read where ``present`` says the run exists
+    # Rows for the non-empty buckets only (``rank``): what is allocated and cleared follows the triples.
+    rank = np.full(NB, -1, np.int64)
+    nb = 0
+    d = 0
+    while d < nt:
+        rank[sb[d]] = nb
+        nb += 1
+        d = bcount[sb[d] + 1]
+    present = np.zeros((nb, nw), np.uint64)
+    first = np.empty(nb * n, np.int32)  # only read where ``present`` says the run exists
     for d in range(nt):
         c = sc[d]
         if d == 0 or sb[d] != sb[d - 1] or sc[d - 1] != c:
-            first[sb[d] * n + c] = d
-            present[sb[d], c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+            rb = rank[sb[d]]
+            first[rb * n + c] = d
+            present[rb, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
     known = np.zeros((n, nw), np.uint64)
     for c in range(n):
         known[c, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
     if tol >= 1:
-        _same_bucket_pairs(n, nw, bcount, run_end, sc, sa, sg, present, known, J, deg)
+        _same_bucket_pairs(n, nw, nt, sb, bcount, runs, rank, run_end, sc, sa, sg, present, known, J, deg)
     tests = 0
     lim = (tol + 1) * NORM
     for i in range(nt):
@@ -703,15 +716,16 @@ def _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, c
         for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
             for byb in range(byi if bxb == bxi else y0, y1 + 1):
                 b = bxb * BYg + byb
-                if bcount[b + 1] == bcount[b]:
+                rb = rank[b]
+                if rb < 0:
                     continue
                 for k in range(nw):
-                    u = present[b, k] & ~known[ci, k]
+                    u = present[rb, k] & ~known[ci, k]
                     while u:
                         low = u & (~u + np.uint64(1))
                         u ^= low
                         cj = (k << 6) + np.int64(_popcount(low - np.uint64(1)))
-                        j = int(first[b * n + cj])
+                        j = int(first[rb * n + cj])
                         e = run_end[j]
                         if b == bi and j <= i:
                             # In its own bucket only the triples after it (cj's run lies wholly after i or
@@ -854,8 +868,8 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     # in each bucket and of those each candidate is known consistent with (:func:`_sweep_buckets`).
     # Which costs less follows from how the triples fill the buckets (:func:`_bucket_sweep_pays`).
     if lattice and (sweep == 2 or (sweep == 0 and _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy, r))):
-        tests = _sweep_buckets(nt, n, sb, bcount, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol, J,
-                               deg)
+        tests = _sweep_buckets(nt, n, sb, bcount, runs, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol,
+                               J, deg)
     else:
         tests = _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq, qx, qy, ctab, C, lattice,
                             gx, gy, tol, J, deg)
