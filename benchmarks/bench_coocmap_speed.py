@@ -561,7 +561,14 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
         "ranges; (3) the signed cells of an offset between two points of the position lattice from a table; "
         "(4) with helper threads, one location a claim until `top_k` locations have finished: before, each "
         "thread claimed 8 at once, and with no threshold until `top_k` had finished (10 on the gardens_point "
-        "maps below) both built every J of their first chunks (the J-built columns below).\n\n")
+        "maps below) both built every J of their first chunks (the J-built columns below); (5) the "
+        "elimination keeps the candidates left compact, so a step is a sweep without a test per candidate "
+        "(the same steps); (6) where a location's triples crowd into few translation buckets (a place that "
+        "matches, with XFeat: hundreds of runs a bucket), J is swept a bucket at a time through bitsets of "
+        "the candidates in each bucket and of those each candidate is already known consistent with, and "
+        "pairs of candidates sharing a bucket are set without a test where its stored features and groups "
+        "allow (two translations in one bucket are less than a square apart), chosen per location from how "
+        "the buckets are filled (`_bucket_sweep_pays`).\n\n")
     L += [
         f"**Beside busy processes** (today's matcher, {pc['n']} queries paced at {pc['hz']:.0f} Hz as "
         "`benchmarks.bench_load` paces them):\n\n",

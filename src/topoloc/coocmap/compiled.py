@@ -839,11 +839,13 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
         sb[d] = t_b[perm[d]]
     run_end = np.empty(nt, np.int64)  # a candidate's triples in one bucket are one run: its end
     runs = np.zeros(NB, np.int64)  # runs a bucket
+    most = 0
     for d in range(nt - 1, -1, -1):
         nxt = d + 1
         run_end[d] = run_end[nxt] if nxt < nt and sc[nxt] == sc[d] and sb[nxt] == sb[d] else nxt
         if d == 0 or sc[d - 1] != sc[d] or sb[d - 1] != sb[d]:
             runs[sb[d]] += 1
+            most = max(most, runs[sb[d]])
     # On a coarse position lattice (the method's default) an offset is one of few lattice steps, and
     # its signed cells come from a table (:func:`_cell_tables`) instead of being computed per test.
     lattice = ctab.shape[1] > 0
@@ -867,7 +869,10 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     # same J): run by run (:func:`_sweep_runs`), or bucket by bucket through bitsets of the candidates
     # in each bucket and of those each candidate is known consistent with (:func:`_sweep_buckets`).
     # Which costs less follows from how the triples fill the buckets (:func:`_bucket_sweep_pays`).
-    if lattice and (sweep == 2 or (sweep == 0 and _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy, r))):
+    # No bucket of more runs than a bitset has words: the runs cost less (see _bucket_sweep_pays), no need to ask.
+    crowded = most > ((n + 63) >> 6) + 1
+    if lattice and (sweep == 2 or (sweep == 0 and crowded and _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy,
+                                                                                  r))):
         tests = _sweep_buckets(nt, n, sb, bcount, runs, run_end, sf, sc, sa, sg, tx, ty, ps, pq, ctab, C, gx, gy, tol,
                                J, deg)
     else:
