@@ -564,7 +564,7 @@ def tail_markdown(t: dict[str, Any]) -> list[str]:
         "maps below) both built every J of their first chunks (the J-built columns below); (5) the "
         "elimination keeps the candidates left compact, so a step is a sweep without a test per candidate "
         "(the same steps); (6) where a location's triples crowd into few translation buckets (a place that "
-        "matches, with XFeat: hundreds of runs a bucket), J is swept a bucket at a time through bitsets of "
+        "matches, with XFeat: most of its triples in a few buckets), J is swept a bucket at a time through bitsets of "
         "the candidates in each bucket and of those each candidate is already known consistent with, and "
         "pairs of candidates sharing a bucket are set without a test where its stored features and groups "
         "allow (two translations in one bucket are less than a square apart), chosen per location from how "

@@ -455,7 +455,11 @@ def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
         p.wait()
 
 
-def _plain_copy(src: Path, dst: Path, rename: dict[int, str] | None = None) -> list[Path]:
+def plain_copy(src: Path, dst: Path, rename: dict[int, str] | None = None) -> list[Path]:
+    """The images of ``src`` in ``dst`` without places.csv (natural order), the ``k``-th renamed ``rename[k]``.
+
+    Also what tests/cli/test_cli_campaign3.py builds its folders with.
+    """
     dst.mkdir(parents=True)
     out = []
     for k, p in enumerate(sorted(src.glob("*.jpg"))):
@@ -733,7 +737,7 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
     def special_image(kind: str) -> Callable[[], str]:
         def check() -> str:
             q = work / f"sw_special_{kind}"
-            _plain_copy(dusk, q)
+            plain_copy(dusk, q)
             bad = q / "Image005.jpg"
             if kind == "fifo":
                 os.mkfifo(bad)
@@ -753,7 +757,7 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
 
     def not_utf8() -> str:
         q = work / "names_latin1"
-        _plain_copy(dusk, q, {3: os.fsdecode(b"latin1 \xe9t\xe9 3.jpg")})
+        plain_copy(dusk, q, {3: os.fsdecode(b"latin1 \xe9t\xe9 3.jpg")})
         problems = []
         for args in (["localize", str(tlm), str(q), "--out", str(work / "n8.jsonl"), "--quiet"],
                      ["evaluate", "--map", str(noon), "--query", str(q), "--out", str(work / "n8run"), "--html",
@@ -795,7 +799,7 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
 
     def pairs_before_work() -> str:
         q = work / "mis_pairs"
-        _plain_copy(dusk, q, {4: "with space.jpg"})
+        plain_copy(dusk, q, {4: "with space.jpg"})
         out = work / "mis_pairs.jsonl"
         rc, _, err, _ = _run(["localize", str(tlm), str(q), "--out", str(out), "--top-k", "2", "--pairs-out",
                               str(work / "mis_pairs.txt"), "--quiet"], env)
@@ -842,7 +846,7 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
         import cv2
 
         q = work / "mis_gif"
-        files = _plain_copy(dusk, q)
+        files = plain_copy(dusk, q)
         gif = files[2].with_suffix(".gif")
         from PIL import Image
 

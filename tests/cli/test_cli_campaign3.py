@@ -6,13 +6,17 @@ import json
 import os
 import shutil
 import stat
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING
 
 import pytest
 
 if TYPE_CHECKING:
     from conftest import Cli
+
+Copy = Callable[..., list[Path]]  # bench_reliability.plain_copy
 
 
 def _build(cli: Cli, rf: dict[str, Path], out: Path, method: str = "coocmap") -> Path:
@@ -60,22 +64,19 @@ def test_map_add_from_another_folder_finds_a_tour_named_relative(cli: Cli, rf: d
     assert os.path.isabs(json.loads(cli.ok(["map", "info", str(work / "m.tlm"), "--json"]))["tours"][0]["root"])
 
 
-def _plain_copy(src: Path, dst: Path, rename: dict[int, str] | None = None) -> list[Path]:
-    """The images of ``src`` in ``dst`` without places.csv (natural order), some renamed."""
-    dst.mkdir(parents=True)
-    out = []
-    for k, p in enumerate(sorted(src.glob("*.jpg"))):
-        out.append(dst / (rename or {}).get(k, p.name))
-        shutil.copy(p, out[-1])
-    return out
+@pytest.fixture(scope="module")
+def plain_copy(benchmark_module: Callable[[str], ModuleType]) -> Copy:
+    """The images of a folder copied without places.csv, some renamed: the reliability campaign's own helper."""
+    return benchmark_module("bench_reliability").plain_copy
 
 
-def test_a_file_name_that_is_not_utf8_works_everywhere(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+def test_a_file_name_that_is_not_utf8_works_everywhere(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                        plain_copy: Copy) -> None:
     """``cv2.haveImageReader`` crashed the process (exit 139) on such a name; evaluate and map build gave
     a UnicodeEncodeError traceback (issue #41)."""
     odd = os.fsdecode(b"latin1 \xe9t\xe9 3.jpg")
     q = tmp_path / "q"
-    _plain_copy(rf["query"], q, {3: odd})
+    plain_copy(rf["query"], q, {3: odd})
     tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
     lines = tmp_path / "l.jsonl"
     cli.ok(["localize", str(tlm), str(q), "--out", str(lines), "--quiet"])
@@ -90,10 +91,10 @@ def test_a_file_name_that_is_not_utf8_works_everywhere(cli: Cli, rf: dict[str, P
 
 @pytest.mark.parametrize("kind", ["fifo", "device", "dangling"])
 def test_a_special_file_named_as_an_image_is_refused_not_skipped(cli: Cli, rf: dict[str, Path], tmp_path: Path,
-                                                                kind: str) -> None:
+                                                                kind: str, plain_copy: Copy) -> None:
     """Skipped without a word, it moved every later image down one place id (issue #41)."""
     q = tmp_path / "q"
-    _plain_copy(rf["query"], q)
+    plain_copy(rf["query"], q)
     bad = q / "Image005.jpg"
     if kind == "fifo":
         os.mkfifo(bad)
@@ -111,12 +112,12 @@ def test_a_special_file_named_as_an_image_is_refused_not_skipped(cli: Cli, rf: d
 
 @pytest.mark.parametrize("name", ["../outside.jpg", "ABSOLUTE", "sub/../../outside.jpg"])
 def test_places_csv_names_stay_inside_the_traverse_folder(cli: Cli, rf: dict[str, Path], tmp_path: Path,
-                                                         name: str) -> None:
+                                                         name: str, plain_copy: Copy) -> None:
     """evaluate --html embedded a private photo from outside the query folder in a page meant to be shared."""
     private = tmp_path / "outside.jpg"
     shutil.copy(sorted(rf["query"].glob("*.jpg"))[0], private)
     q = tmp_path / "q"
-    files = _plain_copy(rf["query"], q)
+    files = plain_copy(rf["query"], q)
     (q / "sub").mkdir()
     name = str(private) if name == "ABSOLUTE" else name
     (q / "places.csv").write_text("image,place\n" + "".join(f"{p.name},{k}\n" for k, p in enumerate(files[1:], 1))
@@ -127,11 +128,12 @@ def test_places_csv_names_stay_inside_the_traverse_folder(cli: Cli, rf: dict[str
     assert not (tmp_path / "p.html").exists()
 
 
-def test_a_gif_is_read_in_a_folder_as_when_named(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+def test_a_gif_is_read_in_a_folder_as_when_named(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                  plain_copy: Copy) -> None:
     import cv2
 
     q = tmp_path / "q"
-    files = _plain_copy(rf["query"], q)
+    files = plain_copy(rf["query"], q)
     gif = files[2].with_suffix(".gif")
     from PIL import Image
 
@@ -147,9 +149,9 @@ def test_a_gif_is_read_in_a_folder_as_when_named(cli: Cli, rf: dict[str, Path], 
 
 
 def test_pairs_out_refuses_a_name_with_white_space_before_any_frame(cli: Cli, rf: dict[str, Path],
-                                                                   tmp_path: Path) -> None:
+                                                                   tmp_path: Path, plain_copy: Copy) -> None:
     q = tmp_path / "q"
-    _plain_copy(rf["query"], q, {4: "with space.jpg"})
+    plain_copy(rf["query"], q, {4: "with space.jpg"})
     tlm = _build(cli, rf, tmp_path / "m.tlm", "bow")
     out = tmp_path / "l.jsonl"
     cli.error(["localize", str(tlm), str(q), "--out", str(out), "--top-k", "2", "--pairs-out",

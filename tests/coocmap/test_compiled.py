@@ -206,8 +206,7 @@ def test_claims_are_one_location_until_top_k_have_finished(helpers: bool) -> Non
     qptr, qf, qx, qy = compiled._query_table(model, w, xy)
     n_cand = compiled._candidate_counts(model.wloc_ptr, model.wloc, w[qf], model.n_locations)
     order = compiled._order_by_count(n_cand)
-    args = (model.loc_ptr, model.word, model.xy, model.group_masks(None), qptr, qf, qx, qy, 1, int(model.grid_x),
-            int(model.grid_y), 0, compiled._triple_capacity(model.loc_ptr, qptr), *compiled._cell_tables(model))
+    args = compiled._kernel_args(model, qptr, qf, qx, qy, interpolate=None, spatial_tolerance=1, seed=0)
     top_k = 5
     shared = compiled._Shared(order, n_cand, args, top_k, compiled.SEED_FIRST, len(w), helpers=helpers)
     sizes, finished_before = [], []

@@ -46,7 +46,7 @@ finishes), with the loops that cannot be vectorised compiled by numba:
   spatial test of a pair of candidates already known to be consistent (a
   candidate's triples in one bucket are one run, skipped at once); where
   the triples crowd into few buckets (a place that matches, with learned
-  features: hundreds of runs a bucket), a bucket at a time through bitsets
+  features: most of its triples in a few buckets), a bucket at a time through bitsets
   of the candidates in it and of those each candidate is known consistent
   with, whichever costs less from how the buckets are filled
   (:func:`_bucket_sweep_pays`); no edge list is formed, so nothing needs
@@ -512,6 +512,30 @@ def _window_bound(n, nt, cand, cof, t_f, t_x, t_y, U, hist, gx, gy, r, thr, roun
 
 
 @njit(cache=True, nogil=True)
+def _window(b, BYg, r):
+    """``(bx, by, y0, y1)``: bucket ``b``'s column and row, and the rows ``y0 .. y1`` within ``r`` of it."""
+    bx = b // BYg
+    by = b - bx * BYg
+    return bx, by, max(by - r, 0), min(by + r, BYg - 1)
+
+
+@njit(cache=True, nogil=True)
+def _may_pair(dtx, dty, a1, a2, g1, g2, gx, gy, lim):
+    """The necessary test of a pair of triples: translations less than ``tol + 1`` squares apart
+    (``lim = (tol + 1) * NORM``), two stored features, a group in common."""
+    return abs(dtx) * gx < lim and abs(dty) * gy < lim and a1 != a2 and (g1 & g2) != 0
+
+
+@njit(cache=True, nogil=True)
+def _lattice_agree(ds, dq, ctab, C, tol):
+    """Whether the signed cells of two offsets between lattice points (table indices ``ds + C``, ``dq + C``,
+    see :func:`_cell_tables`) agree within ``tol`` in both directions."""
+    ks = ds + C
+    kq = dq + C
+    return abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
+
+
+@njit(cache=True, nogil=True)
 def _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq, qx, qy, ctab, C, lattice, gx, gy,
                 tol, J, deg):
     """Fill ``J`` and its row sums ``deg`` sweeping each triple's later partners run by run; returns the pair tests.
@@ -526,11 +550,7 @@ def _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq,
     lim = (tol + 1) * NORM
     for i in range(nt):
         ci = sc[i]
-        bi = sb[i]
-        bxi = bi // BYg
-        byi = bi - bxi * BYg
-        y0 = max(byi - r, 0)
-        y1 = min(byi + r, BYg - 1)
+        bxi, _, y0, y1 = _window(sb[i], BYg, r)
         for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
             j = i + 1 if bxb == bxi else bcount[bxb * BYg + y0]
             j1 = bcount[bxb * BYg + y1 + 1]
@@ -539,8 +559,7 @@ def _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq,
                 if ci == cj or J[ci, cj]:
                     j = run_end[j]  # nothing left to learn from cj's other triples in this bucket
                     continue
-                if (abs(tx[j] - tx[i]) * gx >= lim or abs(ty[j] - ty[i]) * gy >= lim or sa[i] == sa[j]
-                        or (sg[i] & sg[j]) == 0):
+                if not _may_pair(tx[j] - tx[i], ty[j] - ty[i], sa[i], sa[j], sg[i], sg[j], gx, gy, lim):
                     j += 1
                     continue
                 tests += 1
@@ -548,13 +567,8 @@ def _sweep_runs(nt, sb, bcount, run_end, sf, sc, sa, sg, sx, sy, tx, ty, ps, pq,
                 fj = sf[j]
                 # Evaluate in the direction f < g, as the reference does.
                 if lattice:
-                    if fi < fj:
-                        ks = ps[j] - ps[i] + C
-                        kq = pq[j] - pq[i] + C
-                    else:
-                        ks = ps[i] - ps[j] + C
-                        kq = pq[i] - pq[j] + C
-                    ok = abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol
+                    sgn = 1 if fi < fj else -1
+                    ok = _lattice_agree(sgn * (ps[j] - ps[i]), sgn * (pq[j] - pq[i]), ctab, C, tol)
                 else:
                     if fi < fj:
                         ms = _cells(sx[j] - sx[i], sy[j] - sy[i], gx, gy)
@@ -581,7 +595,7 @@ def _bucket_sweep_pays(nt, sb, bcount, runs, n, gx, gy, r):
     Run by run, a triple visits every run in the buckets after it within ``r``; bucket by bucket, it
     spends ``n / 64`` word operations on each non-empty one (then tests, in both, the same pairs).
     Where the triples crowd into a few buckets (a place that matches: most correspondences share one
-    translation), a bucket holds hundreds of runs and the bitsets win; spread out, with few runs a
+    translation), a bucket holds many runs and the bitsets win; spread out, with few runs a
     bucket, the runs do.  ``sb`` the triples' buckets in order, ``runs`` the runs in each bucket;
     O(non-empty buckets), as a long route decides this for hundreds of small locations a query.
     """
@@ -620,7 +634,7 @@ def _same_bucket_pairs(n, nw, nt, sb, bcount, runs, rank, run_end, sc, sa, sg, p
     no other triple of the bucket has makes its candidate consistent with every other candidate in
     the bucket; so every pair of candidates of which one has such a triple there is set at once
     (through the bitsets of :func:`_sweep_buckets`), and the rest is left to the sweep.  Where a place
-    matches, most of its triples share a bucket, so most of ``J`` is set here without a test.  Only the
+    matches, most of its triples share a bucket, and the pairs set here are not tested again.  Only the
     buckets of more than ``n / 64 + 1`` runs (``runs``), where a sweep would spend more than the bitsets
     do; ``rank`` each bucket's row of ``present``.
     """
@@ -703,16 +717,8 @@ def _sweep_buckets(nt, n, sb, bcount, runs, run_end, sf, sc, sa, sg, tx, ty, ps,
     lim = (tol + 1) * NORM
     for i in range(nt):
         ci = sc[i]
-        fi = sf[i]
-        txi = tx[i]
-        tyi = ty[i]
-        sai = sa[i]
-        sgi = sg[i]
         bi = sb[i]
-        bxi = bi // BYg
-        byi = bi - bxi * BYg
-        y0 = max(byi - r, 0)
-        y1 = min(byi + r, BYg - 1)
+        bxi, byi, y0, y1 = _window(bi, BYg, r)
         for bxb in range(bxi, min(bxi + r, BX - 1) + 1):
             for byb in range(byi if bxb == bxi else y0, y1 + 1):
                 b = bxb * BYg + byb
@@ -733,18 +739,12 @@ def _sweep_buckets(nt, n, sb, bcount, runs, run_end, sf, sc, sa, sg, tx, ty, ps,
                             j = i + 1
                         while j < e:
                             # :func:`_sweep_runs`'s tests, on the lattice's table of signed cells.
-                            if (abs(tx[j] - txi) * gx >= lim or abs(ty[j] - tyi) * gy >= lim or sai == sa[j]
-                                    or (sgi & sg[j]) == 0):
+                            if not _may_pair(tx[j] - tx[i], ty[j] - ty[i], sa[i], sa[j], sg[i], sg[j], gx, gy, lim):
                                 j += 1
                                 continue
                             tests += 1
-                            if fi < sf[j]:
-                                ks = ps[j] - ps[i] + C
-                                kq = pq[j] - pq[i] + C
-                            else:
-                                ks = ps[i] - ps[j] + C
-                                kq = pq[i] - pq[j] + C
-                            if abs(ctab[0, ks] - ctab[0, kq]) <= tol and abs(ctab[1, ks] - ctab[1, kq]) <= tol:
+                            sgn = 1 if sf[i] < sf[j] else -1
+                            if _lattice_agree(sgn * (ps[j] - ps[i]), sgn * (pq[j] - pq[i]), ctab, C, tol):
                                 J[ci, cj] = 1
                                 J[cj, ci] = 1
                                 deg[ci] += 1
@@ -903,10 +903,10 @@ def _match_location(loc, thr, loc_ptr, word, xy, groups, qptr, qf_sorted, qx, qy
     # replaced by the last): a pass is then two sweeps without a test per candidate, one lowering the
     # keys of the last one's partners (its row of J, 0 or 1, subtracted from every key: the same
     # floating-point values as lowering only the partners') and taking the least and greatest key, one
-    # finding the least, instead of a sweep over every candidate that tests each for being left and for
-    # being a partner (about a sixth of a SIFT query at night on gardens_point).  The one eliminated is
-    # eliminate's: the least key, the lowest candidate among equal keys (eliminate's first minimum in
-    # ascending order), so the order kept here does not matter.
+    # finding the candidate with the least, instead of a sweep over every candidate that tests each for
+    # being left and for being a partner.  The one eliminated is eliminate's: the least key, the lowest
+    # candidate among equal keys (eliminate's first minimum in ascending order), so the order kept here
+    # does not matter.
     ids = np.empty(n, np.int64)
     kc = np.empty(n, np.float64)
     m = 0
@@ -1318,6 +1318,14 @@ def _match_locations(order: np.ndarray, n_cand: np.ndarray, kernel_args: tuple[A
     return best_loc
 
 
+def _kernel_args(model: CoocModel, qptr: np.ndarray, qf: np.ndarray, qx: np.ndarray, qy: np.ndarray, *,
+                 interpolate: bool | None, spatial_tolerance: int, seed: int) -> tuple[Any, ...]:
+    """What :func:`_match_chunk` needs of the map and the query (:func:`_query_table`), in its order."""
+    return (model.loc_ptr, model.word, model.xy, model.group_masks(interpolate), qptr, qf, qx, qy,
+            int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
+            _triple_capacity(model.loc_ptr, qptr), *_cell_tables(model))
+
+
 def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k: int = 1,
                    interpolate: bool | None = None, seed: int = 0, spatial_tolerance: int = 0,
                    parallel: bool = True, threads: int | None = None) -> tuple[MatchResult, np.ndarray]:
@@ -1355,9 +1363,8 @@ def match_compiled(model: CoocModel, words: np.ndarray, xy: np.ndarray, *, top_k
     keep = np.zeros(len(words), bool)
     # In a Dask worker task the worker's threads already use the cores (topoloc.cluster.in_worker_task).
     n_threads = 1 if not parallel or in_worker_task() else n_workers(-1 if threads is None else threads)
-    kernel_args = (model.loc_ptr, model.word, model.xy, model.group_masks(interpolate), qptr, qf, qx, qy,
-                   int(spatial_tolerance), int(model.grid_x), int(model.grid_y), int(seed) & 0xFFFFFFFF,
-                   _triple_capacity(model.loc_ptr, qptr), *_cell_tables(model))
+    kernel_args = _kernel_args(model, qptr, qf, qx, qy, interpolate=interpolate, spatial_tolerance=spatial_tolerance,
+                               seed=seed)
     _match_locations(order, n_cand, kernel_args, int(top_k), SEED_FIRST, n_threads, len(words), scores, exact,
                      stats, keep)
     # Every schedule finishes exactly the locations scoring at least T, the top_k-th best exact
