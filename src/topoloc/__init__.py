@@ -52,7 +52,7 @@ _LAZY: dict[str, str] = {
     "train_vocabulary": "topoloc.vocabulary.vocab",
     # saved maps and localisation
     "Map": "topoloc.maps.map",
-    "Localizer": "topoloc.maps.map",
+    "Localizer": "topoloc.maps.localizer",
     # a long route's map built or updated through scratch files beside it (what `map build` does)
     "spill_to": "topoloc.io.scratch",
     # evaluation
@@ -162,7 +162,8 @@ if TYPE_CHECKING:  # static checkers and IDEs see the real names
     from topoloc.evaluation.metrics import Scores, compute_metrics
     from topoloc.evaluation.pipeline import evaluate
     from topoloc.features.local import FeatureConfig, FeatureExtractor, FeatureSet, extract_features
-    from topoloc.maps.map import Localizer, Map
+    from topoloc.maps.localizer import Localizer
+    from topoloc.maps.map import Map
     from topoloc.methods import available_methods, get_method
     from topoloc.methods.bag_of_words import BagOfWords
     from topoloc.methods.base import PlaceRecognizer

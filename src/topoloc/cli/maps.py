@@ -234,7 +234,7 @@ def map_calibrate(
     """
     from topoloc.io.dirs import Output, check_outputs
     from topoloc.maps import Map
-    from topoloc.maps.map import check_precision
+    from topoloc.maps.calibration import check_precision
     from topoloc.spec import GroundTruthSpec, InputSpec, SequenceSpec
 
     check_precision(precision)

@@ -291,7 +291,7 @@ def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traver
     what = f"the map {spec.map_file}" if spec.map_file is not None else "the map"
     tours: Sequence[Traverse] = maps
     if spec.map_file is not None:
-        from topoloc.maps.map import reload_tour
+        from topoloc.maps.tours import reload_tour
 
         try:
             tours = [reload_tour(rec, purpose="to verify answers") for rec in tour_records]

@@ -6,7 +6,7 @@ file must be on a file system the workers share, at the same path), extracts
 the frames' features and scores them against every place, and sends back one
 score column per frame.  The sequence search, the top places and the
 threshold then run here, in frame order, through
-:meth:`~topoloc.maps.map.Localizer.step_scores`, so every output line equals
+:meth:`~topoloc.maps.localizer.Localizer.step_scores`, so every output line equals
 the line of a local run.  Methods that score whole sequences (SeqSLAM) keep
 their last frames in the localiser and run here, one frame at a time.
 """
@@ -57,7 +57,7 @@ class MapType(Protocol):
 
 
 class Localizer(Protocol):
-    """The online localiser of a map (:class:`topoloc.maps.map.Localizer`)."""
+    """The online localiser of a map (:class:`topoloc.maps.localizer.Localizer`)."""
 
     @property
     def map(self) -> Map: ...

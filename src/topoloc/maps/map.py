@@ -13,11 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import os
-import threading
-import time
-from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict
 from datetime import UTC, datetime
@@ -26,155 +22,40 @@ from typing import Any
 
 import numpy as np
 
-from topoloc._parallel import n_workers
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
-from topoloc.features import FeatureConfig, FeatureSet
+from topoloc.features import FeatureConfig
 from topoloc.io.lock import file_lock
 from topoloc.io.scratch import spill_to
-from topoloc.maps.frame_resources import Described, FrameResources, describe
+from topoloc.maps import calibration as _cal
+from topoloc.maps import verify_policy as _policy
+from topoloc.maps.calibration import check_precision
+from topoloc.maps.localizer import Localizer
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.maps.place_images import PlaceImages
-from topoloc.maps.prefetch import ahead, prefetch_depth, single_threaded_libraries
+from topoloc.maps.tours import check_feature_kind, reload_tour, tour_record, tour_root, xy_sums
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.methods.shard_build import build_from_shards
 from topoloc.progress import ProgressFactory
-from topoloc.ranking import threshold_sweep, top_rows
 from topoloc.resources import CachedResources, InMemoryResources, Resources
 from topoloc.spec import (
     FeatureSpec,
     GroundTruthSpec,
     MapBuildSpec,
     SequenceSpec,
-    VerificationSpec,
     VocabularySpec,
     spec_to_dict,
 )
-from topoloc.spec.parts import NOT_BOTH, verify_from_env
-from topoloc.spec.runs import check_prefetch
-from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import Verifier, confirmed, demote_unconfirmed
+from topoloc.spec.parts import NOT_BOTH
+from topoloc.spec.setup import build_method, make_resources
+from topoloc.verification import Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 log = logging.getLogger(__name__)
-
-
-def tour_record(tour: Traverse) -> dict[str, Any]:
-    """What a map remembers of a tour: name, size, times and a fingerprint of its images and places.
-
-    ``place_images`` (:class:`~topoloc.maps.place_images.PlaceImages`, saved as arrays) maps each
-    place of the tour to its first image (:func:`topoloc.evaluation.pairs.image_name`), what
-    ``localize --pairs-out`` writes for the place.
-    """
-    rec: dict[str, Any] = {
-        "name": tour.name, "root": _tour_root(tour),
-        "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": tour.fingerprint(),
-        "median_hour": tour.median_time_of_day(), "start": None, "end": None,
-        "place_images": PlaceImages.of_tour(tour),
-    }
-    if tour.times is not None and len(tour.times):
-        rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
-    if tour.source is not None:
-        rec["source"] = dict(tour.source)  # a recording: its file and frame selection
-        if "file" in rec["source"]:
-            rec["source"]["file"] = os.path.abspath(rec["source"]["file"])
-    return rec
-
-
-def reload_tour(rec: dict[str, Any], *, purpose: str = "to add a tour") -> Traverse:
-    """The tour a map's tour record names, read again from its folder or recording.
-
-    Raises
-    ------
-    TopolocError
-        One line naming the tour: it was held in memory, is gone, or its images or
-        places differ from those the map was built from (another fingerprint).
-    """
-    root = str(rec.get("root", ""))
-    if root.startswith("<"):
-        raise TopolocError(f"tour {rec.get('name')!r} of the map was built from images in memory, which cannot "
-                           f"be read again {purpose}: build the map from all tours")
-    src = rec.get("source") or {}
-    if src:
-        from topoloc.datasets.sources import load_input
-
-        t = load_input(Path(src["file"]), topic=src.get("topic"), every_s=src.get("every_s"),
-                       every_m=src.get("every_m"), pose_topic=src.get("pose_topic"))
-    else:
-        if not Path(root).is_dir():
-            where = ("" if Path(root).is_absolute() else
-                     f" from {Path.cwd()} (the map recorded it relative to the folder it was built in; run from "
-                     "there, or build it again)")
-            raise input_error(f"tour {rec.get('name')!r} of the map is needed again {purpose}, but its "
-                              f"folder is gone{where}", root)
-        t = load_traverse(root)
-    if t.fingerprint() != rec["fingerprint"]:
-        raise input_error(f"tour {rec.get('name')!r} has changed since the map was built (other images or "
-                          "places): build the map again", root)
-    return t
-
-
-def _tour_root(tour: Traverse) -> str:
-    """A tour's folder, the recording it was read from, or ``<images in memory>``."""
-    # Absolute: ``map add`` may run from another folder than ``map build`` (issue #41).
-    if tour.kind == "files":
-        return os.path.abspath(tour.root)
-    if tour.source is not None and "file" in tour.source:
-        return os.path.abspath(tour.source["file"])
-    return f"<{tour.kind} in memory>"
-
-
-def _xy_sums(tours: Sequence[Traverse], place_ids: np.ndarray) -> np.ndarray:
-    """Per place: sum of x, sum of y and number of the tours' images with a position, shape (n_places, 3)."""
-    sums = np.zeros((len(place_ids), 3))
-    for t in tours:
-        if t.xy is None:
-            continue
-        # A frame without a position (NaN, as recordings give it) adds nothing: summed, it would
-        # make its place's mean position NaN for good, whatever later tours add.
-        known = np.isfinite(t.xy).all(axis=1)
-        rows = np.searchsorted(place_ids, t.places[known])
-        np.add.at(sums, rows, np.c_[t.xy[known], np.ones(int(known.sum()))])
-    return sums
-
-
-def _json_calibration(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
-    """A stored calibration with a threshold JSON can hold: maps saved before null stood for "none reached"
-    wrote ``Infinity``, which Python's reader accepts but strict JSON does not (``map info --json``)."""
-    if calibration is None or not isinstance(calibration.get("threshold"), float):
-        return calibration
-    if math.isfinite(calibration["threshold"]):
-        return calibration
-    return {**calibration, "threshold": None}
-
-
-def check_feature_kind(traverse: Traverse, features: FeatureConfig, where: str | Path | None = None) -> None:
-    """Refuse a traverse of features extracted elsewhere that are not of the map's kind (one line naming it).
-
-    Images are described with the map's ``features``; a traverse of
-    :class:`~topoloc.features.FeatureSet` is used as it is, so its descriptors
-    must have the map's columns and be binary (uint8) exactly when the map's
-    are.  Otherwise a method without a vocabulary (landmarks, voting) would fail
-    deep in its index search, or a map would record features it was not built from.
-    """
-    if traverse.kind != "features":
-        return
-    dim, binary = features.descriptor_dim, features.descriptor_dtype == np.uint8
-    for k, fs in enumerate(traverse.frames or ()):
-        d = np.asarray(fs.descriptors)
-        if len(d) and (d.shape[1] != dim or (d.dtype == np.uint8) != binary):
-            raise input_error(f"traverse {traverse.name!r} holds descriptors of {d.shape[1]} {d.dtype} columns "
-                              f"(image {k}), not the map's {features.descriptor_kind} features", where)
-
-
-def check_precision(precision: float) -> None:
-    """Refuse a precision outside (0, 1] (one line naming the parameter)."""
-    if isinstance(precision, bool) or not isinstance(precision, int | float) or not 0 < precision <= 1:
-        raise ParameterError("precision", f"must be in (0, 1], got {precision!r}")
 
 
 class Map:
@@ -321,7 +202,7 @@ class Map:
         m = cls.from_fitted(rec, maps, features=config, vocabulary=voc)
         m.spec = spec_to_dict(MapBuildSpec(
             method=method, params=rec.get_params(), shards=shards,
-            maps=tuple(Path(t.root) if t.kind == "files" else Path(_tour_root(t)) if t.source is not None
+            maps=tuple(Path(t.root) if t.kind == "files" else Path(tour_root(t)) if t.source is not None
                        else Path(f"<{t.name} in memory>") for t in maps),
             features=spec or FeatureSpec(method=config.method, max_features=config.max_features,
                                          max_side=config.max_side, preprocess=config.preprocess),
@@ -333,7 +214,7 @@ class Map:
                     vocabulary: Vocabulary | None) -> Map:
         """The map of a recogniser already fitted on ``tours`` (with these feature settings and vocabulary)."""
         return cls(recognizer, features=features, vocabulary=vocabulary, tours=[tour_record(t) for t in tours],
-                   xy_sums=_xy_sums(tours, recognizer.place_ids_))
+                   xy_sums=xy_sums(tours, recognizer.place_ids_))
 
     def add_tour(self, tour: Traverse | str | Path, *, cache_dir: str | Path | None = None,
                  progress: ProgressFactory | None = None, executor: Executor | None = None) -> Map:
@@ -368,7 +249,7 @@ class Map:
             res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
             old_ids = self.place_ids
             self.recognizer.add_tour(t, resources=res)
-            sums = _xy_sums([t], self.place_ids)
+            sums = xy_sums([t], self.place_ids)
             sums[np.searchsorted(self.place_ids, old_ids)] += self.xy_sums
             self.xy_sums = sums
         self.tours.append(rec)
@@ -376,17 +257,8 @@ class Map:
         return self
 
     def _mark_stale(self, tour_name: str) -> None:
-        """Keep the calibration, marked stale: a tour added since changes the scores it was chosen on.
-
-        ``stale_since`` names the first tour added after it, ``tours_added_since`` all of them;
-        :meth:`calibrate` again clears both.
-        """
-        if self.calibration is None:
-            return
-        added = [*self.calibration.get("tours_added_since", []), tour_name]
-        self.calibration = {**self.calibration, "stale": True,
-                            "stale_since": self.calibration.get("stale_since", tour_name),
-                            "tours_added_since": added}
+        """Keep the calibration, marked stale (:func:`topoloc.maps.calibration.mark_stale`)."""
+        self.calibration = _cal.mark_stale(self.calibration, tour_name)
 
     @property
     def calibration_stale(self) -> bool:
@@ -517,7 +389,7 @@ class Map:
                     tour["place_images"] = PlaceImages.of(tour["place_images"])
             return cls(rec, features=features, vocabulary=voc, tours=tours,
                        xy_sums=np.array(arrays["places/xy_sums"]),
-                       calibration=_json_calibration(meta.get("calibration")),
+                       calibration=_cal.json_calibration(meta.get("calibration")),
                        created=meta.get("created"), path=path, spec=meta.get("spec"))
         except TopolocError as exc:
             msg = str(exc)
@@ -545,10 +417,7 @@ class Map:
         A calibration whose ``threshold`` is null reached no threshold: the
         threshold is then infinite and nothing is accepted.
         """
-        if self.calibration is None:
-            return None
-        value = self.calibration.get("threshold")
-        return math.inf if value is None else float(value)
+        return _cal.threshold_of(self.calibration)
 
     def place_image_names(self) -> list[str]:
         """The map image each place is written as in a pairs file (:mod:`topoloc.evaluation.pairs`).
@@ -602,37 +471,14 @@ class Map:
 
     # -- verification -----------------------------------------------------------------------
     def verification_blocker(self) -> str:
-        """Why answers against this map cannot be verified, or "" when they can.
-
-        Verification matches a query's local features against the map images of
-        its candidate places, which the map reaches through its tours' folders
-        or recordings (their features come from the feature cache, extracted once).
-        """
-        for rec in self.tours:
-            root = str(rec.get("root", ""))
-            src = rec.get("source") or {}
-            if root.startswith("<"):
-                return f"tour {rec.get('name')!r} was built from images in memory, which cannot be read again"
-            where = Path(src["file"]) if src else Path(root)
-            if not where.exists():
-                return f"tour {rec.get('name')!r} is gone: {where}"
-        return ""
+        """Why answers against this map cannot be verified, or "" when they can
+        (:func:`topoloc.maps.verify_policy.verification_blocker`)."""
+        return _policy.verification_blocker(self.tours)
 
     @property
     def default_verify(self) -> bool | None:
-        """Whether answers are verified when no one says: as the threshold was calibrated, else as the map was built.
-
-        A map calibrated with verification recorded keeps that setting (the
-        threshold holds for those scores only); a map built before verification
-        existed, or calibrated before it was recorded, scores as it always did
-        (False); else None: wherever it can.
-        """
-        cal = self.calibration or {}
-        if "verify" in cal:
-            return bool(cal["verify"])
-        if self.calibration is not None or not self.spec or "verification" not in self.spec:
-            return False
-        return (self.spec.get("verification") or {}).get("enabled")
+        """Whether answers are verified when no one says (:func:`topoloc.maps.verify_policy.default_verify`)."""
+        return _policy.default_verify(self.calibration, self.spec)
 
     def verifier(self, *, candidates: int | None = None, resources: Resources | None = None,
                  cache_dir: str | Path | None = None, sequence: int = 0) -> Verifier:
@@ -649,27 +495,17 @@ class Map:
         TopolocError
             One line naming the tour that cannot be read again.
         """
-        why = self.verification_blocker()
         where = f"the map {self.path}" if self.path is not None else "the map"
-        if why:
+        why = self.verification_blocker()
+        if why:  # before any resource is made
             raise TopolocError(f"{where} cannot verify answers: {why} (use --no-verify)")
-        tours = [reload_tour(rec, purpose="to verify answers") for rec in self.tours]
         res = resources if resources is not None else self.resources(cache_dir=cache_dir)
-        v = build_verifier(VerificationSpec(enabled=True, candidates=candidates), self.place_ids, tours, res,
-                           what=where, sequence=sequence)
-        assert v is not None
-        return v
+        return _policy.map_verifier(self.tours, self.place_ids, res, where=where, candidates=candidates,
+                                    sequence=sequence)
 
     def verification_info(self) -> dict[str, Any]:
         """Whether the map can verify answers, and the memory its map images' features then take."""
-        why = self.verification_blocker()
-        n_images = sum(int(t.get("n_images", 0) or 0) for t in self.tours)
-        # keypoints: 5 float32 columns; descriptors: descriptor_dim columns of descriptor_dtype
-        f = self.features
-        per_image = int(f.max_features) * (20 + f.descriptor_dim * np.dtype(f.descriptor_dtype).itemsize)
-        return {"can_verify": not why, **({"why_not": why} if why else {}),
-                "default": self.default_verify, "map_images": n_images,
-                "features_bytes_at_most": n_images * per_image}
+        return _policy.verification_info(self.tours, self.features, self.default_verify)
 
     @property
     def calibrated_sequence(self) -> SequenceSpec:
@@ -678,8 +514,7 @@ class Map:
         Calibrations made before sequence matching was recorded (and an
         uncalibrated map) give single images, so such maps score as before.
         """
-        seq = (self.calibration or {}).get("sequence") or {}
-        return SequenceSpec(length=int(seq.get("length", 0)), mode=str(seq.get("mode", "constant")))
+        return _cal.calibrated_sequence(self.calibration)
 
     def localizer(self, *, top_k: int = 5, sequence: int | None = None,
                   sequence_mode: str | None = None, prefetch: int = -1, verify: bool | None = None,
@@ -699,24 +534,10 @@ class Map:
                          verify=self.resolve_verify(verify), candidates=candidates, confirm=confirm)
 
     def resolve_verify(self, verify: bool | None) -> bool:
-        """Whether to verify: as asked; else as the threshold was calibrated; else ``$TOPOLOC_VERIFY``; else
-        :attr:`default_verify`; else whether the map can verify.  A calibration's record comes before the
-        environment: its threshold holds for the scores it was chosen on only."""
-        if verify is None and "verify" in (self.calibration or {}):
-            verify = bool((self.calibration or {})["verify"])
-        if verify is None:
-            verify = verify_from_env()
-        if verify is not None:
-            return verify
-        default = self.default_verify
-        if default is not None:
-            return default
-        if self.recognizer.tags.verifies_geometry:
-            return False
-        why = self.verification_blocker()
-        if why:
-            log.info("%s cannot verify answers (%s): they are not verified", self.path or "the map", why)
-        return not why
+        """Whether to verify (:func:`topoloc.maps.verify_policy.resolve_verify`)."""
+        return _policy.resolve_verify(verify, calibration=self.calibration, spec=self.spec,
+                                      verifies_geometry=self.recognizer.tags.verifies_geometry,
+                                      blocker=self.verification_blocker, where=self.path or "the map")
 
     def localize(self, image: np.ndarray, *, top_k: int = 5) -> dict[str, Any]:
         """The place one camera frame shows.
@@ -785,41 +606,8 @@ class Map:
         dict
             The calibration stored in the map (a new one: not stale).
         """
-        check_precision(precision)
-        if S.shape != gt.shape:
-            raise TopolocError(f"scores of shape {S.shape} do not match the ground truth {gt.shape}")
-        has_pos = gt.hard.any(axis=0)
-        if not has_pos.any():
-            raise TopolocError("calibration needs a tour with ground truth: no query has a correct map place")
-        best = np.argmax(S, axis=0)
-        cols = np.arange(S.shape[1])
-        score = S[best, cols].astype(np.float64)
-        right = gt.hard[best, cols]
-        counted = right | ~gt.soft[best, cols]
-        s, tp, fp, last = threshold_sweep(score, right, counted)
-        n_counted = tp + fp
-        prec = np.where(n_counted > 0, tp / np.maximum(n_counted, 1), 1.0)
-        ok = last & (prec >= precision) & (n_counted > 0)
-        n_pos = int(has_pos.sum())
-        if ok.any():
-            k = int(np.flatnonzero(ok)[-1])
-            threshold, rec = float(s[k]), float(tp[k] / n_pos)
-            reached = float(prec[k])
-        else:
-            # JSON has no infinity: null stands for "no threshold reached", which accepts nothing.
-            threshold, rec, reached = None, 0.0, 1.0
-            log.warning("calibration on %s: no score threshold reaches precision %g, so the map now accepts no "
-                        "localisation; calibrate on a longer tour or ask for a lower --precision",
-                        query or gt.description, precision)
-        self.calibration = {
-            "threshold": threshold, "precision_asked": precision, "precision": reached, "recall": rec,
-            "query": query, "ground_truth": ground_truth or gt.description,
-            "tolerance": tolerance or gt.description, "n_queries": int(S.shape[1]),
-            "n_with_right_place": n_pos,
-            "sequence": {"length": (sequence or SequenceSpec()).length, "mode": (sequence or SequenceSpec()).mode},
-            "recall_of": "queries with a right place in the map (n_with_right_place)",
-            "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        }
+        self.calibration = _cal.choose_threshold(S, gt, precision=precision, query=query,
+                                                 ground_truth=ground_truth, tolerance=tolerance, sequence=sequence)
         return self.calibration
 
     def calibrate_on(self, tour: Traverse | str | Path, *, ground_truth: GroundTruthSpec | None = None,
@@ -905,297 +693,6 @@ class Map:
 def _through_link(path: Path) -> Path:
     """The file a link named as the map points at: it is replaced there, and the link kept (issue #41)."""
     return Path(os.path.realpath(path)) if path.is_symlink() else path
-
-
-class Localizer:
-    """Online localisation against a :class:`Map`, one frame at a time, with bounded memory.
-
-    With ``sequence = N > 0`` each frame is matched together with the ``N``
-    frames before it (causal: frame ``i`` uses only frames ``<= i``), by the
-    same search as ``evaluate --sequence`` on the last ``N + 1`` score
-    columns, so its result equals the batch result for that frame; its
-    ``score`` is then the sequence confidence (the best path's margin over
-    the best path elsewhere on the route, :mod:`topoloc.sequence.confidence`),
-    which :meth:`Map.calibrate_on` with the same ``sequence`` calibrates.  Methods
-    that score whole sequences (SeqSLAM) keep their own last ``ds + 1`` frames.
-
-    Parameters
-    ----------
-    m : Map
-    top_k : int
-        Places listed per frame.
-    sequence, sequence_mode
-        Online sequence matching (off with 0).
-    verify : bool
-        Verify each frame's candidates against the map images (:mod:`topoloc.verification`):
-        its line then says ``verified`` and ``inliers``, and its score is the
-        verified confidence.
-    confirm : bool
-        Temporal consistency (:mod:`topoloc.verification.consistency`): a
-        frame's answer not confirmed by the previous frame's ranks below every
-        confirmed one; its line says ``confirmed``.
-    candidates : int, optional
-        Distinct peaks verified per frame (default: 3 for single images, the
-        best place with ``sequence``: :func:`topoloc.verification.default_candidates`).
-    prefetch : int
-        Frames :meth:`stream` reads and describes ahead of the one being
-        matched, on a pool of one thread per core (at most ``prefetch``): the
-        next frames' decoding, features and quantisation run while this frame
-        is matched, and the lines come out in the same order with the same
-        content.  -1 (default): two per core; 0: every frame read, described
-        and matched in turn on this thread.  Memory holds at most this many
-        frames beyond the one being matched.
-    """
-
-    def __init__(self, m: Map, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant",
-                 prefetch: int = -1, verify: bool = False, candidates: int | None = None,
-                 confirm: bool = False) -> None:
-        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
-            raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
-        check_prefetch(prefetch)
-        # One-line errors naming the parameter; the last N + 1 columns it keeps are bounded too.
-        SequenceSpec(length=sequence, mode=sequence_mode).check_memory(len(m.place_ids), online=True)
-        self.map = m
-        self.top_k = top_k
-        self.sequence = sequence
-        self.sequence_mode = sequence_mode
-        self.prefetch = prefetch
-        self.frames = 0
-        # Built before the first frame: a map whose tours cannot be read again fails here, in one line.
-        self.verifier: Verifier | None = m.verifier(candidates=candidates, sequence=sequence) if verify else None
-        self.ms_verify = 0.0
-        self.n_verified = 0
-        self.confirm = confirm
-        self._previous_best: int | None = None
-        rec = m.recognizer
-        self._items: deque[Any] = deque(maxlen=int(rec.get_params().get("ds", 0)) + 1)
-        self._columns: deque[np.ndarray] = deque(maxlen=sequence + 1)
-        # Running sums (ms over all frames so far), not lists: memory must not grow with a long recording.
-        self.ms_decode = 0.0
-        self.ms_features = 0.0
-        self.ms_quantise = 0.0
-        self.ms_matching = 0.0
-        self.ms_wait = 0.0
-        self.wall_s = 0.0
-        self.start_s = 0.0
-        self.cpu_s = 0.0
-        self.workers = 1
-        self.threads = 1
-        self.ms_overlap = 0.0
-        self._tls = threading.local()
-
-    def describe(self, image: np.ndarray, *, name: str = "") -> Described:
-        """``(items, ms features, ms quantisation, features)`` of one frame: the recogniser's ``encode``.
-
-        ``features`` (the frame's local features, for verification) is None when
-        the localiser does not verify.  Safe on any thread.
-        """
-        res: FrameResources | None = getattr(self._tls, "res", None)
-        if res is None:  # one per thread: a feature detector is not shared between threads
-            res = self._tls.res = FrameResources(self.map.features, self.map.vocabulary)
-        return describe(self.map.recognizer, res, image, name, keep_features=self.verifier is not None)
-
-    def stream(self, frames: Iterable[tuple[str, float | None, np.ndarray]], *,
-               executor: Executor | None = None) -> Iterator[dict[str, Any]]:
-        """Result lines of ``frames`` (``(name, time_s or None, image)``, as :meth:`InputSpec.frames` gives), in order.
-
-        On this process (``executor`` None or local) frames are read and
-        described ``prefetch`` ahead on a thread pool while this thread matches
-        them in order (:func:`topoloc.maps.prefetch.ahead`), so a recording is
-        never held in memory; with ``prefetch=0`` one at a time.  On a Dask
-        executor they are described and scored in batches by the workers
-        (:func:`topoloc.maps.batch.localize_on`), with the same lines.  The
-        stage times and the wall time accumulate for :meth:`summary`.
-        """
-        it = iter(frames)
-        voc = self.map.vocabulary
-        if voc is not None and self.map.recognizer.uses_vocabulary:
-            # The word index (HNSW) is built on its first use, once per process like opening the map: built
-            # and timed here (``s_start``), it no longer inflates the first frame's quantisation and ``fps``.
-            t0 = time.perf_counter()
-            voc.quantize(voc.words_[:1])
-            self.start_s += time.perf_counter() - t0
-        t_start, cpu_start = time.perf_counter(), time.process_time()
-        try:
-            if executor is not None and executor.name != "local":
-                from topoloc.maps.batch import localize_on
-
-                for line, seconds in localize_on(executor, self, it):
-                    self.ms_decode += 1e3 * seconds
-                    yield line
-                return
-            depth = prefetch_depth(self.prefetch)
-            if depth == 0:
-                yield from self._one_at_a_time(it)
-                return
-            first = self.frames
-
-            def work(k: int, item: tuple[str, float | None, np.ndarray]) -> Described:
-                return self.describe(item[2], name=item[0] or f"frame{first + k}")
-
-            done = ahead(it, work, depth=depth)
-            self.threads = max(self.threads, min(n_workers(-1), depth))
-            with single_threaded_libraries():
-                try:
-                    for a in done:
-                        (name, time_s, _), (items, ms_f, ms_q, feats) = a.item, a.result
-                        self.ms_wait += a.wait_ms
-                        yield self._match(items, name=name, time_s=time_s, ms_decode=a.decode_ms,
-                                          ms_features=ms_f, ms_quantise=ms_q, features=feats)
-                finally:
-                    done.close()  # stops the reader and the pool before OpenCV's threads come back
-        finally:
-            self.wall_s += time.perf_counter() - t_start
-            self.cpu_s += time.process_time() - cpu_start
-
-    def _one_at_a_time(self, it: Iterator[tuple[str, float | None, np.ndarray]]) -> Iterator[dict[str, Any]]:
-        while True:
-            t0 = time.perf_counter()
-            item = next(it, None)
-            decode_ms = 1e3 * (time.perf_counter() - t0)
-            if item is None:
-                return
-            name, time_s, frame = item
-            items, ms_f, ms_q, feats = self.describe(frame, name=name or f"frame{self.frames}")
-            self.ms_wait += 1e3 * (time.perf_counter() - t0)
-            yield self._match(items, name=name, time_s=time_s, ms_decode=decode_ms, ms_features=ms_f,
-                              ms_quantise=ms_q, features=feats)
-
-    def summary(self) -> dict[str, Any]:
-        """Frames, frames per second and mean milliseconds per frame of each stage.
-
-        ``ms_decode_mean`` (reading and decoding the frame), ``ms_extract_mean``
-        (local features or the method's own per-image transform),
-        ``ms_quantise_mean`` (visual words) and ``ms_matching_mean`` (scoring the
-        frame against the map, the sequence search, the top places) are each
-        frame's own time on the thread that did it; ``ms_features_mean`` is the
-        first three together, as ``evaluate``'s ``ms_features`` counts decoding.
-        ``fps`` is counted on the wall clock.  With prefetch (``threads``: the
-        describing threads) frames are described while others are matched, so
-        the stages add up to more than the wall time; ``ms_wait_mean`` is how
-        long matching waited for the next frame to be described (near 0: the
-        matching is the bottleneck), and the overhead is the wall time per frame
-        beyond that wait and the matching (building and writing the lines).
-        ``s_start`` is the time spent before the first frame, outside ``fps``:
-        building the vocabulary's word index, once per process.
-        ``ms_cpu_mean`` is the processor time of the whole process per frame, every
-        thread together: unlike the wall clock it hardly grows when other
-        processes share the cores, so ``cores * 1000 / ms_cpu_mean`` bounds the
-        frames/s the same run reaches on idle cores.  On
-        a cluster (``workers``: the worker threads) features and matching are
-        each frame's own time on a worker, and frames run side by side, so the
-        overhead is the wall time per frame less the part of that work the wall
-        clock saw (``ms_overlap``, the work done alongside other frames, is
-        given back); never negative.
-        """
-        n = max(self.frames, 1)
-        match_ms = self.ms_matching / n
-        decode_ms, extract_ms, quantise_ms = self.ms_decode / n, self.ms_features / n, self.ms_quantise / n
-        features_ms = decode_ms + extract_ms + quantise_ms
-        wall = self.wall_s
-        if self.workers > 1:
-            overhead = 1e3 * wall / n - features_ms - match_ms + self.ms_overlap / n
-        else:
-            overhead = 1e3 * wall / n - self.ms_wait / n - match_ms
-        out = {"frames": self.frames, "fps": round(self.frames / wall, 2) if wall else None,
-               "fps_without_features": round(1e3 / match_ms, 2) if match_ms else None,
-               "ms_features_mean": round(features_ms, 2), "ms_decode_mean": round(decode_ms, 2),
-               "ms_extract_mean": round(extract_ms, 2), "ms_quantise_mean": round(quantise_ms, 2),
-               "ms_matching_mean": round(match_ms, 2),
-               # Clock readings of different threads and machines: a few hundredths below zero is noise.
-               "ms_overhead_mean": round(max(overhead, 0.0), 2),
-               "calibrated": self.map.threshold is not None, "s_start": round(self.start_s, 3)}
-        if self.verifier is not None:
-            out["ms_verify_mean"] = round(self.ms_verify / n, 2)
-            out["verified"] = self.n_verified
-        if self.workers > 1:
-            out["workers"] = self.workers
-        else:
-            out["ms_wait_mean"] = round(self.ms_wait / n, 2)
-            out["threads"] = self.threads
-            out["ms_cpu_mean"] = round(1e3 * self.cpu_s / n, 2)
-        return out
-
-    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]:
-        """Localise the next frame (a NumPy image) and return its result line (see :meth:`Map.localize`)."""
-        items, ms_f, ms_q, feats = self.describe(image, name=name or f"frame{self.frames}")
-        return self._match(items, name=name, time_s=time_s, ms_decode=0.0, ms_features=ms_f, ms_quantise=ms_q,
-                           features=feats)
-
-    def _match(self, items: list[Any], *, name: str, time_s: float | None, ms_decode: float, ms_features: float,
-               ms_quantise: float, features: FeatureSet | None = None) -> dict[str, Any]:
-        """The result line of the next frame from its described ``items``, in frame order."""
-        rec = self.map.recognizer
-        t1 = time.perf_counter()
-        if rec.scores_whole_sequence:
-            self._items.append(items[0])
-            col = rec.score(list(self._items))[:, -1]
-        else:
-            col = rec.score(items)[:, 0]
-        self.ms_decode += ms_decode
-        self.ms_quantise += ms_quantise
-        return self.step_scores(col, name=name, time_s=time_s, ms_features=ms_features,
-                                ms_matching=1e3 * (time.perf_counter() - t1), features=features)
-
-    def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
-                    ms_features: float = 0.0, ms_matching: float = 0.0,
-                    features: FeatureSet | None = None) -> dict[str, Any]:
-        """The result line of the next frame from its score column, shape (n_places,), computed elsewhere.
-
-        What :meth:`step` does after scoring (the sequence search over the last
-        columns, the top places, the threshold); a batch localisation scores
-        frames on a cluster (:mod:`topoloc.maps.batch`) and feeds the columns
-        here in frame order, so the lines are the same.
-        """
-        t2 = time.perf_counter()
-        if self.sequence:
-            from topoloc.sequence import sequence_similarity
-
-            self._columns.append(np.asarray(col, np.float32))
-            window = np.stack(self._columns, axis=1)
-            col = sequence_similarity(window, ds=self.sequence, mode=self.sequence_mode)[:, -1]  # type: ignore[arg-type]
-        self.ms_features += ms_features
-        self.ms_matching += ms_matching + 1e3 * (time.perf_counter() - t2)
-        block = None
-        if self.verifier is not None:
-            if features is None:
-                raise ValueError("this localiser verifies: give the frame's local features")
-            block = self.verifier.verify(np.asarray(col)[:, None], [features])
-            col = block.S[:, 0]
-            self.ms_verify += float(block.ms[0])
-            self.n_verified += int(block.verified[0])
-        ok = None
-        if self.confirm:
-            col2 = np.asarray(col, np.float32)[:, None]
-            ok = bool(confirmed(col2, self._previous_best)[0])
-            self._previous_best = int(np.argmax(col2[:, 0]))
-            col = demote_unconfirmed(col2, np.array([ok]))[:, 0]
-        out = self._result(np.asarray(col, np.float64), name, time_s)
-        if ok is not None:
-            out["confirmed"] = ok
-        if block is not None:
-            out["verified"] = bool(block.verified[0])
-            out["inliers"] = int(block.inliers[0])
-        self.frames += 1
-        return out
-
-    def _result(self, col: np.ndarray, name: str, time_s: float | None) -> dict[str, Any]:
-        m = self.map
-        top = top_rows(col[:, None], self.top_k)[0][0]  # best first, ties by row as argmax
-        best = int(top[0])
-        score = float(col[best])
-        threshold = m.threshold
-        out: dict[str, Any] = {
-            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": score,
-            "accepted": bool(threshold is None or score >= threshold),
-            "top": [[int(m.place_ids[i]), float(col[i])] for i in top],
-        }
-        if time_s is not None:
-            out["time"] = time_s
-        x, y = m.place_xy[best] if len(m.place_xy) else (np.nan, np.nan)
-        if np.isfinite(x) and np.isfinite(y):
-            out["x"], out["y"] = float(x), float(y)
-        return out
 
 
 __all__ = ["Localizer", "Map", "tour_record"]

@@ -1,7 +1,7 @@
 """Frames read and described ahead of the one being matched, on a bounded thread pool, in order.
 
 A camera frame costs far more to describe (decode, SIFT, quantisation) than to
-match against most maps, and :meth:`~topoloc.maps.map.Localizer.stream` used to
+match against most maps, and :meth:`~topoloc.maps.localizer.Localizer.stream` used to
 do all of it one frame at a time on one core.  :func:`ahead` lets a reader
 thread pull frames from the input (decoding them) and hand each to a pool of
 threads that describe it, while the caller matches the frames already

@@ -24,7 +24,7 @@ The newest frame policy: the subscriber's callback only puts the message into
 a :class:`~topoloc.datasets.sources.live.Newest` buffer (``queue`` frames wait
 at most; older ones are skipped and counted), and the localiser's reader thread
 takes from it, decodes and describes ahead while the frame before is matched
-(:meth:`topoloc.maps.map.Localizer.stream`, prefetch as ``localize``).
+(:meth:`topoloc.maps.localizer.Localizer.stream`, prefetch as ``localize``).
 
 The map file is watched (its inode, size and modification time, once a
 second): ``map add`` and ``map calibrate`` replace it by an atomic rename, so a

@@ -535,12 +535,8 @@ class ExecutionSpec:
 
 
 def verify_from_env() -> bool | None:
-    """``$TOPOLOC_VERIFY`` (``1``/``0``): whether answers are verified where no option says; None when unset.
-
-    It stands where a run gives no ``--verify/--no-verify`` (before a saved
-    map's recorded default): ``0`` for a site that keeps scoring as before
-    (the test suite sets it so and tests verification on its own).
-    """
+    """``$TOPOLOC_VERIFY`` (``1``/``0``/``auto``): whether answers are verified where no option says; None when
+    unset or ``auto``; any other value is refused (one line naming it), whatever else is given."""
     import os
 
     value = os.environ.get("TOPOLOC_VERIFY", "").strip().lower()
@@ -551,6 +547,74 @@ def verify_from_env() -> bool | None:
     if value in ("0", "false", "no", "off"):
         return False
     raise ParameterError("verification.enabled", f"from TOPOLOC_VERIFY must be 1, 0 or auto, got {value!r}")
+
+
+#: Where a run's choice to verify came from (:func:`choose_verify`), strongest first.
+VERIFY_SOURCES = ("option", "TOPOLOC_VERIFY", "the map's calibration", "the map's build", "the map's age",
+                  "the method", "default")
+
+
+@dataclass(frozen=True)
+class VerifyChoice:
+    """Whether a run verifies its answers, and what said so (:func:`choose_verify`).
+
+    Attributes
+    ----------
+    enabled : bool or None
+        True: verify (a map that cannot is then an error when the source is
+        explicit, else unverified with one warning line); False: never; None:
+        wherever the map's images can be read.
+    source : str
+        One of :data:`VERIFY_SOURCES`.
+    """
+
+    enabled: bool | None
+    source: str
+
+    @property
+    def explicit(self) -> bool:
+        """Whether the user asked (an option, a ROS parameter, ``$TOPOLOC_VERIFY``), not a record or a default."""
+        return self.source in ("option", "TOPOLOC_VERIFY")
+
+
+def choose_verify(asked: bool | None, *, calibrated: bool | None = None, built: bool | None = None,
+                  legacy: bool = False, checks_geometry: bool = False) -> VerifyChoice:
+    """The one precedence of the choice to verify (``docs/protocol.md``, "Verification", "The default").
+
+    In order: the run's option (``--verify/--no-verify``, the ROS node's
+    ``verify`` parameter, ``verify=`` in Python); ``$TOPOLOC_VERIFY`` (``1``,
+    ``0`` or ``auto``; any other value is refused even where an option is
+    given); the map's calibration (``map calibrate`` records whether its
+    threshold was chosen on verified answers); the map's build
+    (``map build --verify/--no-verify``); a map saved before verification
+    existed (``legacy``) is not verified; a method that checks geometry itself
+    is not verified again; else wherever the map's images can be read.
+
+    Parameters
+    ----------
+    asked : bool or None
+        The run's option (None: not given).
+    calibrated, built : bool or None
+        What the map records (None: nothing; ``built`` None is also "wherever it can").
+    legacy : bool
+        A saved map with no record of verification at all.
+    checks_geometry : bool
+        The method's ``verifies_geometry`` tag.
+    """
+    env = verify_from_env()  # parsed first: a bad value is refused whatever else is given
+    if asked is not None:
+        return VerifyChoice(bool(asked), "option")
+    if env is not None:
+        return VerifyChoice(env, "TOPOLOC_VERIFY")
+    if calibrated is not None:
+        return VerifyChoice(bool(calibrated), "the map's calibration")
+    if built is not None:
+        return VerifyChoice(bool(built), "the map's build")
+    if legacy:
+        return VerifyChoice(False, "the map's age")
+    if checks_geometry:
+        return VerifyChoice(False, "the method")
+    return VerifyChoice(None, "default")
 
 
 @dataclass(frozen=True)
@@ -613,5 +677,8 @@ __all__ = [
     "parse_recall_at",
     "stream_sequence_for",
     "travels_the_route",
+    "VERIFY_SOURCES",
+    "VerifyChoice",
+    "choose_verify",
     "verify_from_env",
 ]
