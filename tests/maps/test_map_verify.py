@@ -35,9 +35,12 @@ def test_verified_lines_are_the_verified_scores_of_the_whole_tour(method: str, s
     S = m.similarity(tiny_route["query"], resources=res)
     if sequence:
         S = sequence_similarity(S, ds=sequence)
-    block = m.verifier(resources=res).verify(S, res.features(tiny_route["query"]))
-    assert [r["place"] for r in lines] == m.place_ids[block.S.argmax(axis=0)].tolist()
-    np.testing.assert_allclose([r["score"] for r in lines], block.S.max(axis=0), rtol=1e-6)
+    block = m.verifier(resources=res, sequence=sequence).verify(S, res.features(tiny_route["query"]))
+    assert [r["place"] for r in lines] == m.place_ids[block.answer].tolist()
+    assert block.answer.tolist() == block.S.argmax(axis=0).tolist()
+    # The line's score is the method's own (after the sequence search), its confidence the verified answer's.
+    np.testing.assert_allclose([r["score"] for r in lines], S[block.answer, np.arange(S.shape[1])], atol=1e-6)
+    np.testing.assert_allclose([r["confidence"] for r in lines], block.confidence, atol=1e-4)
     assert [r["verified"] for r in lines] == block.verified.tolist()
     assert [r["inliers"] for r in lines] == block.inliers.tolist()
     assert sum(r["verified"] for r in lines) >= len(lines) // 2  # the synthetic street verifies
@@ -79,13 +82,23 @@ def test_what_a_map_verifies_by_default(tiny_route: dict[str, Any], tmp_path: Pa
 
 
 def test_calibration_records_verification_and_localize_follows_it(tiny_route: dict[str, Any],
-                                                                   tmp_path: Path) -> None:
+                                                                   tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_VERIFY")
     m = _saved(tiny_route, tmp_path)
     cal = m.calibrate_on(tiny_route["query"], cache_dir=tmp_path / "cache", verify=True)
     assert cal["verify"] is True and m.default_verify is True
     assert m.localizer().verifier is not None
-    # Verified scores are above 1: the threshold was chosen among them.
-    assert cal["threshold"] is None or cal["threshold"] > 1.0
+    # The environment comes before the map's record (docs/protocol.md), and a bad value is refused even here.
+    monkeypatch.setenv("TOPOLOC_VERIFY", "0")
+    assert m.localizer().verifier is None and m.verify_choice().source == "TOPOLOC_VERIFY"
+    monkeypatch.setenv("TOPOLOC_VERIFY", "sometimes")
+    with pytest.raises(TopolocError, match="TOPOLOC_VERIFY"):
+        m.localizer()
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    # The threshold is on the confidence, whose model was fitted on the tour.
+    assert cal["threshold_on"] == "confidence" and cal["confidence_model"]["on"] == "strength"
+    assert cal["threshold"] is None or 0 < cal["threshold"] < 1
     cal = m.calibrate_on(tiny_route["query"], cache_dir=tmp_path / "cache", verify=False)
     assert cal["verify"] is False and m.localizer().verifier is None
 
@@ -113,3 +126,51 @@ def test_a_method_that_checks_geometry_itself_is_verified_only_when_asked(tiny_r
     monkeypatch.setattr(cls, "tags", dataclasses.replace(cls.tags, verifies_geometry=True))
     assert m.localizer().verifier is None
     assert m.localizer(verify=True).verifier is not None
+
+
+def test_a_map_records_its_images_and_confusion_and_a_crafted_image_name_is_refused(
+        tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    from topoloc.io.container import read_container, write_container
+    from topoloc.maps.mapfile import MAP_KIND, MAP_VERSION
+    from topoloc.maps.tour_images import TourImages
+
+    m = _saved(tiny_route, tmp_path)
+    images = m.tours[0]["images"]
+    assert isinstance(images, TourImages) and len(images.names) == len(tiny_route["map"])
+    assert images.sha1.shape == (len(images.names), 20) and len(np.unique(images.sha1, axis=0)) > 1
+    assert m.confusion is not None and m.confusion.values.shape == m.place_ids.shape
+    assert m.confusion.images == len(tiny_route["map"])
+    info = m.info()["verification"]
+    assert info["content_recorded"] is True and info["confusion"]["images"] == len(tiny_route["map"])
+    # A map file naming an image outside its tour's folder is refused when opened, not read.
+    meta, arrays = read_container(m.path, MAP_KIND, MAP_VERSION, mmap=False)
+    for bad in ("../../etc/passwd", "/etc/passwd", ""):
+        crafted = dict(arrays)
+        crafted.update(TourImages((bad, *images.names[1:]), images.places, images.sha1).arrays(0))
+        path = tmp_path / "crafted.tlm"
+        write_container(path, MAP_KIND, MAP_VERSION, crafted, meta)
+        with pytest.raises(TopolocError, match=r"outside its folder"):
+            Map.load(path)
+    # A map saved without confusion or image digests (an older map) loads, and verifies by fingerprint.
+    old = {k: v for k, v in arrays.items() if "/images/" not in k and not k.startswith("verification/")}
+    write_container(tmp_path / "old.tlm", MAP_KIND, MAP_VERSION, old, {**meta, "confusion": None})
+    m_old = Map.load(tmp_path / "old.tlm")
+    assert m_old.confusion is None and "images" not in m_old.tours[0]
+    assert m_old.info()["verification"]["content_recorded"] is False
+    assert m_old.localizer(verify=True).verifier is not None
+
+
+def test_the_confusion_raises_the_bar_at_look_alike_places(tiny_route: dict[str, Any], tmp_path: Path) -> None:
+    from topoloc.maps.confusion import learn_confusion
+
+    m = _saved(tiny_route, tmp_path)
+    res = m.resources(cache_dir=tmp_path / "cache")
+    v = m.verifier(resources=res)
+    c = learn_confusion(m.recognizer, [tiny_route["map"]], res, v, band=0)
+    # With no band, an image's neighbours along the route are other places: look-alikes, so confusable.
+    assert (c.values > 0).sum() > (m.confusion.values > 0).sum() if m.confusion is not None else True
+    frames = tiny_route["query_frames"]
+    v.confusable = np.full(len(m.place_ids), 1e6, np.float32)  # every place has a look-alike beyond reach
+    S = m.similarity(tiny_route["query"], resources=res)
+    assert not v.verify(S, res.features(tiny_route["query"])).verified.any()
+    assert len(frames) == S.shape[1]

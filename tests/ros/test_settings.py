@@ -45,3 +45,37 @@ def test_without_rospy_the_error_names_the_packages_to_install(tmp_path: Path) -
     if r.stdout.strip() == "imported":
         pytest.skip("rospy is installed in this environment itself")
     assert "apt-get install ros-base python3-rospy" in r.stdout, r.stdout + r.stderr
+
+
+def test_verification_is_a_setting_and_a_map_that_cannot_verify_is_not_taken_on_reload(
+        tiny_route: dict[str, object], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``verify`` as an option or ``~verify``; a reload whose localiser cannot be built keeps the map it has."""
+    import shutil
+
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.maps import Map
+    from topoloc.ros.node import LocalizerNode
+
+    assert settings_from({"map": Path("m.tlm")}, {"verify": "false"}).verify is False
+    assert settings_from({"map": Path("m.tlm"), "verify": True}, {"verify": False}).verify is True
+    assert settings_from({"map": Path("m.tlm")}, {}).verify is None
+    with pytest.raises(TopolocError, match="verify must be bool"):
+        settings_from({"map": Path("m.tlm")}, {"verify": "maybe"})
+    tour = tmp_path / "tour"
+    shutil.copytree(tiny_route["map"].root, tour)  # type: ignore[attr-defined]
+    tlm = tmp_path / "m.tlm"
+    Map.build(method="bow", tours=[load_traverse(tour)], vocabulary=tiny_route["vocabulary"],  # type: ignore[arg-type]
+              cache_dir=tmp_path / "cache").save(tlm)
+    node = LocalizerNode(NodeSettings(map_file=tlm, verify=True), rospy=None, name="/topoloc")
+    assert node._localizer.verifier is not None
+    first = node.map
+    shutil.rmtree(tour)  # the map can no longer verify, as it was asked to
+    Map.load(tlm).save(tlm)  # rewritten: a reload is due
+    node._reload_map()
+    assert node.map is first and node._localizer.verifier is not None and node.counts.reloads == 0
+    err = capsys.readouterr().err
+    assert "map not reloaded, keeping the one loaded" in err and "cannot verify answers" in err
+    # Started against such a map, the node refuses in one line; with verify false it runs unverified.
+    with pytest.raises(TopolocError, match="cannot verify answers"):
+        LocalizerNode(NodeSettings(map_file=tlm, verify=True), rospy=None, name="/topoloc")
+    assert LocalizerNode(NodeSettings(map_file=tlm, verify=False), rospy=None, name="/x")._localizer.verifier is None

@@ -1,11 +1,11 @@
-"""From candidates' inliers to verified scores: distinct peaks, the reranking, the order across queries."""
+"""From candidates' support to each query's answer and its verified scores: distinct peaks, the winner, the order."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from topoloc.verification import candidate_rows, squash, verified_scores
+from topoloc.verification import candidate_rows, choose_winner, squash, verified_scores
 
 
 def _bumps(n: int, centres: list[tuple[int, float]]) -> np.ndarray:
@@ -26,47 +26,38 @@ def test_candidates_are_the_best_rows_of_distinct_peaks() -> None:
         candidate_rows(col[:, None], 0)
 
 
-def test_the_verified_candidate_wins_and_verified_answers_rank_above_unverified() -> None:
+def test_verified_answers_rank_above_unverified_and_nearest_places_first() -> None:
     n = 60
-    # Query 0: the method prefers place 10, but only the peak at 40 verifies.  Query 1: nothing verifies.
+    # Query 0: verified at place 40 (the method preferred 10).  Query 1: nothing verified.
     S = np.stack([_bumps(n, [(10, 3.0), (40, 2.0)]), _bumps(n, [(20, 5.0), (50, 1.0)])], axis=1)
-    rows, lo, hi = candidate_rows(S, 2)
-    inliers = np.array([[3, 80], [4, 2]])
-    needed = np.full((2, 2), 15)
-    Sv, verified, best = verified_scores(S, rows, lo, hi, inliers, needed)
+    answer = np.array([40, 20])
+    Sv = verified_scores(S, answer, np.array([True, False]), np.array([3.0, 0.2]))
     assert Sv.shape == S.shape and Sv.dtype == np.float32
-    assert verified.tolist() == [True, False] and best.tolist() == [80, 0]
     assert int(Sv[:, 0].argmax()) == 40  # the reranking
     assert Sv[:, 0].max() > 1 > Sv[:, 1].max()  # verified above unverified, whatever the method's scores
-    # Unverified: the method's order and its confidence squashed into (0, 1), one map for every query (in
-    # float32: scores closer than about 2e-7 tie).
-    top = S[:, 1] > 1e-3
-    assert np.array_equal(np.argsort(-Sv[top, 1], kind="stable"), np.argsort(-S[top, 1], kind="stable"))
+    # Unverified: the method's order and its confidence squashed into (0, 1), one map for every query.
     np.testing.assert_allclose(Sv[:, 1], squash(S[:, 1]), rtol=1e-6)
-    # In the verified peak the places nearest the verified one come first.
-    peak = Sv[lo[0, 1]:hi[0, 1], 0]
-    d = np.abs(np.arange(lo[0, 1], hi[0, 1]) - 40)
-    assert np.all(np.diff(peak[np.argsort(d, kind="stable")]) <= 0)
+    # The verified place's route neighbours come next, whatever the method scored them; no farther place.
+    order = np.argsort(-Sv[:, 0], kind="stable")
+    assert set(order[:3].tolist()) == {39, 40, 41} and Sv[38, 0] < 1 and Sv[42, 0] < 1
     with pytest.raises(ValueError):
-        verified_scores(S, rows[:1], lo[:1], hi[:1], inliers[:1], needed[:1])
+        verified_scores(S, answer[:1], np.array([True]), np.array([1.0]))
 
 
-def test_more_inliers_rank_higher_across_queries() -> None:
+def test_stronger_answers_rank_higher_across_queries() -> None:
     S = np.stack([_bumps(30, [(5, 1.0)]), _bumps(30, [(15, 9.0)]), _bumps(30, [(25, 4.0)])], axis=1)
-    rows, lo, hi = candidate_rows(S, 1)
-    Sv, verified, _ = verified_scores(S, rows, lo, hi, np.array([[200], [30], [90]]), np.full((3, 1), 20))
-    assert verified.all()
-    assert np.argsort(-Sv.max(axis=0)).tolist() == [0, 2, 1]  # by inliers, not by the method's score
+    rows = candidate_rows(S, 1)[0]
+    Sv = verified_scores(S, rows[:, 0], np.ones(3, bool), np.array([10.0, 1.5, 4.0]))
+    assert np.argsort(-Sv.max(axis=0)).tolist() == [0, 2, 1]  # by strength, not by the method's score
     assert squash(np.array([-np.inf, 0.0, np.inf])).tolist() == [0.0, 0.5, 1.0]
 
 
 def test_the_methods_answer_stands_against_an_as_good_as_equal_rival() -> None:
-    S = _bumps(60, [(10, 3.0), (40, 2.0)])[:, None]
-    rows, lo, hi = candidate_rows(S, 2)
-    need = np.full((1, 2), 15)
+    rows = np.array([[10, 40]])
     # 55 against 50: within sqrt(105) ~ 10 of each other, the method's best place stays.
-    Sv, _, best = verified_scores(S, rows, lo, hi, np.array([[50, 55]]), need)
-    assert int(Sv[:, 0].argmax()) == 10 and best[0] == 50
-    # 80 against 50: clearly more support, the reranking happens.
-    Sv, _, best = verified_scores(S, rows, lo, hi, np.array([[50, 80]]), need)
-    assert int(Sv[:, 0].argmax()) == 40 and best[0] == 80
+    assert choose_winner(rows, np.array([[50, 55]])).tolist() == [0]
+    # 80 against 50: clearly more support, the reranking happens; a missing candidate never wins.
+    assert choose_winner(rows, np.array([[50, 80]])).tolist() == [1]
+    assert choose_winner(np.array([[10, -1]]), np.array([[0, 90]])).tolist() == [0]
+    with pytest.raises(ValueError):
+        choose_winner(rows, np.array([[1]]))

@@ -102,7 +102,17 @@ def evaluate(
     from topoloc.evaluation.report import TABLE_HEADER, table_row
     from topoloc.spec import EvaluateSpec
 
+    single = values["map_file"] is not None and values["sequence"] == 0  # a saved map's "single images, not its own"
+    if single:
+        values["sequence"] = None
     spec = spec_from_cli(EvaluateSpec, ctx, values, config=config)
+    if spec.map_file is not None and not single and not _given(ctx, "sequence", config):
+        # A saved map is scored as `localize` uses it: with the sequence matching its threshold was calibrated on.
+        import dataclasses
+
+        from topoloc.maps import Map
+
+        spec = dataclasses.replace(spec, sequence=Map.load(spec.map_file).calibrated_sequence)
     spec.check_outputs()  # again in the pipeline; here before a scheduler is waited for
     with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
         metrics = run(spec, progress=progress, executor=executor)
@@ -110,6 +120,18 @@ def evaluate(
     s_file = "S_topk.npz" if spec.top_k else "S.npy"
     typer.echo(f"wrote {spec.out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {spec.html}" if spec.html else "")
                + (f"; {spec.pairs_out}" if spec.pairs_out else ""))
+
+
+def _given(ctx: typer.Context, name: str, config: Path | None) -> bool:
+    """Whether option ``name`` was given on the command line, in the environment or in the ``--config`` file."""
+    source = getattr(ctx.get_parameter_source(name), "name", None)
+    if source in ("COMMANDLINE", "ENVIRONMENT"):
+        return True
+    if config is None:
+        return False
+    from topoloc.spec import load_config, nest
+
+    return name in nest(load_config(config))
 
 
 @app.command()
@@ -398,13 +420,11 @@ def show_match_cmd(
 
 
 def slam_verify(verify: bool | None) -> bool:
-    """``slam --verify/--no-verify``; not given: ``$TOPOLOC_VERIFY``, else on (verification.md, part ``slam``)."""
-    from topoloc.spec.parts import verify_from_env
+    """``slam --verify/--no-verify``; not given: ``$TOPOLOC_VERIFY``, else on (verification.md, part ``slam``): the
+    one precedence (:func:`topoloc.spec.parts.choose_verify`), a bad ``$TOPOLOC_VERIFY`` refused either way."""
+    from topoloc.spec.parts import choose_verify
 
-    if verify is not None:
-        return verify
-    env = verify_from_env()
-    return True if env is None else env
+    return choose_verify(verify).enabled is not False
 
 
 @app.command()

@@ -57,7 +57,8 @@ ToleranceOption = Annotated[str, typer.Option(help="Ground-truth tolerance HARD:
 ToleranceMOption = Annotated[str | None, typer.Option(
     "--tolerance-m", help="Tolerance HARD:SOFT in metres (needs x,y).")]
 SequenceOption = Annotated[int | None, typer.Option(
-    help="Sequence matching over each query and the N >= 1 before it (off when not given).")]
+    help="Sequence matching over each query and the N >= 1 before it (off when not given; with --map-file, "
+         "the map's calibrated sequence when not given, 0 = single images).")]
 LocalizeSequenceOption = Annotated[int | None, typer.Option(
     "--sequence", help="Sequence matching over each frame and the N before it; 0 = single images. Default: what "
                        "`map calibrate` calibrated the map's threshold with (single images for a map not calibrated "

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from topoloc.cli.app import app, handle_errors
-from topoloc.cli.options import LocalizeSequenceOption, PrefetchOption, QuietOption
+from topoloc.cli.options import LocalizeSequenceOption, PrefetchOption, QuietOption, VerifyOption
 
 
 @app.command("ros-node", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -36,12 +36,13 @@ def ros_node(
     no_watch_map: Annotated[bool, typer.Option(
         "--no-watch-map", help="Do not reload the map when its file changes (default: ~watch_map, else reload); "
                                "SIGHUP and the ~reload service still reload it.")] = False,
+    verify: VerifyOption = None,
     quiet: QuietOption = False,
 ) -> None:
     """Localise an image topic on a running ROS 1 graph: answers on ~answer, positions on ~position.
 
     Options given here win over the node's private parameters (~map, ~image_topic, ~sequence, ~queue,
-    ~rate, ...). ROS arguments (remappings such as image:=/camera/image_raw, __name:=...) are passed to
+    ~rate, ~verify, ...). ROS arguments (remappings such as image:=/camera/image_raw, __name:=...) are passed to
     ROS. --prefetch defaults to one frame per core here (each frame ahead adds a frame's time to the
     latency). Needs ROS 1's rospy from the system (docs/ros.md). Stops on SIGINT/SIGTERM (exit 0) or when the
     ROS master is gone (exit 1), with one line.
@@ -60,7 +61,8 @@ def ros_node(
     prefetch_given = getattr(ctx.get_parameter_source("prefetch"), "name", None) != "DEFAULT"
     given = {"map": None if map_file is None else Path(map_file), "image_topic": image_topic, "sequence": sequence,
              "sequence_mode": sequence_mode, "queue": queue, "rate": rate, "top_k": top_k, "map_frame": map_frame,
-             "watch_map": False if no_watch_map else None, "prefetch": prefetch if prefetch_given else None}
+             "watch_map": False if no_watch_map else None, "prefetch": prefetch if prefetch_given else None,
+             "verify": verify}
     status = serve(given, ros_args)
     if status:
         raise typer.Exit(code=status)

@@ -62,13 +62,15 @@ MAX_MATCH_LINES = 60
 
 
 def _verification(run_dir: Path, n_queries: int, thumbs: _Thumbs) -> list[dict[str, Any]] | None:
-    """Per query: verified, inliers and the inlier matches (coordinates as fractions of each image's size)."""
+    """Per query: verified, its support (``inliers``), confidence and supporting matches (fractions of each image's
+    size); runs written before answers had a confidence have none."""
     path = run_dir / "verification.npz"
     if not path.is_file():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
             verified, inliers = z["verified"], z["inliers"]
+            confidence = z["confidence"] if "confidence" in z.files else None
             xy, offsets = z["match_xy"], z["match_offsets"]
             names, shapes = z["match_image"], z["match_shapes"]
     except (ValueError, OSError, KeyError) as exc:
@@ -78,6 +80,8 @@ def _verification(run_dir: Path, n_queries: int, thumbs: _Thumbs) -> list[dict[s
     out = []
     for j in range(n_queries):
         entry: dict[str, Any] = {"verified": bool(verified[j]), "inliers": int(inliers[j])}
+        if confidence is not None:
+            entry["confidence"] = round(float(confidence[j]), 3)
         pairs = xy[offsets[j]:offsets[j + 1]]
         hq, wq, hm, wm = (int(x) for x in shapes[j])
         if len(pairs) and min(hq, wq, hm, wm) > 0 and str(names[j]):
@@ -305,6 +309,12 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
                 "img": thumbs.key(found[0]) if found else None}
 
     checks = _verification(run_dir, S.shape[1], thumbs)
+    # A verified run is thresholded on its answers' confidence, as a calibrated map accepts them (the verified
+    # scores of S order the answers the same way among verified ones, but are not for reading).
+    by_confidence = checks is not None and all("confidence" in c for c in checks)
+    if by_confidence:
+        assert checks is not None
+        score = np.array([c["confidence"] for c in checks], np.float64)
     items = []
     for j in range(S.shape[1]):
         q: dict[str, Any] = {"place": int(queries[j]), "file": None, "img": None, "time": None}
@@ -340,17 +350,22 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
         "gt_cols": qcols.tolist(),
         "gt_drawn_all": n_cells <= MAX_GT_CELLS,
         "matrix": _matrix_pngs(S),
-        "decimals": score_decimals(score),
-        # The threshold the page opens at: the map's calibrated one where the run scored a calibrated map.
-        "calibrated": _calibrated_threshold(m),
+        "decimals": 3 if by_confidence else score_decimals(score),
+        "score_name": "confidence" if by_confidence else "score",
+        # The threshold the page opens at: the map's calibrated one where the run scored a calibrated map (on the
+        # same quantity: a threshold on the confidence for a verified run, on the score otherwise).
+        "calibrated": _calibrated_threshold(m, "confidence" if by_confidence else "score"),
         "ground_truth": gt.description or str(run.get("ground_truth", "")),
     }
 
 
-def _calibrated_threshold(m: dict[str, Any]) -> float | None:
-    """The acceptance threshold of the calibrated map the run scored (``evaluate --map-file``), or None."""
+def _calibrated_threshold(m: dict[str, Any], on: str) -> float | None:
+    """The acceptance threshold of the calibrated map the run scored (``evaluate --map-file``) where it applies to
+    ``on`` (``"confidence"`` or ``"score"``), or None."""
     cal = m.get("run", {}).get("calibration")
-    value = cal.get("threshold") if isinstance(cal, dict) else None
+    if not isinstance(cal, dict) or str(cal.get("threshold_on", "score")) != on:
+        return None
+    value = cal.get("threshold")
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value) \
         else None
 

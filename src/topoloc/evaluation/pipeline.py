@@ -51,8 +51,8 @@ from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
 from topoloc.resources import CachedResources
 from topoloc.spec import EvaluateSpec, FeatureSpec, parse_recall_at, spec_from_flat, spec_to_dict
-from topoloc.spec.parts import verify_from_env
-from topoloc.spec.setup import build_method, build_verifier, make_resources
+from topoloc.spec.parts import choose_verify
+from topoloc.spec.setup import build_method, build_verifier, make_resources, unverifiable
 from topoloc.verification import VerifiedBlock, Verifier, confirmed, demote_unconfirmed
 
 log = logging.getLogger(__name__)
@@ -123,12 +123,14 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     map_xy = None
     place_images: list[str] | None = None
     calibration: dict[str, Any] | None = None
+    saved: Any = None
     early_gt: GroundTruth | None = None
     early_ids = np.zeros(0, np.int64)
-    tour_records: list[dict[str, Any]] = []
     if spec.map_file is not None:
-        method, resources, vocab_info, map_xy, place_images, calibration, tour_records = _saved_map(
+        saved, resources, vocab_info = _saved_map(
             spec, progress, executor, query_fingerprint=query_fingerprint)
+        method, map_xy, place_images, calibration = (saved.recognizer, saved.place_xy, saved.place_image_names(),
+                                                     saved.calibration)
         max_side, fit_s = resources.extractor.config.max_side, 0.0
         map_labels = [str(spec.map_file)]
     else:
@@ -156,14 +158,33 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     gt = (early_gt if early_gt is not None and np.array_equal(place_ids, early_ids)
           else spec.ground_truth.make(place_ids, query, maps=maps, map_xy=map_xy))
     check_overlap(gt, query, place_ids)
-    verifier = _verifier(spec, method, maps, tour_records, resources)
+    verifier = _verifier(spec, method, maps, saved, resources, prog)
     items = method.encode(query, resources=resources)
     top: TopK | None = None
     S: np.ndarray | None = None
     ver: VerifiedBlock | None = None
-    if spec.top_k and not seq.length and verifier is None:
-        top, ms_each = score_top_k(method, items, spec.top_k, prog)
+    if spec.top_k and not seq.length:
+        # Each block of whole columns is verified before its K best rows are kept: the answers of the dense S.
+        blocks: list[VerifiedBlock] = []
+        qfeats = resources.features(query, timed=False) if verifier is not None else []
+        previous: list[int] = []
+
+        def transform(Sb: np.ndarray, first: int) -> np.ndarray:
+            if verifier is not None:
+                blocks.append(verifier.verify(Sb, qfeats[first:first + Sb.shape[1]]))
+                Sb = blocks[-1].S
+            if spec.verification.confirm:
+                ok = confirmed(Sb, previous[-1] if previous else None) if first else confirmed(Sb)
+                previous.append(int(np.argmax(Sb[:, -1])))
+                Sb = demote_unconfirmed(Sb, ok)
+            return Sb
+
+        top, ms_each = score_top_k(method, items, spec.top_k, prog,
+                                   transform=transform if verifier is not None or spec.verification.confirm else None)
         del items
+        if blocks:
+            ver = VerifiedBlock.concat(blocks)
+            ms_each = ms_each + ver.ms
     else:
         S, ms_each = score_queries(method, items, prog)
         if seq.length:
@@ -247,61 +268,56 @@ def _npz(**arrays: np.ndarray) -> bytes:
 
 
 def verification_arrays(ver: VerifiedBlock, verifier: Verifier) -> dict[str, np.ndarray]:
-    """``verification.npz``: per query whether it verified, its inliers, the candidates' rows and inliers, the
-    stage's ms, and the inlier matches of each verified answer (``match_xy`` rows ``match_offsets[j]`` ..
-    ``match_offsets[j + 1]``: query x, y, map x, y in pixels) with the map image they are in (``match_image``)
-    and both images' (height, width) (``match_shapes``)."""
-    pairs = [m if m is not None else np.zeros((0, 4), np.float32) for m in ver.matches]
+    """``verification.npz``: per query its answer row, whether it is verified, its support (``inliers``), strength and
+    confidence, the candidates' rows and support, the stage's ms, and the supporting matches of each answer
+    (``match_xy`` rows ``match_offsets[j]`` .. ``match_offsets[j + 1]``: query x, y, map x, y in pixels) with the
+    map image they are in (``match_image``) and both images' (height, width) (``match_shapes``)."""
+    pairs = ver.matches
     offsets = np.zeros(len(pairs) + 1, np.int64)
     offsets[1:] = np.cumsum([len(p) for p in pairs])
-    best = ver.S.argmax(axis=0)
-    names = [verifier.match_image_name(int(best[j]), ver.match_images[j]) for j in range(len(pairs))]
-    return {"verified": ver.verified, "inliers": ver.inliers, "candidates": ver.candidates,
-            "candidate_inliers": ver.candidate_inliers, "ms": ver.ms,
-            "match_xy": np.concatenate(pairs) if pairs else np.zeros((0, 4), np.float32),
+    names = [verifier.match_image_name(int(ver.answer[j]), ver.match_images[j]) for j in range(len(pairs))]
+    return {"answer": ver.answer, "verified": ver.verified, "inliers": ver.support, "strength": ver.strength,
+            "confidence": ver.confidence, "candidates": ver.candidates, "candidate_support": ver.candidate_support,
+            "ms": ver.ms, "match_xy": np.concatenate(pairs) if pairs else np.zeros((0, 4), np.float32),
             "match_offsets": offsets, "match_image": np.array(names, dtype=str), "match_shapes": ver.match_shapes}
 
 
 def verification_record(ver: VerifiedBlock, verifier: Verifier) -> dict[str, Any]:
     """What ``metrics.json`` says of the verification stage: its settings, how many answers passed, its time."""
-    return {"candidates": verifier.candidates, "max_iters": verifier.max_iters,
+    r = verifier.rule
+    return {"candidates": verifier.candidates, "max_iters": r.max_iters, "min_support": r.min_support,
+            "ratio": r.ratio, "climb": r.climb, "confusion": verifier.confusable is not None,
+            "confidence_model": verifier.confidence_model.to_dict(),
             "verified_fraction": float(ver.verified.mean()) if len(ver.verified) else 0.0,
             "ms_per_query": float(np.median(ver.ms)) if len(ver.ms) else 0.0,
             "ms_per_query_p95": float(np.percentile(ver.ms, 95)) if len(ver.ms) else 0.0}
 
 
-def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traverse],
-              tour_records: Sequence[dict[str, Any]], resources: CachedResources) -> Verifier | None:
-    """The run's verification stage; a saved map's tours are read again from their folders (their features cached).
+def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traverse], saved: Any,
+              resources: CachedResources, progress: ProgressFactory) -> Verifier | None:
+    """The run's verification stage, chosen as every run chooses (:func:`topoloc.spec.parts.choose_verify`).
 
-    Not given (``None``), it is left out, with one line, where it cannot run: a run of the K best places
-    only (``top_k``: verification needs each query's whole column), or a saved map whose tours are gone;
-    and for a method that checks geometry itself (``verifies_geometry``).
+    A saved map is verified as ``localize`` verifies it (its record, its tours read again, its confusion); tours
+    given as folders are verified with the confusion learned from them now (:mod:`topoloc.maps.confusion`).
+    A run that cannot verify and was not asked to goes on unverified with one warning line.
     """
-    ask = spec.verification.enabled if spec.verification.enabled is not None else verify_from_env()
-    if ask is False:
-        return None
-    if ask is None and method.tags.verifies_geometry:
-        log.info("%s checks the geometry of its candidates itself: answers are not verified again (--verify "
-                 "does)", method.name)
-        return None
-    if spec.top_k and not spec.sequence.length and ask is None:
-        log.info("top_k: answers are not verified (verification needs each query's whole column; --verify forms it)")
-        return None
-    what = f"the map {spec.map_file}" if spec.map_file is not None else "the map"
-    tours: Sequence[Traverse] = maps
-    if spec.map_file is not None:
-        from topoloc.maps.tours import reload_tour
+    from topoloc.maps import verify_policy
 
-        try:
-            tours = [reload_tour(rec, purpose="to verify answers") for rec in tour_records]
-        except TopolocError as exc:
-            if ask:
-                raise
-            log.warning("%s; answers are not verified", exc)
-            return None
-    return build_verifier(spec.verification, method.place_ids_, tours, resources, what=what,
-                          sequence=spec.sequence.length)
+    if saved is not None:
+        return saved.verifier_for(spec.verification.enabled, resources=resources, sequence=spec.sequence.length,
+                                  spec=spec.verification)
+    choice = choose_verify(spec.verification.enabled, checks_geometry=method.tags.verifies_geometry)
+    if not verify_policy.settle(choice, unverifiable(maps), where="the map"):
+        if choice.enabled is None and method.tags.verifies_geometry:
+            log.info("%s checks the geometry of its candidates itself: answers are not verified again (--verify "
+                     "does)", method.name)
+        return None
+    from topoloc.maps.confusion import learn_confusion
+
+    verifier = build_verifier(spec.verification, method.place_ids_, maps, resources, sequence=spec.sequence.length)
+    with progress_stage(progress, "learn the map's look-alike places"):
+        verifier.confusable = learn_confusion(method, maps, resources, verifier, progress=progress).values
+    return verifier
 
 
 def check_overlap(gt: GroundTruth, query: Traverse, place_ids: np.ndarray) -> None:
@@ -345,9 +361,8 @@ def _warn_if_trained_on_query(spec: EvaluateSpec, query_fingerprint: str, maps: 
 def _saved_map(
     spec: EvaluateSpec, progress: ProgressFactory | None, executor: Executor | None = None, *,
     query_fingerprint: str = "",
-) -> tuple[PlaceRecognizer, CachedResources, dict[str, Any], np.ndarray, list[str], dict[str, Any] | None,
-           list[dict[str, Any]]]:
-    """The recogniser, resources, vocabulary record, place positions, place images, calibration and tours of a map file.
+) -> tuple[Any, CachedResources, dict[str, Any]]:
+    """The map of a map file, its resources and its vocabulary record.
 
     A saved map fixes the method, its parameters, the features and the
     vocabulary: options that would change them are refused, not ignored.
@@ -375,7 +390,7 @@ def _saved_map(
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
         voc.update({"file": f"embedded in {spec.map_file}", **saved.vocabulary.provenance_})
-    return rec, res, voc, saved.place_xy, saved.place_image_names(), saved.calibration, list(saved.tours)
+    return saved, res, voc
 
 
 def write_outputs(

@@ -220,8 +220,7 @@ def _loop_check(features: Sequence[Any], founder: Any) -> Any:
     checker = Verifier(lambda place: [features[founder(place)]])
 
     def verify(k: int, place: int) -> bool:
-        inliers, needed, _, _ = checker.check(features[k], place)
-        return inliers >= needed and inliers > 0
+        return checker.is_verified(features[k], place)
 
     return verify
 

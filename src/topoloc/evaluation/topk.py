@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import io
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -77,25 +77,35 @@ def top_k_of(S: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def score_top_k(
-    method: PlaceRecognizer, items: Sequence[Any], k: int, progress: ProgressFactory, *, block: int = 0
+    method: PlaceRecognizer, items: Sequence[Any], k: int, progress: ProgressFactory, *, block: int = 0,
+    transform: Callable[[np.ndarray, int], np.ndarray] | None = None,
 ) -> tuple[TopK, np.ndarray]:
     """The top ``k`` places of every query, and the milliseconds of each query.
 
     A method with ``top_k(items, k)`` (``descriptors``) finds them itself; methods that
     score whole sequences are scored at once; the others in blocks of queries
     (``block``: by default about 64 MB of float32 ``S`` per block).
+
+    ``transform(S_block, first)`` (the verification stage) is applied to each
+    block of whole columns, ``first`` being the index of its first query,
+    before the top ``k`` are kept: every query's column is then formed (a
+    method's own ``top_k`` is not used), so the kept rows are those of the
+    dense ``S`` after the same transform, in O(places x block) memory.
     """
     n, n_places = len(items), len(method.place_ids_)
     k = min(int(k), n_places)
     own = getattr(method, "top_k", None)
     advance = progress(f"matching, top {k} ({method.name})", n)
     t0 = time.perf_counter()
-    if callable(own):
+    if callable(own) and transform is None:
         rows, scores = own(items, k)
         advance(n)
         return TopK(rows, scores, n_places), np.full(n, 1e3 * (time.perf_counter() - t0) / max(n, 1))
     if method.scores_whole_sequence:
-        rows, scores = top_k_of(method.score(items), k)
+        S = method.score(items)
+        if transform is not None:
+            S = transform(S, 0)
+        rows, scores = top_k_of(S, k)
         advance(n)
         return TopK(rows, scores, n_places), np.full(n, 1e3 * (time.perf_counter() - t0) / max(n, 1))
     block = block or max(1, 16_000_000 // max(n_places, 1))
@@ -105,6 +115,8 @@ def score_top_k(
     for a in range(0, n, block):
         t1 = time.perf_counter()
         S = method.score(list(items[a:a + block]))
+        if transform is not None:
+            S = transform(S, a)
         rows[a:a + S.shape[1]], scores[a:a + S.shape[1]] = top_k_of(S, k)
         ms[a:a + S.shape[1]] = 1e3 * (time.perf_counter() - t1) / max(S.shape[1], 1)
         advance(S.shape[1])

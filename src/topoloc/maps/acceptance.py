@@ -22,26 +22,42 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
     """The warnings of a map whose acceptance will not hold: not calibrated, stale, another sequence or verification.
 
     For loop closure an accepted false match breaks the map: ``localize`` and
-    the ROS node say so before the first frame.
+    the ROS node say so before the first frame.  ``verify`` is the run's option
+    (None: not given; the map's record and ``$TOPOLOC_VERIFY`` decide).
     """
+    from topoloc.maps.calibration import threshold_kind
+
+    choice = m.verify_choice(verify)
+    verifies = choice.enabled is not False and not m.verification_blocker()
     if m.threshold is None:
-        log.warning("%s is not calibrated: every frame is marked accepted; run `topoloc map calibrate %s "
-                    "--query FOLDER` on a tour with ground truth to set the acceptance threshold",
-                    map_file, map_file)
-    elif m.calibration_stale:
+        if verifies:
+            log.warning("%s is not calibrated: a frame is accepted when its answer is verified; run `topoloc map "
+                        "calibrate %s --query FOLDER` on a tour with ground truth to set a threshold on the "
+                        "confidence", map_file, map_file)
+        else:
+            log.warning("%s is not calibrated and answers are not verified: every frame is marked accepted; run "
+                        "`topoloc map calibrate %s --query FOLDER` on a tour with ground truth to set the acceptance "
+                        "threshold", map_file, map_file)
+        return
+    if m.calibration_stale:
         assert m.calibration is not None
         log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
                     "`topoloc map calibrate %s --query FOLDER` again", map_file,
                     ", ".join(m.calibration.get("tours_added_since", [])), map_file)
-    if m.threshold is not None and sequence != m.calibrated_sequence:
+    if threshold_kind(m.calibration) == "stale":
+        log.warning("%s: the threshold was calibrated on verified scores before answers had a confidence, and no "
+                    "longer applies: a frame is accepted when its answer is verified; run `topoloc map calibrate` "
+                    "again", map_file)
+    if sequence != m.calibrated_sequence:
         cal = m.calibrated_sequence
         log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
                     "hold; run `topoloc map calibrate` with the same --sequence", map_file,
                     _sequence_words(cal.length, cal.mode), _sequence_words(sequence.length, sequence.mode))
-    if m.threshold is not None and verify is not None and verify != m.default_verify:
-        log.warning("%s: the threshold was calibrated %s verification, and this run matches %s: its precision "
+    recorded = (m.calibration or {}).get("verify")
+    if recorded is not None and choice.enabled is not None and choice.enabled != recorded:
+        log.warning("%s: the threshold was calibrated %s verification, and this run matches %s (%s): its precision "
                     "does not hold; run `topoloc map calibrate` with the same --verify/--no-verify", map_file,
-                    "with" if m.default_verify else "without", "with" if verify else "without")
+                    "with" if recorded else "without", "with" if choice.enabled else "without", choice.source)
 
 
 def _sequence_words(length: int, mode: str) -> str:

@@ -20,6 +20,7 @@ from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.errors import ParameterError, TopolocError
 from topoloc.ranking import threshold_sweep
 from topoloc.spec import SequenceSpec
+from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, VerifiedBlock
 
 log = logging.getLogger(__name__)
 
@@ -67,48 +68,112 @@ def mark_stale(calibration: dict[str, Any] | None, tour_name: str) -> dict[str, 
             "tours_added_since": added}
 
 
+def _sweep(values: np.ndarray, right: np.ndarray, counted: np.ndarray, n_pos: int, precision: float,
+           what: str) -> tuple[float | None, float, float]:
+    """(threshold, recall, precision reached): the lowest value at which the answers at least that high reach
+    ``precision`` (None: no value does, one warning)."""
+    s, tp, fp, last = threshold_sweep(values, right, counted)
+    n_counted = tp + fp
+    prec = np.where(n_counted > 0, tp / np.maximum(n_counted, 1), 1.0)
+    ok = last & (prec >= precision) & (n_counted > 0)
+    if ok.any():
+        k = int(np.flatnonzero(ok)[-1])
+        return float(s[k]), float(tp[k] / n_pos), float(prec[k])
+    # JSON has no infinity: null stands for "no threshold reached", which accepts nothing.
+    log.warning("calibration on %s: no threshold reaches precision %g, so the map now accepts no "
+                "localisation; calibrate on a longer tour or ask for a lower --precision", what, precision)
+    return None, 0.0, 1.0
+
+
 def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99, query: str = "",
-                     ground_truth: str = "", tolerance: str = "",
-                     sequence: SequenceSpec | None = None) -> dict[str, Any]:
-    """The calibration record of a labelled tour's scores (:meth:`topoloc.maps.Map.calibrate` documents it)."""
+                     ground_truth: str = "", tolerance: str = "", sequence: SequenceSpec | None = None,
+                     verified: VerifiedBlock | None = None,
+                     confidence: ConfidenceModel | None = None) -> dict[str, Any]:
+    """The calibration record of a labelled tour's scores (:meth:`topoloc.maps.Map.calibrate` documents it).
+
+    Without ``verified``, each query's answer is the best place of ``S`` and the
+    threshold is on its score (``threshold_on: "score"``), and a confidence
+    model of the score is fitted.  With it (the verification of ``S``), the
+    answers are the verified block's, their confidence model is fitted on the
+    tour (:meth:`~topoloc.verification.ConfidenceModel.fit`, from ``confidence``'s
+    slope where the tour has too few wrong answers to fit one) and the
+    threshold is on that confidence (``threshold_on: "confidence"``).
+    """
     check_precision(precision)
     if S.shape != gt.shape:
         raise TopolocError(f"scores of shape {S.shape} do not match the ground truth {gt.shape}")
     has_pos = gt.hard.any(axis=0)
     if not has_pos.any():
         raise TopolocError("calibration needs a tour with ground truth: no query has a correct map place")
-    best = np.argmax(S, axis=0)
     cols = np.arange(S.shape[1])
-    score = S[best, cols].astype(np.float64)
+    best = np.argmax(S, axis=0) if verified is None else np.asarray(verified.answer)
     right = gt.hard[best, cols]
     counted = right | ~gt.soft[best, cols]
-    s, tp, fp, last = threshold_sweep(score, right, counted)
-    n_counted = tp + fp
-    prec = np.where(n_counted > 0, tp / np.maximum(n_counted, 1), 1.0)
-    ok = last & (prec >= precision) & (n_counted > 0)
-    n_pos = int(has_pos.sum())
-    threshold: float | None
-    if ok.any():
-        k = int(np.flatnonzero(ok)[-1])
-        threshold, rec = float(s[k]), float(tp[k] / n_pos)
-        reached = float(prec[k])
+    what = query or gt.description
+    if verified is None:
+        score = S[best, cols].astype(np.float64)
+        model = ConfidenceModel.fit(score[counted], np.zeros(int(counted.sum()), bool), right[counted], on="score",
+                                    source=f"calibration on {what}")
+        threshold, rec, reached = _sweep(score, right, counted, int(has_pos.sum()), precision, what)
+        on = "score"
     else:
-        # JSON has no infinity: null stands for "no threshold reached", which accepts nothing.
-        threshold, rec, reached = None, 0.0, 1.0
-        log.warning("calibration on %s: no score threshold reaches precision %g, so the map now accepts no "
-                    "localisation; calibrate on a longer tour or ask for a lower --precision",
-                    query or gt.description, precision)
+        prior = confidence or DEFAULT_CONFIDENCE
+        u = prior.inputs(strength=verified.strength)
+        model = ConfidenceModel.fit(u[counted], verified.verified[counted], right[counted], on="strength",
+                                    source=f"calibration on {what}", prior=prior)
+        threshold, rec, reached = _sweep(model(u, verified.verified), right, counted, int(has_pos.sum()), precision,
+                                         what)
+        on = "confidence"
     seq = sequence or SequenceSpec()
     return {
-        "threshold": threshold, "precision_asked": precision, "precision": reached, "recall": rec,
+        "threshold": threshold, "threshold_on": on, "precision_asked": precision, "precision": reached, "recall": rec,
         "query": query, "ground_truth": ground_truth or gt.description,
         "tolerance": tolerance or gt.description, "n_queries": int(S.shape[1]),
-        "n_with_right_place": n_pos,
+        "n_with_right_place": int(has_pos.sum()),
         "sequence": {"length": seq.length, "mode": seq.mode},
+        "confidence_model": model.to_dict(),
         "recall_of": "queries with a right place in the map (n_with_right_place)",
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
 
 
-__all__ = ["calibrated_sequence", "check_precision", "choose_threshold", "json_calibration", "mark_stale",
-           "threshold_of"]
+def confidence_model(calibration: dict[str, Any] | None, *, on: str = "strength") -> ConfidenceModel | None:
+    """The confidence model a calibration fitted for answers read ``on`` their strength or score (None: none)."""
+    d = (calibration or {}).get("confidence_model")
+    if not isinstance(d, dict) or str(d.get("on", "strength")) != on:
+        return None
+    return ConfidenceModel.from_dict(d)
+
+
+def threshold_kind(calibration: dict[str, Any] | None) -> str:
+    """What a calibration's threshold applies to: ``"confidence"``, ``"score"`` (the method's own score), or
+    ``"stale"``: one chosen on verified scores before answers had a confidence (no longer comparable)."""
+    cal = calibration or {}
+    if "threshold_on" in cal:
+        return str(cal["threshold_on"])
+    return "stale" if cal.get("verify") else "score"
+
+
+def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: float | None,
+            is_verified: bool | None) -> bool:
+    """Whether an answer is accepted: the one rule ``localize``, the ROS node and reports follow.
+
+    Not calibrated: a verified answer where answers are verified, every
+    answer where they are not.  Calibrated: its confidence (or, for a map
+    calibrated without verification, the method's score) at least the
+    threshold; a null threshold accepts nothing.  A threshold chosen on
+    verified scores before answers had a confidence no longer applies: the
+    answer is accepted when verified (``localize`` says so before the first frame).
+    """
+    if calibration is None:
+        return True if is_verified is None else bool(is_verified)
+    kind = threshold_kind(calibration)
+    if kind == "stale":
+        return bool(is_verified)
+    t = threshold_of(calibration)
+    value = confidence if kind == "confidence" else score
+    return value is not None and t is not None and value >= t
+
+
+__all__ = ["accepts", "calibrated_sequence", "check_precision", "choose_threshold", "confidence_model",
+           "json_calibration", "mark_stale", "threshold_kind", "threshold_of"]

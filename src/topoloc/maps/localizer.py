@@ -27,7 +27,7 @@ from topoloc.methods.base import PlaceRecognizer
 from topoloc.ranking import top_rows
 from topoloc.spec import SequenceSpec
 from topoloc.spec.runs import check_prefetch
-from topoloc.verification import Verifier, confirmed, demote_unconfirmed
+from topoloc.verification import ConfidenceModel, VerifiedBlock, Verifier, confirmed, demote_unconfirmed
 from topoloc.vocabulary import Vocabulary
 
 
@@ -50,8 +50,11 @@ class LocalizedMap(Protocol):
     def place_xy(self) -> np.ndarray: ...
     @property
     def threshold(self) -> float | None: ...
+    @property
+    def score_confidence(self) -> ConfidenceModel | None: ...
 
-    def verifier(self, *, candidates: int | None = None, sequence: int = 0) -> Verifier: ...
+    def accepts(self, *, score: float, confidence: float | None, is_verified: bool | None) -> bool: ...
+
 
 
 class Localizer:
@@ -95,8 +98,7 @@ class Localizer:
     """
 
     def __init__(self, m: LocalizedMap, *, top_k: int = 5, sequence: int = 0, sequence_mode: str = "constant",
-                 prefetch: int = -1, verify: bool = False, candidates: int | None = None,
-                 confirm: bool = False) -> None:
+                 prefetch: int = -1, verifier: Verifier | None = None, confirm: bool = False) -> None:
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ParameterError("top_k", f"must be a whole number >= 1, got {top_k!r}")
         check_prefetch(prefetch)
@@ -108,8 +110,7 @@ class Localizer:
         self.sequence_mode = sequence_mode
         self.prefetch = prefetch
         self.frames = 0
-        # Built before the first frame: a map whose tours cannot be read again fails here, in one line.
-        self.verifier: Verifier | None = m.verifier(candidates=candidates, sequence=sequence) if verify else None
+        self.verifier = verifier
         self.ms_verify = 0.0
         self.n_verified = 0
         self.confirm = confirm
@@ -304,6 +305,7 @@ class Localizer:
         self.ms_features += ms_features
         self.ms_matching += ms_matching + 1e3 * (time.perf_counter() - t2)
         block = None
+        own = np.asarray(col, np.float64)  # the method's own scores (after the sequence search)
         if self.verifier is not None:
             if features is None:
                 raise ValueError("this localiser verifies: give the frame's local features")
@@ -317,32 +319,45 @@ class Localizer:
             ok = bool(confirmed(col2, self._previous_best)[0])
             self._previous_best = int(np.argmax(col2[:, 0]))
             col = demote_unconfirmed(col2, np.array([ok]))[:, 0]
-        out = self._result(np.asarray(col, np.float64), name, time_s)
+        out = self._result(np.asarray(col, np.float64), own, name, time_s, block)
         if ok is not None:
             out["confirmed"] = ok
-        if block is not None:
-            out["verified"] = bool(block.verified[0])
-            out["inliers"] = int(block.inliers[0])
         self.frames += 1
         return out
 
-    def _result(self, col: np.ndarray, name: str, time_s: float | None) -> dict[str, Any]:
+    def _result(self, col: np.ndarray, own: np.ndarray, name: str, time_s: float | None,
+                block: VerifiedBlock | None) -> dict[str, Any]:
+        """The line: the places in ``col``'s order (the verified ranking), each with the method's own score."""
         m = self.map
         top = top_rows(col[:, None], self.top_k)[0][0]  # best first, ties by row as argmax
         best = int(top[0])
-        score = float(col[best])
-        threshold = m.threshold
+        score = float(own[best])
+        if block is None:
+            confidence = self._score_confidence(score)
+            verified = None
+        else:
+            confidence, verified = float(block.confidence[0]), bool(block.verified[0])
         out: dict[str, Any] = {
-            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": score,
-            "accepted": bool(threshold is None or score >= threshold),
-            "top": [[int(m.place_ids[i]), float(col[i])] for i in top],
+            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": round(score, 6),
+            "accepted": m.accepts(score=score, confidence=confidence, is_verified=verified),
+            "top": [[int(m.place_ids[i]), round(float(own[i]), 6)] for i in top],
         }
+        if block is not None:
+            out["verified"] = verified
+            out["inliers"] = int(block.support[0])
+        if confidence is not None:
+            out["confidence"] = round(confidence, 4)
         if time_s is not None:
             out["time"] = time_s
         x, y = m.place_xy[best] if len(m.place_xy) else (np.nan, np.nan)
         if np.isfinite(x) and np.isfinite(y):
             out["x"], out["y"] = float(x), float(y)
         return out
+
+    def _score_confidence(self, score: float) -> float | None:
+        """An unverified run's confidence: the calibration's model of the method's score (None before one)."""
+        model = self.map.score_confidence
+        return None if model is None else float(model(model.inputs(score=np.array([score])), np.zeros(1, bool))[0])
 
 
 __all__ = ["LocalizedMap", "Localizer"]

@@ -12,6 +12,7 @@ NumPy array) and returns the place it shows with a confidence, and
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Iterator, Sequence
@@ -32,10 +33,19 @@ from topoloc.io.scratch import spill_to
 from topoloc.maps import calibration as _cal
 from topoloc.maps import verify_policy as _policy
 from topoloc.maps.calibration import check_precision
+from topoloc.maps.confusion import Confusion
 from topoloc.maps.localizer import Localizer
 from topoloc.maps.mapfile import STATE_PREFIX, read_map_file, write_map_file
 from topoloc.maps.place_images import PlaceImages
-from topoloc.maps.tours import check_feature_kind, reload_tour, tour_record, tour_root, xy_sums
+from topoloc.maps.tour_images import TourImages
+from topoloc.maps.tours import (
+    check_feature_kind,
+    header_record,
+    reload_tour,
+    tour_record,
+    tour_root,
+    xy_sums,
+)
 from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.methods.shard_build import build_from_shards
@@ -44,18 +54,23 @@ from topoloc.resources import CachedResources, InMemoryResources, Resources
 from topoloc.spec import (
     FeatureSpec,
     GroundTruthSpec,
+    LocalizeSpec,
     MapBuildSpec,
     SequenceSpec,
+    VerificationSpec,
     VocabularySpec,
     spec_to_dict,
 )
-from topoloc.spec.parts import NOT_BOTH
-from topoloc.spec.setup import build_method, make_resources
-from topoloc.verification import Verifier
+from topoloc.spec.parts import NOT_BOTH, VerifyChoice
+from topoloc.spec.setup import build_method, build_verifier, make_resources
+from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
 log = logging.getLogger(__name__)
+
+#: The array of a map file holding its confusion (:mod:`topoloc.maps.confusion`).
+CONFUSION_ARRAY = "verification/confusion"
 
 
 class Map:
@@ -84,12 +99,17 @@ class Map:
         with a null ``threshold`` (no threshold reached the precision) none is.
     path : Path or None
         The file it was loaded from or last saved to.
+    confusion : Confusion or None
+        How much support look-alike places of the map reach at each place, learned at build
+        (:mod:`topoloc.maps.confusion`); None for maps saved before it was, or built without verification.
     """
 
     def __init__(self, recognizer: PlaceRecognizer, *, features: FeatureConfig, vocabulary: Vocabulary | None,
                  tours: list[dict[str, Any]], xy_sums: np.ndarray, calibration: dict[str, Any] | None = None,
-                 created: str | None = None, path: Path | None = None, spec: dict[str, Any] | None = None) -> None:
+                 created: str | None = None, path: Path | None = None, spec: dict[str, Any] | None = None,
+                 confusion: Confusion | None = None) -> None:
         self.recognizer = recognizer
+        self.confusion = confusion
         self.spec = spec
         self.features = features
         self.vocabulary = vocabulary
@@ -121,6 +141,7 @@ class Map:
         seed: int = 0,
         shards: int = 1,
         executor: Executor | None = None,
+        learn_confusion: bool = True,
     ) -> Map:
         """Fit ``method`` on ``tours`` and return the map (not yet saved).
 
@@ -149,6 +170,9 @@ class Map:
         executor : Executor, optional
             Where the shard tasks run (:func:`topoloc.cluster.connect`;
             default: threads of this process).
+        learn_confusion : bool
+            Learn which places look alike (:mod:`topoloc.maps.confusion`), what
+            verification needs of the map; False for a map that will not be verified.
 
         Notes
         -----
@@ -200,6 +224,8 @@ class Map:
         # A vocabulary given by folders is trained on first use; a method that uses none still keeps it.
         voc = res.vocabulary if res.has_vocabulary else None
         m = cls.from_fitted(rec, maps, features=config, vocabulary=voc)
+        if learn_confusion:
+            m.confusion = confusion_of(rec, maps, res, progress=progress)
         m.spec = spec_to_dict(MapBuildSpec(
             method=method, params=rec.get_params(), shards=shards,
             maps=tuple(Path(t.root) if t.kind == "files" else Path(tour_root(t)) if t.source is not None
@@ -254,6 +280,11 @@ class Map:
             self.xy_sums = sums
         self.tours.append(rec)
         self._mark_stale(rec["name"])
+        if self.confusion is not None:  # the places it compared have changed: learned again over every tour
+            readable = self.verification_tours()
+            self.confusion = None if readable is None else confusion_of(
+                self.recognizer, readable, self.resources(cache_dir=cache_dir, progress=progress, executor=executor),
+                progress=progress)
         return self
 
     def _mark_stale(self, tour_name: str) -> None:
@@ -299,10 +330,15 @@ class Map:
             pairs = tour.get("place_images")
             if pairs is not None:
                 out.update((pairs if isinstance(pairs, PlaceImages) else PlaceImages.of(pairs)).arrays(k))
+            if isinstance(tour.get("images"), TourImages):
+                out.update(tour["images"].arrays(k))
+        if self.confusion is not None:
+            out[CONFUSION_ARRAY] = self.confusion.values
         header = {
             "method": self.recognizer.name, "params": self.recognizer.get_params(),
             "features": asdict(self.features), "vocabulary": voc_meta,
-            "tours": [{key: v for key, v in t.items() if key != "place_images"} for t in self.tours],
+            "tours": [header_record(t) for t in self.tours],
+            "confusion": None if self.confusion is None else self.confusion.record(),
             "state": meta, "calibration": self.calibration, "created": self.created, "spec": self.spec,
             "modified": datetime.now(UTC).isoformat(timespec="seconds"), "topoloc_version": __version__,
         }
@@ -387,10 +423,19 @@ class Map:
                     tour["place_images"] = stored
                 elif tour.get("place_images") is not None:  # a map file with the pairs in its header
                     tour["place_images"] = PlaceImages.of(tour["place_images"])
+                images = TourImages.from_arrays(arrays, k)
+                if images is not None:  # maps written before image digests were recorded have none
+                    tour["images"] = images
+            confusion = None
+            if meta.get("confusion") is not None and CONFUSION_ARRAY in arrays:
+                confusion = Confusion.from_record(np.array(arrays[CONFUSION_ARRAY]), meta["confusion"])
+                if len(confusion.values) != len(place_ids):
+                    raise input_error("map file is inconsistent (its confusion does not have one value per place)",
+                                      path)
             return cls(rec, features=features, vocabulary=voc, tours=tours,
                        xy_sums=np.array(arrays["places/xy_sums"]),
                        calibration=_cal.json_calibration(meta.get("calibration")),
-                       created=meta.get("created"), path=path, spec=meta.get("spec"))
+                       created=meta.get("created"), path=path, spec=meta.get("spec"), confusion=confusion)
         except TopolocError as exc:
             msg = str(exc)
             raise TopolocError(msg if str(path) in msg else f"{msg}: {path}") from None
@@ -418,6 +463,15 @@ class Map:
         threshold is then infinite and nothing is accepted.
         """
         return _cal.threshold_of(self.calibration)
+
+    @property
+    def score_confidence(self) -> ConfidenceModel | None:
+        """The confidence of unverified answers: the calibration's model of the method's score (None before one)."""
+        return _cal.confidence_model(self.calibration, on="score")
+
+    def accepts(self, *, score: float, confidence: float | None, is_verified: bool | None) -> bool:
+        """Whether an answer is accepted (:func:`topoloc.maps.calibration.accepts`)."""
+        return _cal.accepts(self.calibration, score=score, confidence=confidence, is_verified=is_verified)
 
     def place_image_names(self) -> list[str]:
         """The map image each place is written as in a pairs file (:mod:`topoloc.evaluation.pairs`).
@@ -447,7 +501,7 @@ class Map:
             "places": len(self.place_ids), "places_with_position": xy_known,
             "place_id_range": [int(self.place_ids.min()), int(self.place_ids.max())] if len(self.place_ids) else None,
             # One image name per place is for pairs files (place_image_names), not for reading here.
-            "tours": [{k: v for k, v in t.items() if k != "place_images"} for t in self.tours],
+            "tours": [header_record(t) for t in self.tours],
             "vocabulary": voc, "features": asdict(self.features),
             "calibration": self.calibration or "none: every localisation is accepted (run `topoloc map calibrate`)",
             "verification": self.verification_info(),
@@ -470,42 +524,98 @@ class Map:
         return self.recognizer.similarity(q, resources=resources or self.resources(cache_dir=cache_dir))
 
     # -- verification -----------------------------------------------------------------------
+    @property
+    def where(self) -> str:
+        """How messages name the map."""
+        return f"the map {self.path}" if self.path is not None else "the map"
+
     def verification_blocker(self) -> str:
-        """Why answers against this map cannot be verified, or "" when they can
+        """Why answers against this map cannot be verified at all, or "" when they can
         (:func:`topoloc.maps.verify_policy.verification_blocker`)."""
         return _policy.verification_blocker(self.tours)
 
+    def verify_choice(self, verify: bool | None = None) -> VerifyChoice:
+        """The choice to verify and what made it (:func:`topoloc.maps.verify_policy.choice_for`)."""
+        return _policy.choice_for(verify, calibration=self.calibration, spec=self.spec,
+                                  verifies_geometry=self.recognizer.tags.verifies_geometry)
+
     @property
     def default_verify(self) -> bool | None:
-        """Whether answers are verified when no one says (:func:`topoloc.maps.verify_policy.default_verify`)."""
-        return _policy.default_verify(self.calibration, self.spec)
+        """What the map records of verification (:func:`topoloc.maps.verify_policy.recorded_verify`)."""
+        return _policy.recorded_verify(self.calibration, self.spec)
+
+    def resolve_verify(self, verify: bool | None) -> bool:
+        """Whether a run against this map verifies (:func:`topoloc.maps.verify_policy.settle`: asked where it
+        cannot is a one-line error, else unverified with one warning line)."""
+        return _policy.settle(self.verify_choice(verify), self.verification_blocker(), where=self.where)
+
+    def verification_tours(self) -> list[Traverse] | None:
+        """The tours as verification reads them (:func:`topoloc.maps.verify_policy.verification_tours`), or None
+        where none can be read (said in one line)."""
+        try:
+            return _policy.verification_tours(self.tours, where=self.where)
+        except TopolocError as exc:
+            log.warning("%s", exc)
+            return None
 
     def verifier(self, *, candidates: int | None = None, resources: Resources | None = None,
-                 cache_dir: str | Path | None = None, sequence: int = 0) -> Verifier:
+                 cache_dir: str | Path | None = None, sequence: int = 0,
+                 spec: VerificationSpec | None = None) -> Verifier:
         """The verification stage against this map (:mod:`topoloc.verification`).
 
-        The tours are read again from their folders or recordings (checked
-        against their fingerprints) and each tour's features are taken from the
+        The tours are read again from their folders or recordings: only the
+        images the map recorded whose content is still the recorded one (one
+        warning line names those left out), their features taken from the
         feature cache when a candidate first needs them: in memory, about
         ``n_images * max_features * (20 + descriptor bytes)`` once every tour has been
-        needed (``map info``'s ``verification``).
+        needed (``map info``'s ``verification``).  The map's confusion and, once
+        calibrated, its confidence model go with it.
 
         Raises
         ------
         TopolocError
-            One line naming the tour that cannot be read again.
+            One line when no image of the map can be read again.
         """
-        where = f"the map {self.path}" if self.path is not None else "the map"
         why = self.verification_blocker()
         if why:  # before any resource is made
-            raise TopolocError(f"{where} cannot verify answers: {why} (use --no-verify)")
+            raise TopolocError(f"{self.where} cannot verify answers: {why} (use --no-verify)")
         res = resources if resources is not None else self.resources(cache_dir=cache_dir)
-        return _policy.map_verifier(self.tours, self.place_ids, res, where=where, candidates=candidates,
-                                    sequence=sequence)
+        vspec = spec or VerificationSpec()
+        if candidates is not None:
+            vspec = dataclasses.replace(vspec, candidates=candidates)
+        return _policy.map_verifier(self.tours, self.place_ids, res, where=self.where, spec=vspec,
+                                    sequence=sequence,
+                                    confusable=None if self.confusion is None else self.confusion.values,
+                                    confidence=_cal.confidence_model(self.calibration))
+
+    def verifier_for(self, verify: bool | None, *, resources: Resources | None = None,
+                     cache_dir: str | Path | None = None, sequence: int = 0, spec: VerificationSpec | None = None,
+                     candidates: int | None = None) -> Verifier | None:
+        """The verification stage of a run whose option is ``verify``, or None where it does not verify.
+
+        The one door for ``localize``, ``map calibrate``, ``evaluate --map-file``
+        and the ROS node: the choice (:meth:`verify_choice`), and a map that
+        cannot verify (its tours gone, every image changed) is a one-line error
+        where verification was asked for explicitly, else one warning line and no
+        verification.
+        """
+        choice = self.verify_choice(verify)
+        if not _policy.settle(choice, self.verification_blocker(), where=self.where):
+            return None
+        try:
+            return self.verifier(candidates=candidates, resources=resources, cache_dir=cache_dir, sequence=sequence,
+                                 spec=spec)
+        except TopolocError as exc:
+            if choice.enabled and choice.explicit:
+                raise
+            log.warning("%s: answers are not verified (--no-verify: not verified, without this line)", exc)
+            return None
 
     def verification_info(self) -> dict[str, Any]:
         """Whether the map can verify answers, and the memory its map images' features then take."""
-        return _policy.verification_info(self.tours, self.features, self.default_verify)
+        info = _policy.verification_info(self.tours, self.features, self.default_verify)
+        info["confusion"] = None if self.confusion is None else self.confusion.record()
+        return info
 
     @property
     def calibrated_sequence(self) -> SequenceSpec:
@@ -518,26 +628,39 @@ class Map:
 
     def localizer(self, *, top_k: int = 5, sequence: int | None = None,
                   sequence_mode: str | None = None, prefetch: int = -1, verify: bool | None = None,
-                  candidates: int | None = None, confirm: bool = False) -> Localizer:
+                  candidates: int | None = None, confirm: bool = False,
+                  verification: VerificationSpec | None = None) -> Localizer:
         """An online localiser: feed it frames one at a time (:meth:`Localizer.step`).
 
+        The one place a map's localiser is assembled (``localize``, its live
+        path and the ROS node come here through :meth:`localizer_for`).
         ``sequence`` / ``sequence_mode`` None: those of :attr:`calibrated_sequence`,
         whose scores the stored threshold applies to.  ``prefetch``: frames
         :meth:`Localizer.stream` reads and describes ahead (:class:`Localizer`).
-        ``verify`` None: :attr:`default_verify` (and where that is None, wherever
-        the map can verify); True where it cannot is a one-line error.
+        ``verify`` None: :meth:`verify_choice` (the environment, the map's
+        record, else wherever the map can verify); True where it cannot is a
+        one-line error.  ``verification``: the rest of the verification settings.
+
+        Raises
+        ------
+        TopolocError
+            Before the first frame: verification asked for where the map cannot verify, bad settings.
         """
         cal = self.calibrated_sequence
-        return Localizer(self, top_k=top_k, sequence=cal.length if sequence is None else sequence,
+        length = cal.length if sequence is None else sequence
+        vspec = verification or VerificationSpec()
+        verifier = self.verifier_for(verify, candidates=candidates, sequence=length, spec=vspec)
+        return Localizer(self, top_k=top_k, sequence=length,
                          sequence_mode=(cal.mode if sequence is None else "constant")
                          if sequence_mode is None else sequence_mode, prefetch=prefetch,
-                         verify=self.resolve_verify(verify), candidates=candidates, confirm=confirm)
+                         verifier=verifier, confirm=confirm)
 
-    def resolve_verify(self, verify: bool | None) -> bool:
-        """Whether to verify (:func:`topoloc.maps.verify_policy.resolve_verify`)."""
-        return _policy.resolve_verify(verify, calibration=self.calibration, spec=self.spec,
-                                      verifies_geometry=self.recognizer.tags.verifies_geometry,
-                                      blocker=self.verification_blocker, where=self.path or "the map")
+    def localizer_for(self, spec: LocalizeSpec) -> Localizer:
+        """The localiser of a ``localize`` run's specification (its sequence, prefetch and verification)."""
+        v = spec.verification
+        return self.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
+                              prefetch=spec.prefetch, verify=v.enabled, candidates=v.candidates, confirm=v.confirm,
+                              verification=v)
 
     def localize(self, image: np.ndarray, *, top_k: int = 5) -> dict[str, Any]:
         """The place one camera frame shows.
@@ -613,8 +736,9 @@ class Map:
     def calibrate_on(self, tour: Traverse | str | Path, *, ground_truth: GroundTruthSpec | None = None,
                      precision: float = 0.99, label: str = "", cache_dir: str | Path | None = None,
                      progress: ProgressFactory | None = None, executor: Executor | None = None,
-                     sequence: SequenceSpec | None = None, verify: bool | None = None) -> dict[str, Any]:
-        """Score a labelled tour against the map and :meth:`calibrate` on it.
+                     sequence: SequenceSpec | None = None, verify: bool | None = None,
+                     verification: VerificationSpec | None = None) -> dict[str, Any]:
+        """Score a labelled tour against the map and choose its threshold (on the confidence, when verified).
 
         Parameters
         ----------
@@ -657,22 +781,27 @@ class Map:
         if not gt.hard.any():
             raise input_error("calibration tour has no ground truth in this map (no query place is a map place)",
                               q.root)
-        verify = self.resolve_verify(verify)  # not told: as localize would match (recorded with the threshold)
         res = self.resources(cache_dir=cache_dir, progress=progress, executor=executor)
-        # Fails before the tour is scored.
-        verifier = self.verifier(resources=res, sequence=sequence.length if sequence else 0) if verify else None
+        # Not told: as localize would match (recorded with the threshold).  Fails before the tour is scored; the
+        # confidence is refitted from the development data's default.
+        verifier = self.verifier_for(verify, resources=res, sequence=sequence.length if sequence else 0,
+                                     spec=verification)
+        verify = verifier is not None
+        if verifier is not None:
+            verifier.confidence_model = DEFAULT_CONFIDENCE
         S = self.recognizer.similarity(q, resources=res)
         if sequence is not None and sequence.length:
             from topoloc.sequence import sequence_similarity
 
             sequence.check_memory(S.shape[0])
             S = sequence_similarity(S, ds=sequence.length, mode=sequence.mode)  # type: ignore[arg-type]
-        if verifier is not None:
-            S = verifier.verify(S, res.features(q, timed=False)).S
-        cal = self.calibrate(S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
-                             query=label or (str(q.root) if q.kind == "files" else q.name))
-        cal["verify"] = bool(verify)
-        return cal
+        block = verifier.verify(S, res.features(q, timed=False)) if verifier is not None else None
+        self.calibration = _cal.choose_threshold(
+            S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
+            query=label or (str(q.root) if q.kind == "files" else q.name), verified=block,
+            confidence=None if verifier is None else verifier.confidence_model)
+        self.calibration["verify"] = bool(verify)
+        return self.calibration
 
     def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:
         """Refuse feature settings or a vocabulary other than the map's (one line naming the parameter and map).
@@ -688,6 +817,20 @@ class Map:
         if vocabulary is not None and (self.vocabulary is None or vocabulary_fingerprint(vocabulary)
                                        != vocabulary_fingerprint(self.vocabulary)):
             raise ParameterError("vocabulary", f"is not the one this map was built with{where}")
+
+
+def confusion_of(recognizer: PlaceRecognizer, tours: Sequence[Traverse], resources: Resources, *,
+                 progress: ProgressFactory | None = None) -> Confusion | None:
+    """The confusion of a fitted map's places (:func:`topoloc.maps.confusion.learn_confusion`), or None where its
+    tours cannot be verified (visual words, a method that cannot score its own images), said in one line."""
+    from topoloc.maps.confusion import learn_confusion
+
+    try:
+        verifier = build_verifier(VerificationSpec(), recognizer.place_ids_, tours, resources)
+        return learn_confusion(recognizer, tours, resources, verifier, progress=progress)
+    except TopolocError as exc:
+        log.info("the map's confusion is not learned (%s): verification will not know its look-alike places", exc)
+        return None
 
 
 def _through_link(path: Path) -> Path:

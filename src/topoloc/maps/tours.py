@@ -20,6 +20,7 @@ from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import TopolocError, input_error
 from topoloc.features import FeatureConfig
 from topoloc.maps.place_images import PlaceImages
+from topoloc.maps.tour_images import TourImages
 
 
 def tour_record(tour: Traverse) -> dict[str, Any]:
@@ -27,13 +28,15 @@ def tour_record(tour: Traverse) -> dict[str, Any]:
 
     ``place_images`` (:class:`~topoloc.maps.place_images.PlaceImages`, saved as arrays) maps each
     place of the tour to its first image (:func:`topoloc.evaluation.pairs.image_name`), what
-    ``localize --pairs-out`` writes for the place.
+    ``localize --pairs-out`` writes for the place; ``images``
+    (:class:`~topoloc.maps.tour_images.TourImages`, saved as arrays) is every image's name, place and
+    content digest, what verification reads again.
     """
     rec: dict[str, Any] = {
         "name": tour.name, "root": tour_root(tour),
         "n_images": len(tour), "n_places": len(np.unique(tour.places)), "fingerprint": tour.fingerprint(),
         "median_hour": tour.median_time_of_day(), "start": None, "end": None,
-        "place_images": PlaceImages.of_tour(tour),
+        "place_images": PlaceImages.of_tour(tour), "images": TourImages.of_tour(tour),
     }
     if tour.times is not None and len(tour.times):
         rec["start"], rec["end"] = str(tour.times.min()), str(tour.times.max())
@@ -120,4 +123,13 @@ def check_feature_kind(traverse: Traverse, features: FeatureConfig, where: str |
                               f"(image {k}), not the map's {features.descriptor_kind} features", where)
 
 
-__all__ = ["check_feature_kind", "reload_tour", "tour_record", "tour_root", "xy_sums"]
+#: Keys of a tour record held as arrays of the map file, not in its header.
+ARRAY_KEYS = ("place_images", "images")
+
+
+def header_record(rec: dict[str, Any]) -> dict[str, Any]:
+    """A tour record as the map file's header holds it (without what it keeps as arrays)."""
+    return {k: v for k, v in rec.items() if k not in ARRAY_KEYS}
+
+
+__all__ = ["ARRAY_KEYS", "check_feature_kind", "header_record", "reload_tour", "tour_record", "tour_root", "xy_sums"]

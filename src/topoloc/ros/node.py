@@ -100,6 +100,11 @@ class NodeSettings:
         ``frame_id`` of ``~position`` (``~map_frame``).
     watch_map : bool
         Reload the map when its file changes (``~watch_map``).
+    verify : bool, optional
+        Verify each answer (``~verify``; ``--verify/--no-verify``); None: as
+        ``localize`` decides (``$TOPOLOC_VERIFY``, the map's record, else
+        wherever the map can).  A map that cannot verify where it was asked is
+        refused at the start, and a reloaded one is not taken (the old map stays).
     """
 
     map_file: Path
@@ -112,6 +117,7 @@ class NodeSettings:
     prefetch: int | None = None
     map_frame: str = "map"
     watch_map: bool = True
+    verify: bool | None = None
 
     def check(self) -> None:
         """One-line errors naming the setting, before the node starts."""
@@ -124,7 +130,7 @@ class NodeSettings:
 
 
 PARAMS = ("map", "image_topic", "sequence", "sequence_mode", "queue", "rate", "top_k", "prefetch",
-          "map_frame", "watch_map")
+          "map_frame", "watch_map", "verify")
 
 
 def settings_from(given: dict[str, Any], params: dict[str, Any]) -> NodeSettings:
@@ -141,7 +147,7 @@ def settings_from(given: dict[str, Any], params: dict[str, Any]) -> NodeSettings
     if "map_file" not in values:
         raise TopolocError("the node needs a map: topoloc ros-node MAP, or the private parameter ~map")
     kinds = {"queue": int, "top_k": int, "prefetch": int, "sequence": int, "rate": float, "map_file": Path,
-             "image_topic": str, "sequence_mode": str, "map_frame": str, "watch_map": bool}
+             "image_topic": str, "sequence_mode": str, "map_frame": str, "watch_map": bool, "verify": bool}
     for key, kind in kinds.items():
         if key in values:
             values[key] = _typed(key, kind, values[key])
@@ -201,7 +207,7 @@ class LocalizerNode:
         self._reload = threading.Event()
         self._in_flight: deque[tuple[Any, float]] = deque()
         self._map_stamp = self._file_stamp()
-        self.map = self._load_map()
+        self.map, self._localizer = self._load_map()
 
     # -- the map ------------------------------------------------------------------------------------
     def _file_stamp(self) -> tuple[int, int, int] | None:
@@ -211,13 +217,19 @@ class LocalizerNode:
             return None
         return st.st_ino, st.st_size, st.st_mtime_ns
 
-    def _load_map(self) -> Any:
+    def _load_map(self) -> tuple[Any, Any]:
+        """The map and its localiser, built together: a map whose localiser cannot be built is not taken."""
         from topoloc.maps import Map
         from topoloc.maps.acceptance import warn_before_localizing
 
-        m = Map.load(self.settings.map_file)
-        warn_before_localizing(m, self.settings.map_file, self._sequence(m))
-        return m
+        s = self.settings
+        m = Map.load(s.map_file)
+        seq = self._sequence(m)
+        warn_before_localizing(m, s.map_file, seq, s.verify)
+        prefetch = n_workers(-1) if s.prefetch is None else s.prefetch
+        loc = m.localizer(top_k=s.top_k, sequence=seq.length, sequence_mode=seq.mode, prefetch=prefetch,
+                          verify=s.verify)
+        return m, loc
 
     def _sequence(self, m: Any) -> Any:
         from topoloc.spec import SequenceSpec
@@ -235,12 +247,12 @@ class LocalizerNode:
         self._reload.clear()
         stamp = self._file_stamp()
         try:
-            m = self._load_map()
+            m, loc = self._load_map()
         except TopolocError as exc:
             print(f"topoloc ros-node: map not reloaded, keeping the one loaded: {exc}", file=sys.stderr, flush=True)
             self._map_stamp = stamp  # said once per change of the file
             return
-        self.map = m
+        self.map, self._localizer = m, loc
         self._map_stamp = stamp
         self.counts.reloads += 1
         log.warning("topoloc ros-node: map reloaded: %s (%d places)", self.settings.map_file, len(m.place_ids))
@@ -391,10 +403,7 @@ class LocalizerNode:
         while not self._stop.is_set():
             if self._reload.is_set():
                 self._reload_map()
-            seq = self._sequence(self.map)
-            prefetch = n_workers(-1) if self.settings.prefetch is None else self.settings.prefetch
-            loc = self.map.localizer(top_k=self.settings.top_k, sequence=seq.length, sequence_mode=seq.mode,
-                                     prefetch=prefetch)
+            loc = self._localizer
             holder[:] = [loc]
             self._in_flight.clear()
             for line in loc.stream(self._frames()):

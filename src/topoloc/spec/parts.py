@@ -26,6 +26,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from topoloc.errors import ParameterError, TopolocError
+from topoloc.verification.decision import (
+    CLIMB,
+    DEFAULT_MAX_ITERS,
+    MIN_SUPPORT,
+    VerificationRule,
+    support_floor,
+)
+from topoloc.verification.pairs import RATIO
 
 log = logging.getLogger(__name__)
 
@@ -625,11 +633,11 @@ class VerificationSpec:
     ----------
     enabled : bool or None
         Re-check the best places of each query's highest distinct peaks by
-        local matches and epipolar geometry, and score the answer by its
-        inliers (``docs/protocol.md``, "Verification").  None (the default):
-        wherever the map's images can be verified, which on the development
-        data raises R@100P by day and at night (``docs/results/verification.md``);
-        True: verify, or a one-line error where the map cannot be; False: never.
+        local matches and epipolar geometry, and decide whether the answer is
+        verified (``docs/protocol.md``, "Verification").  None (the default):
+        as :func:`choose_verify` says (wherever the map's images can be read,
+        unless ``$TOPOLOC_VERIFY`` or the map's record says otherwise); True:
+        verify; False: never.
     candidates : int or None
         Distinct peaks checked per query; None (default): 3 for single images,
         the sequence's best place only with ``--sequence N``
@@ -639,11 +647,26 @@ class VerificationSpec:
         an answer not confirmed by the previous frame's ranks below every
         confirmed one.  Off by default: it did not pay on the development data
         (``docs/results/verification.md``, part ``consistency``).
+    min_support : int
+        The support (inliers that are distinctive matches) a verified answer
+        needs with 1000 features per image; scaled to the run's feature cap
+        (:func:`topoloc.verification.support_floor`).  Default
+        :data:`topoloc.verification.MIN_SUPPORT`, chosen on the development data.
+    ratio : float
+        Lowe's ratio of a distinctive match, in (0, 1].
+    max_iters : int
+        RANSAC iterations per candidate.
+    climb : int
+        Steps an answer may move along the route to the peak of the support (0: route neighbours not checked).
     """
 
     enabled: bool | None = None
     candidates: int | None = None
     confirm: bool = False
+    min_support: int = MIN_SUPPORT
+    ratio: float = RATIO
+    max_iters: int = DEFAULT_MAX_ITERS
+    climb: int = CLIMB
 
     def __post_init__(self) -> None:
         if not isinstance(self.confirm, bool):
@@ -653,6 +676,17 @@ class VerificationSpec:
         if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
                                             or self.candidates < 1):
             raise ParameterError("verification.candidates", f"must be a whole number >= 1, got {self.candidates!r}")
+        for name, value, low in (("min_support", self.min_support, 8), ("max_iters", self.max_iters, 1),
+                                 ("climb", self.climb, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ParameterError(f"verification.{name}", f"must be a whole number >= {low}, got {value!r}")
+        if isinstance(self.ratio, bool) or not isinstance(self.ratio, int | float) or not 0 < self.ratio <= 1:
+            raise ParameterError("verification.ratio", f"must be in (0, 1], got {self.ratio!r}")
+
+    def rule(self, max_features: int | None = None) -> VerificationRule:
+        """The decision's settings for images of at most ``max_features`` features."""
+        return VerificationRule(min_support=support_floor(self.min_support, max_features), ratio=float(self.ratio),
+                                max_iters=self.max_iters, climb=self.climb)
 
 
 PARTS: dict[str, type] = {
@@ -666,19 +700,19 @@ __all__ = [
     "AUTO_MAX_SIDE",
     "PARTS",
     "SEQUENCE_MODES",
+    "VERIFY_SOURCES",
     "ExecutionSpec",
     "FeatureSpec",
     "GroundTruthSpec",
     "InputSpec",
     "SequenceSpec",
     "VerificationSpec",
+    "VerifyChoice",
     "VocabularySpec",
+    "choose_verify",
     "parse_max_side",
     "parse_recall_at",
     "stream_sequence_for",
     "travels_the_route",
-    "VERIFY_SOURCES",
-    "VerifyChoice",
-    "choose_verify",
     "verify_from_env",
 ]

@@ -36,8 +36,8 @@ from topoloc.methods import get_method
 from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
 from topoloc.resources import CachedResources, Resources
-from topoloc.spec.parts import VerificationSpec, VocabularySpec, verify_from_env
-from topoloc.verification import Verifier, default_candidates
+from topoloc.spec.parts import VerificationSpec, VocabularySpec
+from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, Verifier, default_candidates
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import VOCAB_SCHEMA
 
@@ -243,37 +243,42 @@ def unverifiable(tours: Sequence[Traverse]) -> str:
 
 
 def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequence[Traverse],
-                   resources: Resources, *, what: str = "the map", sequence: int = 0) -> Verifier | None:
-    """The verification stage of a run (:mod:`topoloc.verification`), or None when it is off.
+                   resources: Resources, *, what: str = "the map", sequence: int = 0,
+                   confusable: np.ndarray | None = None, confidence: ConfidenceModel | None = None) -> Verifier:
+    """The verification stage of a run (:mod:`topoloc.verification`) over the map's tours.
 
-    ``spec.enabled`` None (the default) verifies where the map's images can
-    be (unless ``$TOPOLOC_VERIFY`` says otherwise, :func:`verify_from_env`);
-    True where they cannot is a one-line error naming why; False never.
+    Whether a run verifies is decided before (:func:`topoloc.spec.parts.choose_verify`);
+    this builds the stage.
 
     Parameters
     ----------
     spec : VerificationSpec
+        Its settings (candidates, the decision's rule).
     place_ids : ndarray of int64, shape (n_places,)
         The recogniser's place of each row of S (sorted).
     tours : sequence of Traverse
         The map's tours: the images of each place.
     resources : Resources
-        Where their local features come from (the run's feature settings and cache).
+        Where their local features come from (the run's feature settings and cache); the
+        feature cap scales the support floor (:func:`topoloc.verification.support_floor`).
     what : str
         Named in the error.
     sequence : int
         The run's ``--sequence N`` (0: single images), which sets the default
         number of candidates (:func:`topoloc.verification.default_candidates`).
+    confusable : ndarray, shape (n_places,), optional
+        The map's confusion of each place (:mod:`topoloc.maps.confusion`).
+    confidence : ConfidenceModel, optional
+        Default :data:`topoloc.verification.DEFAULT_CONFIDENCE`.
+
+    Raises
+    ------
+    ParameterError
+        Where the tours cannot be verified (visual words, no images).
     """
-    enabled = spec.enabled if spec.enabled is not None else verify_from_env()
-    if enabled is False:
-        return None
     why = unverifiable(tours)
     if why:
-        if enabled:
-            raise ParameterError("verification.enabled", f"{what} cannot be verified: {why} (use --no-verify)")
-        log.info("%s cannot be verified (%s): answers are not verified", what, why)
-        return None
+        raise ParameterError("verification.enabled", f"{what} cannot be verified: {why} (use --no-verify)")
     # Every map image as (row, tour, index in the tour), sorted by row: a place's images are one slice.
     n = len(place_ids)
     row = np.concatenate([np.searchsorted(place_ids, t.places) for t in tours]) if tours else np.zeros(0, np.int64)
@@ -302,8 +307,11 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     def image_names(r: int) -> list[str]:
         return [str(tours[ti].images[k]) for ti, k in images_of(r)]
 
+    extractor = getattr(resources, "extractor", None)
+    cap = getattr(getattr(extractor, "config", None), "max_features", None)
     candidates = spec.candidates if spec.candidates is not None else default_candidates(sequence)
-    return Verifier(place_images, candidates=candidates, image_names=image_names)
+    return Verifier(place_images, candidates=candidates, rule=spec.rule(cap), confusable=confusable,
+                    confidence=confidence or DEFAULT_CONFIDENCE, image_names=image_names)
 
 
 __all__ = ["build_method", "build_verifier", "make_resources", "tours_vocabulary", "unverifiable"]

@@ -1,4 +1,4 @@
-"""From the inliers of each query's candidates to its verified scores (the answer's confidence).
+"""From each query's checked candidates to its answer and its verified scores.
 
 Candidates
     A query's candidates are the best places of its ``k`` highest *distinct*
@@ -9,36 +9,33 @@ Candidates
     scene, so checking them all would spend the stage's time on one stretch
     of the route; distinct peaks are the alternatives a wrong answer comes from.
 
-Confidence (``docs/protocol.md``, "Verification")
-    With ``n_c`` the inliers of candidate ``c`` (:mod:`topoloc.verification.pairs`),
-    ``n*_c`` its chance support and ``g(s) = 1/2 + arctan(s)/pi`` a map of any
-    real score into (0, 1) that keeps the order of every column and across
-    columns, the verified similarity of place ``i`` for a query is::
+The winner (:func:`choose_winner`)
+    The candidate with the most support, unless the method's best candidate
+    (c = 0) has as good as the same: ``n_w - n_0 <= sqrt(n_w + n_0)`` (one
+    standard deviation of the difference of two counts), where the method's
+    answer stands (chosen on the development data, ``docs/results/verification.md``:
+    reranking on any difference lost R@1 on the webcams, where night queries
+    reach similar support at several candidates).  The answer may then move
+    along the route to the peak of the support (:mod:`topoloc.verification.decision`).
 
-        w = argmax over verified candidates c (n_c >= n*_c) of (n_c, g(s_c)),
-            unless the method's best candidate (c = 0) is verified and n_w - n_0 <= sqrt(n_w + n_0)
-        s'_i = 2 - 1 / (1 + n_w + g(s_w) / 2 + 1 / (2 (1 + |i - w|)))   for |i - w| <= r_w   (verified, in (1, 2))
-        s'_i = g(s_i)                                                 otherwise             (in (0, 1))
+Verified scores (``docs/protocol.md``, "Verification")
+    With ``g(s) = 1/2 + arctan(s)/pi`` a map of any real score into (0, 1) that
+    keeps the order of every column and across columns, ``a`` the answer's row
+    and ``x`` its strength (:func:`topoloc.verification.decision.strength`), the
+    score of place ``i`` for a verified query is::
 
-    with ``r_w`` the farther reach of w's peak from w (``max(w - lo, hi - 1 - w)``).
+        s'_i = 1 + g(log x + 1 / (2 (1 + |i - a|)))   for |i - a| <= 1   (in (1, 2))
+        s'_i = g(s_i)                                  otherwise          (in (0, 1))
 
-    so every verified answer ranks above every unverified one (``S`` is
-    float32: scores of one column closer than about ``2e-7`` then tie), verified answers
-    rank by their inliers (the method's own score breaking ties), and a query
-    none of whose candidates verifies keeps the method's order and confidence
-    below them.  The best place may change: the verified candidate with the
-    most inliers wins (a reranking), but only by more than the spread of the
-    two counts (one standard deviation of the difference of two Poisson
-    counts): between two verified candidates whose inliers are as good as
-    equal the method's answer stands (chosen on the development data,
-    ``docs/results/verification.md``: reranking on any difference lost 0.02
-    of R@1 on the webcams, where night queries verify with 12-19 inliers
-    at every candidate).  Its peak, made symmetric, is raised, the places
-    nearest the verified one first: once a place is verified the route's
-    topology, not the method's scores of its neighbours, says which place comes
-    next (the protocol scores the best place outside the tolerance's soft band,
-    so a neighbour the method scored high but far from the answer would
-    otherwise be taken for it); the other candidates keep the method's score.
+    and ``s'_i = g(s_i)`` for every place of a query that is not verified (its
+    answer is the method's best place).  So every verified answer ranks above every
+    unverified one, verified answers rank by their strength, and the verified
+    place's route neighbours come next, whatever the method scored them: the
+    protocol scores the best place outside the tolerance's soft band, and a
+    verified answer there is best followed by its neighbours.  No farther: a
+    raised place outside the tolerance would count as a confident wrong answer
+    (a reach of a method's whole peak lost R@100P on the crowded map,
+    ``docs/results/verification.md``).
 """
 
 from __future__ import annotations
@@ -100,54 +97,70 @@ def candidate_rows(S: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return out, los, his
 
 
-def verified_scores(S: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray, inliers: np.ndarray,
-                    needed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def choose_winner(rows: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """The candidate each query answers with (module docstring): most support, the method's best when as good.
+
+    Parameters
+    ----------
+    rows : ndarray of int64, shape (n_queries, k)
+        Candidates (:func:`candidate_rows`; row -1 = none).
+    support : ndarray of int, shape (n_queries, k)
+
+    Returns
+    -------
+    ndarray of int64, shape (n_queries,)
+        The index in ``0..k-1`` of each query's winner (0 where no candidate has support).
+    """
+    if rows.shape != support.shape:
+        raise ValueError(f"rows {rows.shape} and support {support.shape} must have the same shape")
+    n = np.where(rows >= 0, support, -1).astype(np.float64)
+    if n.shape[1] == 0:
+        return np.zeros(len(n), np.int64)
+    w = n.argmax(axis=1)  # ties: the earlier peak
+    q = np.arange(len(n))
+    nw, n0 = n[q, w], n[:, 0]
+    keep = (rows[:, 0] >= 0) & (nw - n0 <= np.sqrt(np.maximum(nw + n0, 0.0)))
+    return np.where(keep, 0, w).astype(np.int64)
+
+
+#: Places on either side of a verified answer raised with it (verified scores): its route neighbours.
+REACH = 1
+
+
+def verified_scores(S: np.ndarray, answer: np.ndarray, is_verified: np.ndarray, x: np.ndarray, *,
+                    reach: int = REACH) -> np.ndarray:
     """The verified similarity ``s'`` of every place and query (module docstring).
 
     Parameters
     ----------
     S : ndarray, shape (n_places, n_queries)
         The method's scores.
-    rows, lo, hi : ndarray of int64, shape (n_queries, k)
-        Candidates and their peaks (:func:`candidate_rows`; row -1 = none).
-    inliers, needed : ndarray of int, shape (n_queries, k)
-        Each candidate's inliers and its chance support.
+    answer : ndarray of int64, shape (n_queries,)
+        Each verified query's answer row (ignored for the others).
+    is_verified : ndarray of bool, shape (n_queries,)
+    x : ndarray, shape (n_queries,)
+        Each answer's strength.
+    reach : int
+        Places on either side of a verified answer raised with it.
 
     Returns
     -------
-    S_verified : ndarray of float32, shape (n_places, n_queries)
-    verified : ndarray of bool, shape (n_queries,)
-        Whether the query's best place (of ``S_verified``) passed verification.
-    best_inliers : ndarray of int64, shape (n_queries,)
-        Inliers of that best place (0 when unverified).
+    ndarray of float32, shape (n_places, n_queries)
     """
     S = np.asarray(S)
-    if rows.shape != inliers.shape or rows.shape != needed.shape or rows.shape[0] != S.shape[1]:
-        raise ValueError(f"rows {rows.shape}, inliers {inliers.shape} and needed {needed.shape} must be "
-                         f"(n_queries={S.shape[1]}, k)")
-    g = squash(S)
-    out = g.copy()
-    ok = (rows >= 0) & (inliers >= needed) & (inliers > 0)
-    verified: np.ndarray = np.asarray(ok.any(axis=1), bool)
-    q = np.flatnonzero(verified)
-    # The winner: most inliers, then the method's higher score (the earlier peak on a tie).
-    gc = np.where(rows >= 0, g[np.maximum(rows, 0), np.arange(len(rows))[:, None]], -1.0)
-    key = np.where(ok, inliers + gc, -np.inf)
-    w = key.argmax(axis=1)
-    n0 = inliers[:, 0]
-    nw = inliers[np.arange(len(rows)), w]
-    w = np.where(ok[:, 0] & (nw - n0 <= np.sqrt(np.maximum(nw + n0, 0))), 0, w)
-    best_inliers = np.where(verified, inliers[np.arange(len(rows)), w], 0)
-    r = np.arange(S.shape[0])[:, None]
-    wr = rows[q, w[q]][None, :]
-    # The band: every place as near the winner as its peak reaches on either side.
-    reach = np.maximum(wr - lo[q, w[q]][None, :], hi[q, w[q]][None, :] - 1 - wr)
-    band = np.abs(r - wr) <= reach
-    block = out[:, q]
-    near = 0.5 / (1.0 + np.abs(r - wr))
-    raised = 2.0 - 1.0 / (1.0 + best_inliers[q][None, :] + 0.5 * gc[q, w[q]][None, :] + near)
-    out[:, q] = np.where(band, raised, block)
-    return out.astype(np.float32), verified, best_inliers.astype(np.int64)
+    m = S.shape[1]
+    for name, arr in (("answer", answer), ("is_verified", is_verified), ("x", x)):
+        if np.shape(arr) != (m,):
+            raise ValueError(f"{name} must have one entry per query ({m}), got shape {np.shape(arr)}")
+    out = squash(S)
+    q = np.flatnonzero(is_verified)
+    if len(q) and len(out):
+        a = answer[q][None, :]
+        r = np.arange(S.shape[0])[:, None]
+        band = np.abs(r - a) <= reach
+        raised = 1.0 + squash(np.log(np.maximum(x[q], 1e-3))[None, :] + 0.5 / (1.0 + np.abs(r - a)))
+        out[:, q] = np.where(band, raised, out[:, q])
+    return out.astype(np.float32)
 
 
-__all__ = ["candidate_rows", "squash", "verified_scores"]
+__all__ = ["REACH", "candidate_rows", "choose_winner", "squash", "verified_scores"]

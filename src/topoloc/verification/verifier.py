@@ -1,18 +1,19 @@
 """The verification stage: a map's images per place, checked against queries' features.
 
-A thin class over :mod:`~topoloc.verification.pairs` and
-:mod:`~topoloc.verification.rerank`.  For each query column it takes the
-candidates (the best places of the ``candidates`` highest distinct peaks), and
-for each candidate place:
+A thin class over :mod:`~topoloc.verification.pairs`,
+:mod:`~topoloc.verification.rerank` and :mod:`~topoloc.verification.decision`.
+For each query column it takes the candidates (the best places of the
+``candidates`` highest distinct peaks), and for each candidate place:
 
 * matches the query against every map image of the place (one per tour that
-  saw it; mutual nearest neighbours, cheap next to the fit) and keeps the image
-  with the most matches,
+  saw it; mutual nearest neighbours) and keeps the image with the most matches,
 * fits a fundamental matrix to those matches (USAC MAGSAC++, at most
-  ``max_iters`` iterations, tolerance a fixed fraction of that image's diagonal),
-* compares its inliers with the support chance matches would reach.
+  ``max_iters`` iterations, tolerance a fixed fraction of that image's diagonal)
+  and counts its support, the inliers that are distinctive matches;
 
-The scores of the block are then :func:`~topoloc.verification.rerank.verified_scores`.
+then it chooses the answer (:func:`~topoloc.verification.rerank.choose_winner`),
+follows the support along the route to its peak (the answer's route neighbours
+are checked the same way) and decides (:func:`~topoloc.verification.decision.verified`).
 """
 
 from __future__ import annotations
@@ -24,14 +25,33 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from topoloc.verification.pairs import check_pair, mutual_matches, prepare_descriptors
-from topoloc.verification.rerank import candidate_rows, verified_scores
+from topoloc.verification.decision import (
+    DEFAULT_CONFIDENCE,
+    DEFAULT_MAX_ITERS,
+    ConfidenceModel,
+    VerificationRule,
+    strength,
+    verified,
+)
+from topoloc.verification.pairs import (
+    NO_CHECK,
+    PairCheck,
+    check_pair,
+    distinctive_matches,
+    mutual_matches,
+    prepare_descriptors,
+)
+from topoloc.verification.rerank import candidate_rows, choose_winner, verified_scores
+
+#: Places seen by more tours than this choose the image to check from the query's strongest features first.
+FULL_MATCH_IMAGES = 2
+#: The query's strongest features that choose the image of such a place (keypoints come strongest first).
+PRESELECT_FEATURES = 256
 
 #: Distinct peaks verified per single image (``docs/results/verification.md``, part ``quality``).
 DEFAULT_CANDIDATES = 3
 #: ... and per frame matched in a sequence: its best place only.  A sequence's answer rests on N + 1 frames;
-#: one frame's geometry checks it but does not overrule it (reranking among 3 peaks lowered R@1 of every method
-#: on gardens_point's night row with ``--sequence 10``: verification.md, part ``quality``).
+#: one frame's geometry checks it but does not overrule it (verification.md, part ``quality``).
 SEQUENCE_CANDIDATES = 1
 
 # The descriptor products are small (a few hundred to a thousand rows): OpenBLAS's thread team costs more than
@@ -51,10 +71,6 @@ def _one_blas_thread() -> Any:
 def default_candidates(sequence: int) -> int:
     """Distinct peaks verified per query: :data:`DEFAULT_CANDIDATES` for single images, 1 with ``--sequence N``."""
     return SEQUENCE_CANDIDATES if sequence else DEFAULT_CANDIDATES
-#: RANSAC iterations per candidate: they bound the stage's time on wrong pairs, which run all of them.  1,000
-#: rather than 2,000: the same or better R@100P and less time on the development data (verification.md, part
-#: ``knobs``, benchmarks/bench_verification.py).
-DEFAULT_MAX_ITERS = 1000
 
 
 class HasFeatures(Protocol):
@@ -81,34 +97,63 @@ class VerifiedBlock:
     ----------
     S : ndarray of float32, shape (n_places, n_queries)
         Verified similarities (:func:`~topoloc.verification.rerank.verified_scores`).
+    answer : ndarray of int64, shape (n_queries,)
+        Each query's answer row (the method's best place where unverified).
     verified : ndarray of bool, shape (n_queries,)
-        Whether each query's best place passed.
-    inliers : ndarray of int64, shape (n_queries,)
-        Inliers of each query's best place (0: unverified).
+        The decision (:func:`~topoloc.verification.decision.verified`).
+    support : ndarray of int64, shape (n_queries,)
+        The support of each answer (distinctive inliers).
+    strength : ndarray of float64, shape (n_queries,)
+        ``support / max(n_min, c_p + 1)``.
+    confidence : ndarray of float64, shape (n_queries,)
+        The estimated probability that each answer is right.
     candidates : ndarray of int64, shape (n_queries, k)
         Rows that were checked (-1: none).
-    candidate_inliers : ndarray of int64, shape (n_queries, k)
+    candidate_support : ndarray of int64, shape (n_queries, k)
     ms : ndarray of float64, shape (n_queries,)
         Milliseconds of the stage per query.
-    matches : list of ndarray of float32, shape (n_inliers, 4), or None
-        Per query, the inlier matches of its verified answer: query x, y, then
-        map image x, y (pixels); None when unverified.
+    matches : list of ndarray of float32, shape (n, 4)
+        Per query, the supporting matches of its answer: query x, y, then
+        map image x, y (pixels); empty where the answer has none.
     match_images : list of int or None
-        Per query, which image of the verified place (its index in
+        Per query, which image of the answer's place (its index in
         ``place_images(row)``) they are in.
     match_shapes : ndarray of int64, shape (n_queries, 4)
-        Per query, the query's and that map image's (height, width); zeros when unverified.
+        Per query, the query's and that map image's (height, width); zeros when none.
     """
 
     S: np.ndarray
+    answer: np.ndarray
     verified: np.ndarray
-    inliers: np.ndarray
+    support: np.ndarray
+    strength: np.ndarray
+    confidence: np.ndarray
     candidates: np.ndarray
-    candidate_inliers: np.ndarray
+    candidate_support: np.ndarray
     ms: np.ndarray
-    matches: list[np.ndarray | None]
+    matches: list[np.ndarray]
     match_images: list[int | None]
     match_shapes: np.ndarray
+
+    @property
+    def inliers(self) -> np.ndarray:
+        """The answers' support (the name ``localize`` lines and ``verification.npz`` use)."""
+        return self.support
+
+    @classmethod
+    def concat(cls, blocks: Sequence[VerifiedBlock]) -> VerifiedBlock:
+        """The blocks of consecutive query columns as one (their ``S`` side by side)."""
+        if not blocks:
+            raise ValueError("no block to join")
+        arrays = {f: np.concatenate([getattr(b, f) for b in blocks]) for f in
+                  ("answer", "verified", "support", "strength", "confidence", "candidates", "candidate_support", "ms",
+                   "match_shapes")}
+        return cls(S=np.concatenate([b.S for b in blocks], axis=1), **arrays,
+                   matches=[m for b in blocks for m in b.matches],
+                   match_images=[k for b in blocks for k in b.match_images])
+
+
+Check = tuple[PairCheck, int]
 
 
 class Verifier:
@@ -121,23 +166,34 @@ class Verifier:
         row ``row`` (any number, possibly none), e.g. one per tour.
     candidates : int
         Distinct peaks checked per query.
-    max_iters : int
-        RANSAC iterations at most per candidate.
+    rule : VerificationRule
+        The decision's settings.
+    confusable : ndarray, shape (n_places,), optional
+        The map's confusion ``c_p`` of each place row (:mod:`topoloc.maps.confusion`); zeros when not given.
+    confidence : ConfidenceModel
+        Turns an answer's strength into its confidence.
     image_names : callable, optional
         ``image_names(row)``: a name (path) of each of those images, in order,
         for reports (:meth:`match_image_name`).
     """
 
     def __init__(self, place_images: Callable[[int], Sequence[HasFeatures]], *,
-                 candidates: int = DEFAULT_CANDIDATES, max_iters: int = DEFAULT_MAX_ITERS,
+                 candidates: int = DEFAULT_CANDIDATES, rule: VerificationRule | None = None,
+                 confusable: np.ndarray | None = None, confidence: ConfidenceModel = DEFAULT_CONFIDENCE,
                  image_names: Callable[[int], Sequence[str]] | None = None) -> None:
         if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
             raise ValueError(f"candidates must be a whole number >= 1, got {candidates!r}")
         self.place_images = place_images
         self.candidates = candidates
-        self.max_iters = max_iters
+        self.rule = rule if rule is not None else VerificationRule()
+        self.confusable = None if confusable is None else np.asarray(confusable, np.float64)
+        self.confidence_model = confidence
         self.image_names = image_names
         self._prepared: dict[int, list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]] = {}
+
+    @property
+    def max_iters(self) -> int:
+        return self.rule.max_iters
 
     def _images(self, row: int) -> list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
         got = self._prepared.get(row)
@@ -155,28 +211,55 @@ class Verifier:
         names = self.image_names(row)
         return str(names[k]) if k < len(names) else ""
 
-    def check(self, query: HasFeatures, row: int) -> tuple[int, int, np.ndarray, int]:
+    def confusion(self, row: int) -> float:
+        """The map's confusion ``c_p`` of place row ``row`` (0 when the map recorded none)."""
+        c = self.confusable
+        return float(c[row]) if c is not None and 0 <= row < len(c) else 0.0
+
+    def check(self, query: HasFeatures, row: int) -> tuple[PairCheck, int]:
         """``query`` against the best-matching map image of place row ``row``.
 
-        Returns ``(inliers, chance support, inlier matches of shape (n, 4): query
-        x, y, map x, y, index of that image in place_images(row))``; the image
-        index is -1 when the place has none.
+        Returns the :class:`~topoloc.verification.pairs.PairCheck` and the index
+        of that image in ``place_images(row)`` (-1 when the place has none).
         """
         return self._check(*_prepared(query), row)
 
-    def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int) -> tuple[int, int, np.ndarray, int]:
-        best: tuple[np.ndarray, np.ndarray, int] | None = None
+    def is_verified(self, query: HasFeatures, row: int) -> bool:
+        """The decision for one query and one place, fixed (no candidates, no route neighbours): steps 1 and 2."""
+        c, _ = self.check(query, row)
+        return bool(verified(np.array([c.support]), np.array([self.confusion(row)]), np.array([True]),
+                             self.rule.min_support)[0])
+
+    def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int, bar: int = -1) -> Check:
+        """The check of place row ``row`` against its best-matching image.
+
+        A pair whose distinctive matches cannot exceed ``bar`` is not fitted (support 0: its support could not
+        change the answer or verify it, and RANSAC is most of a check's time).  Of a place seen by more than
+        :data:`FULL_MATCH_IMAGES` tours, the image is chosen by the mutual matches of the query's
+        :data:`PRESELECT_FEATURES` strongest features (a quarter of the products), then matched in full.
+        """
         images = self._images(row)
-        for k, (_, dc, _) in enumerate(images):
-            ia, ib = mutual_matches(dq, dc)
-            if best is None or len(ia) > len(best[0]):
-                best = (ia, ib, k)
-        if best is None:
-            return 0, 1, np.zeros((0, 4), np.float32), -1
-        ia, ib, k = best
+        if not images:
+            return NO_CHECK, -1
+        k = 0
+        if len(images) > FULL_MATCH_IMAGES:
+            few = dq[:PRESELECT_FEATURES]
+            k = int(np.argmax([len(mutual_matches(few, dc)[0]) for _, dc, _ in images]))
+            found = distinctive_matches(dq, images[k][1], ratio=self.rule.ratio)
+        else:
+            best: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], int] | None = None
+            for i, (_, dc, _) in enumerate(images):
+                got = distinctive_matches(dq, dc, ratio=self.rule.ratio)
+                if best is None or len(got[0]) > len(best[0][0]):
+                    best = (got, i)
+            assert best is not None
+            found, k = best
+        n_distinct = int(found[2].sum())
+        if n_distinct <= bar:
+            return PairCheck(0, 0, len(found[0]), n_distinct, NO_CHECK.pairs), int(k)
         xy_c, dc, shape = images[k]
-        pairs, needed = check_pair(xy_q, dq, xy_c, dc, shape, max_iters=self.max_iters, matches=(ia, ib))
-        return len(pairs), needed, pairs, int(k)
+        return check_pair(xy_q, dq, xy_c, dc, shape, max_iters=self.rule.max_iters, ratio=self.rule.ratio,
+                          matches=found), int(k)
 
     def verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
         """Verify the candidates of every column of ``S`` (one column per query, in order).
@@ -184,7 +267,8 @@ class Verifier:
         Parameters
         ----------
         S : ndarray, shape (n_places, n_queries)
-            A method's scores (after sequence matching, when used).
+            A method's scores (after sequence matching, when used); ``-inf``
+            marks a place a query may not be (the answer never moves there).
         queries : sequence of FeatureSet, length n_queries
 
         Returns
@@ -194,35 +278,75 @@ class Verifier:
         S = np.asarray(S)
         if S.ndim != 2 or S.shape[1] != len(queries):
             raise ValueError(f"S of shape {S.shape} needs one column per query; {len(queries)} queries given")
+        if self.confusable is not None and len(self.confusable) != S.shape[0]:
+            raise ValueError(f"the map's confusion has {len(self.confusable)} places, S {S.shape[0]} rows")
         with _one_blas_thread():
             return self._verify(S, queries)
 
+    def _climb(self, S: np.ndarray, j: int, row: int, n: int, seen: dict[int, Check],
+               xy_q: np.ndarray, dq: np.ndarray) -> tuple[int, bool]:
+        """The answer followed along the route to the peak of its support: (row, whether it is a peak)."""
+        steps = 0
+        while True:
+            best_row, best_n = -1, n
+            for r in (row - 1, row + 1):
+                if 0 <= r < S.shape[0]:
+                    if r not in seen:
+                        seen[r] = self._check(xy_q, dq, r, bar=n)  # only more support than the answer matters
+                    if seen[r][0].support > best_n:
+                        best_row, best_n = r, seen[r][0].support
+            if best_row < 0:
+                return row, True
+            if steps == self.rule.climb or not S[best_row, j] > -np.inf:
+                return row, False
+            row, n, steps = best_row, best_n, steps + 1
+
     def _verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
-        rows, lo, hi = candidate_rows(S, self.candidates)
-        inl = np.zeros(rows.shape, np.int64)
-        need = np.ones(rows.shape, np.int64)
-        ms = np.zeros(len(queries))
-        found: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
+        rows, _, _ = candidate_rows(S, self.candidates)
+        m = len(queries)
+        sup = np.zeros(rows.shape, np.int64)
+        ms = np.zeros(m)
+        answer = np.where(rows[:, 0] >= 0, rows[:, 0], 0).astype(np.int64)
+        support = np.zeros(m, np.int64)
+        is_v = np.zeros(m, bool)
+        conf = np.zeros(m)
+        matches: list[np.ndarray] = [NO_CHECK.pairs] * m
+        images: list[int | None] = [None] * m
+        shapes = np.zeros((m, 4), np.int64)
         for j, q in enumerate(queries):
             t0 = time.perf_counter()
             xy_q, dq = _prepared(q)
+            seen: dict[int, Check] = {}
             for c, r in enumerate(rows[j]):
                 if r >= 0:
-                    inl[j, c], need[j, c], pairs, k = self._check(xy_q, dq, int(r))
-                    found[j, c] = (pairs, k)
+                    # The method's best first: another candidate matters only with more support than it has
+                    # (choose_winner) and enough to be verified.
+                    floor_bar = self.rule.min_support - 1  # fewer distinctive matches than the floor: not verified
+                    bar = floor_bar if c == 0 else max(int(sup[j, 0]), floor_bar)
+                    seen[int(r)] = self._check(xy_q, dq, int(r), bar=bar)
+                    sup[j, c] = seen[int(r)][0].support
+            w = int(choose_winner(rows[j:j + 1], sup[j:j + 1])[0])
+            row = int(rows[j, w])
+            if row >= 0:
+                n = int(sup[j, w])
+                ok = (self.rule.climb > 0 and n >= self.rule.min_support and n > self.confusion(row))
+                end, is_peak = self._climb(S, j, row, n, seen, xy_q, dq) if ok else (row, True)
+                passes = bool(verified(np.array([seen[end][0].support]), np.array([self.confusion(end)]),
+                                       np.array([is_peak]), self.rule.min_support)[0])
+                if not passes:  # an unverified query keeps the method's answer
+                    end = int(rows[j, 0])
+                answer[j], is_v[j] = end, passes
+                check, k = seen[end]
+                support[j], conf[j] = check.support, self.confusion(end)
+                matches[j], images[j] = check.pairs, (k if k >= 0 else None)
+                if k >= 0:
+                    shapes[j] = (*q.image_shape, *self._images(end)[k][2])
             ms[j] = 1e3 * (time.perf_counter() - t0)
-        S_v, verified, best = verified_scores(S, rows, lo, hi, inl, need)
-        matches: list[np.ndarray | None] = [None] * len(queries)
-        images: list[int | None] = [None] * len(queries)
-        shapes = np.zeros((len(queries), 4), np.int64)
-        for jj in np.flatnonzero(verified).tolist():
-            # The winner: the verified candidate whose inliers the verified score counts.
-            c = int(np.flatnonzero((inl[jj] == best[jj]) & (inl[jj] >= need[jj]) & (rows[jj] >= 0))[0])
-            matches[jj], images[jj] = found[jj, c]
-            img = images[jj]
-            if img is not None and img >= 0:
-                shapes[jj] = (*queries[jj].image_shape, *self._images(int(rows[jj, c]))[img][2])
-        return VerifiedBlock(S_v, verified, best, rows, inl, ms, matches, images, shapes)
+        x = strength(support, conf, self.rule.min_support)
+        S_v = verified_scores(S, answer, is_v, x)
+        model = self.confidence_model
+        conf_v = model(model.inputs(strength=x, score=S[answer, np.arange(m)] if m else np.zeros(0)), is_v)
+        return VerifiedBlock(S_v, answer, is_v, support, x, conf_v, rows, sup, ms, matches, images, shapes)
 
 
 __all__ = ["DEFAULT_CANDIDATES", "DEFAULT_MAX_ITERS", "SEQUENCE_CANDIDATES", "HasFeatures", "VerifiedBlock", "Verifier",

@@ -148,8 +148,10 @@
   }
   function checkLine(it) {
     if (!it.check) return [];
-    const c = it.check, parts = [el("span", {cls: "badge " + (c.verified ? "verified" : "unverified"),
-                                             text: c.verified ? "verified · " + c.inliers + " inliers" : "not verified"})];
+    const c = it.check, conf = c.confidence === undefined ? "" : " · confidence " + fmt(c.confidence, 2);
+    const parts = [el("span", {cls: "badge " + (c.verified ? "verified" : "unverified"),
+                               text: (c.verified ? "verified" : "not verified") + " · " + c.inliers +
+                                     " supporting inliers" + conf})];
     if (c.match) {
       const box = el("div", {cls: "matchbox"}), btn = el("button", {text: "inlier matches (" + c.match.file + ")"});
       btn.addEventListener("click", function () {
@@ -166,11 +168,11 @@
     const head = el("div", {}, [
       el("span", {cls: "badge " + st, text: st}),
       el("span", {text: "  query " + j + (q.file ? " · " + q.file : "") + (q.time ? " · " + q.time : "") +
-                        " · score " + score(run, run.score[j]) +
+                        " · " + run.score_name + " " + score(run, run.score[j]) +
                         (run.has_pos[j] ? " · correct place at rank " + it.rank : " · no correct place")})]);
     const figs = [figure(q.img, ["query", (q.file || "#" + j), "place " + q.place])];
     if (b) figs.push(figure(b.img, ["best: place " + b.place, (b.tour ? b.tour + "/" : "") + (b.file || ""),
-                                    "score " + score(run, run.score[j])]));
+                                    run.score_name + " " + score(run, run.score[j])]));
     if (c) figs.push(figure(c.img, ["correct: place " + c.place, (c.tour ? c.tour + "/" : "") + (c.file || ""),
                                     "rank " + it.rank]));
     return el("div", {cls: "card " + st, "data-query": String(j)},

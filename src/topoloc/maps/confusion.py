@@ -1,0 +1,143 @@
+"""A map's confusion: the support a map image of another place reaches at each place, learned at build.
+
+Verification (:mod:`topoloc.verification.decision`, step 2) asks of a
+verified answer more support than a look-alike gets.  Which places look alike
+is a property of the map, learned from its own images without labels: each
+map image (at most :data:`SAMPLE`, spread evenly over the tours) is scored
+against the map by the method, as a query would be; the places within
+:data:`BAND` place ids of its own (the same place, or the same stretch of the
+route) are set aside, and the best places of the :data:`CANDIDATES` highest
+distinct peaks of the rest (the method's hard negatives) are checked as
+verification checks a query's candidates.  The confusion ``c_p`` of a place
+is the most support any such check reached at it, or from it: both places of
+a look-alike pair are confusable.
+
+A map that stores one scene under two place ids (a loop that was not closed,
+tours of the same places given other ids) learns a high confusion at both, and
+answers there are not verified: which of the two ids is meant, the images
+cannot say.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+import numpy as np
+
+from topoloc.datasets.traverse import Traverse
+from topoloc.methods.base import PlaceRecognizer
+from topoloc.progress import ProgressFactory
+from topoloc.resources import Resources
+from topoloc.verification import Verifier, candidate_rows
+
+log = logging.getLogger(__name__)
+
+#: Map images checked at most: with 3 candidates each, about 900 pair checks (a few seconds).
+SAMPLE: Final = 300
+#: Places within this many ids of an image's own place are its place (the default calibration tolerance).
+BAND: Final = 8
+#: The method's best distinct peaks outside the band checked per image.
+CANDIDATES: Final = 3
+
+
+@dataclass(frozen=True)
+class Confusion:
+    """The confusion of each place of a map and how it was learned.
+
+    Attributes
+    ----------
+    values : ndarray of float32, shape (n_places,)
+        ``c_p`` of each place row (0: no look-alike found).
+    images : int
+        Map images checked.
+    band : int
+        Place ids around an image's own that counted as its place.
+    candidates : int
+        Distinct peaks checked per image.
+    seconds : float
+        Time it took.
+    """
+
+    values: np.ndarray
+    images: int
+    band: int = BAND
+    candidates: int = CANDIDATES
+    seconds: float = 0.0
+
+    def record(self) -> dict[str, Any]:
+        """What a map's header says of it (the values are an array of the file)."""
+        v = self.values
+        return {"images": self.images, "band": self.band, "candidates": self.candidates,
+                "seconds": round(self.seconds, 2), "places_confusable": int((v > 0).sum()),
+                "max": float(v.max()) if len(v) else 0.0}
+
+    @classmethod
+    def from_record(cls, values: np.ndarray, record: dict[str, Any]) -> Confusion:
+        return cls(np.asarray(values, np.float32), int(record.get("images", 0)), int(record.get("band", BAND)),
+                   int(record.get("candidates", CANDIDATES)), float(record.get("seconds", 0.0)))
+
+
+def sample_images(sizes: Sequence[int], n: int) -> list[np.ndarray]:
+    """Indices of at most ``n`` images spread evenly over tours of ``sizes`` images, one array per tour."""
+    total = int(sum(sizes))
+    pick = np.unique(np.linspace(0, total - 1, min(n, total)).round().astype(np.int64)) if total else np.zeros(0, int)
+    starts = np.cumsum([0, *sizes])
+    return [pick[(pick >= a) & (pick < b)] - a for a, b in itertools.pairwise(starts)]
+
+
+def learn_confusion(recognizer: PlaceRecognizer, tours: Sequence[Traverse], resources: Resources,
+                    verifier: Verifier, *, sample: int = SAMPLE, band: int = BAND, candidates: int = CANDIDATES,
+                    progress: ProgressFactory | None = None) -> Confusion:
+    """The confusion of every place of a fitted recogniser's map (module docstring).
+
+    Parameters
+    ----------
+    recognizer : PlaceRecognizer
+        Fitted on ``tours``.
+    tours : sequence of Traverse
+        The map's tours.
+    resources : Resources
+        Their features (the run's).
+    verifier : Verifier
+        The verification stage over the same map (its checks are reused).
+    sample, band, candidates : int
+        :data:`SAMPLE`, :data:`BAND`, :data:`CANDIDATES`.
+    """
+    t0 = time.perf_counter()
+    place_ids = np.asarray(recognizer.place_ids_)
+    values = np.zeros(len(place_ids), np.float32)
+    picks = sample_images([len(t) for t in tours], sample)
+    n_images = int(sum(len(p) for p in picks))
+    advance = progress("map confusion", n_images) if progress is not None and n_images else None
+    for tour, idx in zip(tours, picks, strict=True):
+        if not len(idx):
+            continue
+        sub = tour.take(idx)
+        S = np.array(recognizer.similarity(sub, resources=resources), dtype=np.float64)
+        feats = resources.features(sub, timed=False)
+        same = np.abs(place_ids[:, None] - np.asarray(sub.places)[None, :]) <= band
+        S[same] = -np.inf
+        rows, _, _ = candidate_rows(S, candidates)
+        own = np.searchsorted(place_ids, sub.places)
+        for j, f in enumerate(feats):
+            for r in rows[j]:
+                if r < 0:
+                    continue
+                n = verifier.check(f, int(r))[0].support
+                values[r] = max(values[r], n)
+                if own[j] < len(values) and place_ids[own[j]] == sub.places[j]:
+                    values[own[j]] = max(values[own[j]], n)
+            if advance is not None:
+                advance(1)
+    c = Confusion(values, n_images, band, candidates, time.perf_counter() - t0)
+    log.info("map confusion: %d images checked in %.1f s, %d places confusable", n_images, c.seconds,
+             int((values > 0).sum()))
+    return c
+
+
+__all__ = ["BAND", "CANDIDATES", "SAMPLE", "Confusion", "learn_confusion", "sample_images"]

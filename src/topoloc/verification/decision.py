@@ -1,0 +1,220 @@
+"""What verifies an answer, and the confidence of every answer: the one home of the rule.
+
+An answer (a query's place, after the reranking of
+:mod:`topoloc.verification.rerank`) is **verified** when three things hold
+(``docs/protocol.md``, "Verification", with the numbers of
+``docs/results/verification.md``):
+
+1. **Support.**  Its support ``n`` (inliers that are distinctive matches,
+   :mod:`topoloc.verification.pairs`) reaches the floor ``n_min``: on the
+   development data no frame of a place the map does not hold reached 13, and
+   hard negatives (each query against its best place outside the tolerance)
+   rarely reach 20 (part ``evidence``).  The floor is given for 1000 features
+   per image and follows the feature cap (:func:`support_floor`): chance
+   matches grow with the features there are to match.
+2. **The map's own confusion.**  ``n`` exceeds ``c_p``, the most support a
+   map image of another place reached at this place when the map checked its
+   own images against itself at build time (:mod:`topoloc.maps.confusion`):
+   a place that looks like another place of the same map (repeated
+   structure, the same scene stored twice, a loop the map did not close)
+   needs more than that look-alike gets.  It needs no labels and follows each
+   map.
+3. **A peak of the evidence.**  Neither route neighbour of the place (the
+   places next to it in place-id order) has more support; where one has, the
+   answer moves there (at most :data:`CLIMB` steps) and is verified there, and
+   a neighbour the query may not be (a score of ``-inf``) leaves it
+   unverified: a place a few steps away along the route still shares much of
+   the view, and the support says which side the query is on.
+
+    verified = (n >= n_min) and (n > c_p) and peak
+
+The **strength** of the answer is ``x = n / max(n_min, c_p + 1)`` (>= 1
+exactly when the first two hold), and its **confidence** an estimate of the
+probability that it is right::
+
+    confidence = 1 / (1 + exp(-(a + b log x + c [verified])))
+
+with ``(a, b, c)`` fitted by logistic regression on labelled answers: the
+development data's by default (:data:`DEFAULT_CONFIDENCE`), a map's own
+labelled tour after ``map calibrate`` (:meth:`ConfidenceModel.fit`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Final
+
+import numpy as np
+
+from topoloc.verification.pairs import MIN_SAMPLE, RATIO
+
+#: Support an answer needs with 1000 features per image (decision step 1; verification.md, part ``evidence``).
+MIN_SUPPORT: Final = 20
+
+#: Features per image the floor is given for.
+FLOOR_FEATURES: Final = 1000
+
+#: Steps an answer may move along the route to the peak of the evidence (decision step 3).
+CLIMB: Final = 3
+
+#: RANSAC iterations per candidate: they bound the stage's time on wrong pairs, which run all of them
+#: (verification.md, part ``knobs``).
+DEFAULT_MAX_ITERS: Final = 1000
+
+
+def support_floor(min_support: int, max_features: int | None) -> int:
+    """The floor ``n_min`` for images of at most ``max_features`` features (linear in it, never below 8)."""
+    if max_features is None or max_features <= 0:
+        return int(min_support)
+    return max(MIN_SAMPLE + 1, math.ceil(min_support * max_features / FLOOR_FEATURES))
+
+
+@dataclass(frozen=True)
+class VerificationRule:
+    """The settings of the decision (:class:`topoloc.spec.VerificationSpec` makes one).
+
+    Parameters
+    ----------
+    min_support : int
+        The floor ``n_min`` (already scaled to the feature cap: :func:`support_floor`).
+    ratio : float
+        Lowe's ratio of a distinctive match (:data:`topoloc.verification.pairs.RATIO`).
+    max_iters : int
+        RANSAC iterations per candidate.
+    climb : int
+        Steps along the route to the peak of the evidence (0: no route neighbour is checked).
+    """
+
+    min_support: int = MIN_SUPPORT
+    ratio: float = RATIO
+    max_iters: int = DEFAULT_MAX_ITERS
+    climb: int = CLIMB
+
+    def __post_init__(self) -> None:
+        for name, value, low in (("min_support", self.min_support, MIN_SAMPLE + 1), ("max_iters", self.max_iters, 1),
+                                 ("climb", self.climb, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
+        if not 0 < self.ratio <= 1:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio!r}")
+
+
+def verified(support: np.ndarray, confusable: np.ndarray, peak: np.ndarray, min_support: int) -> np.ndarray:
+    """The decision (module docstring): ``(n >= n_min) & (n > c_p) & peak``, element by element.
+
+    Parameters
+    ----------
+    support : ndarray of int, shape (n,)
+        Each answer's support ``n``.
+    confusable : ndarray, shape (n,)
+        The map's confusion ``c_p`` at each answer's place (0 where unknown).
+    peak : ndarray of bool, shape (n,)
+        Whether no route neighbour has more support (decision step 3).
+    min_support : int
+        ``n_min``.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    n = np.asarray(support)
+    return np.asarray((n >= min_support) & (n > np.asarray(confusable)) & np.asarray(peak, bool), bool)
+
+
+def strength(support: np.ndarray, confusable: np.ndarray, min_support: int) -> np.ndarray:
+    """``x = n / max(n_min, c_p + 1)``: >= 1 when the support passes decision steps 1 and 2."""
+    c = np.asarray(confusable, np.float64)
+    return np.asarray(support, np.float64) / np.maximum(float(min_support), c + 1.0)
+
+
+@dataclass(frozen=True)
+class ConfidenceModel:
+    """``confidence = sigmoid(a + b u + c [verified])``: the probability an answer is right (module docstring).
+
+    Attributes
+    ----------
+    a, b, c : float
+    on : {"strength", "score"}
+        What ``u`` is: ``log x`` of a verified run's answer (its strength), or
+        the method's own score of an unverified run's (``map calibrate --no-verify``).
+    source : str
+        What it was fitted on, in words (shown by ``map info`` and reports).
+    n : int
+        Labelled answers it was fitted on.
+    """
+
+    a: float
+    b: float
+    c: float
+    on: str = "strength"
+    source: str = ""
+    n: int = 0
+
+    def inputs(self, *, strength: np.ndarray | None = None, score: np.ndarray | None = None) -> np.ndarray:
+        """``u`` of answers of these strengths (``on="strength"``) or method scores (``on="score"``)."""
+        if self.on == "score":
+            if score is None:
+                raise ValueError("this confidence model reads the method's score")
+            return np.asarray(score, np.float64)
+        if strength is None:
+            raise ValueError("this confidence model reads the answers' strength")
+        return np.log(np.maximum(np.asarray(strength, np.float64), 1e-3))
+
+    def __call__(self, u: np.ndarray, is_verified: np.ndarray) -> np.ndarray:
+        """The confidence of answers of inputs ``u`` (shape (n,), :meth:`inputs`), verified or not; in (0, 1)."""
+        z = self.a + self.b * np.asarray(u, np.float64) + self.c * np.asarray(is_verified, np.float64)
+        with np.errstate(over="ignore"):
+            return np.asarray(1.0 / (1.0 + np.exp(-z)), np.float64)
+
+    @classmethod
+    def fit(cls, u: np.ndarray, is_verified: np.ndarray, right: np.ndarray, *, on: str = "strength",
+            source: str = "", prior: ConfidenceModel | None = None) -> ConfidenceModel:
+        """Fit ``(a, b, c)`` by logistic regression on labelled answers (inputs ``u``, :meth:`inputs`).
+
+        Where the answers hold fewer than 10 right or 10 wrong ones (nothing
+        to tell apart), only ``a`` is fitted: the mean confidence then equals
+        the fraction right (with one pseudo-count of each kind), ``b`` and
+        ``c`` kept from the ``prior`` (default :data:`DEFAULT_CONFIDENCE` for
+        ``on="strength"``; a flat slope of 0 for scores).
+        """
+        from sklearn.linear_model import LogisticRegression
+
+        y = np.asarray(right, bool)
+        u = np.asarray(u, np.float64)
+        v = np.asarray(is_verified, np.float64)
+        if prior is None:
+            prior = DEFAULT_CONFIDENCE if on == "strength" else cls(0.0, 0.0, 0.0, on)
+        if min(int(y.sum()), int((~y).sum())) < 10:
+            z = prior.b * u + prior.c * v
+            target = (y.sum() + 1.0) / (len(y) + 2.0)
+            lo, hi = -40.0, 40.0
+            for _ in range(80):  # bisection: the mean confidence is the fraction right
+                mid = 0.5 * (lo + hi)
+                if float(np.mean(1.0 / (1.0 + np.exp(-(mid + z))))) < target if len(y) else mid < 0:
+                    lo = mid
+                else:
+                    hi = mid
+            return cls(0.5 * (lo + hi), prior.b, prior.c, on, source, len(y))
+        X = np.c_[u, v] if v.any() and not v.all() else u[:, None]
+        clf = LogisticRegression(C=10.0, max_iter=1000).fit(X, y)
+        c = float(clf.coef_[0, 1]) if X.shape[1] == 2 else (prior.c if on == "strength" else 0.0)
+        return cls(float(clf.intercept_[0]), float(clf.coef_[0, 0]), c, on, source, len(y))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"a": self.a, "b": self.b, "c": self.c, "on": self.on, "source": self.source, "n": self.n}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ConfidenceModel:
+        on = str(d.get("on", "strength"))
+        if on not in ("strength", "score"):
+            raise ValueError(f"a confidence model reads 'strength' or 'score', not {on!r}")
+        return cls(float(d["a"]), float(d["b"]), float(d["c"]), on, str(d.get("source", "")), int(d.get("n", 0)))
+
+
+#: Fitted on the development data's answers, every set pooled (verification.md, part ``confidence``).
+DEFAULT_CONFIDENCE = ConfidenceModel(a=-1.0, b=2.0, c=4.0, on="strength", source="development data (verification.md)")
+
+
+__all__ = ["CLIMB", "DEFAULT_CONFIDENCE", "DEFAULT_MAX_ITERS", "FLOOR_FEATURES", "MIN_SUPPORT", "ConfidenceModel",
+           "VerificationRule", "strength", "support_floor", "verified"]

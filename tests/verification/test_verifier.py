@@ -1,0 +1,111 @@
+"""The stage over a block of queries: candidates, the winner, the climb to the peak of the support, the decision.
+
+A generated route: the query shares ``support[r]`` true correspondences (two views of one scene) with the map
+image of place ``r`` and nothing else, so every place's support is known and each rule can be seen to act.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from topoloc.features import FeatureSet
+from topoloc.verification import MIN_SUPPORT, VerificationRule, Verifier
+
+SHAPE = (480, 640)
+
+
+def _views(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    X = np.c_[rng.uniform(-4, 4, n), rng.uniform(-2, 2, n), rng.uniform(6, 20, n)]
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    a = 0.05
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    x1 = (K @ X.T).T
+    x2 = (K @ (R @ X.T + np.array([[0.8], [0.05], [0.2]]))).T
+    return x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
+
+
+def _fs(xy: np.ndarray, desc: np.ndarray) -> FeatureSet:
+    kp = np.zeros((len(xy), 5), np.float32)
+    kp[:, :2] = xy
+    return FeatureSet(keypoints=kp, descriptors=desc.astype(np.float32), image_shape=SHAPE)
+
+
+def route(support: list[int], seed: int = 0) -> tuple[FeatureSet, list[FeatureSet]]:
+    """A query and one map image per place; place r shares ``support[r]`` correspondences with the query."""
+    rng = np.random.default_rng(seed)
+    total = sum(support) + 200
+    q_xy, m_xy = _views(rng, total)
+    desc = rng.normal(size=(total, 32))
+    query = _fs(q_xy, desc)
+    places, start = [], 0
+    for s in support:
+        own = slice(start, start + s)
+        start += s
+        noise = rng.normal(size=(60, 32))  # features of the place the query does not see
+        xy = np.r_[m_xy[own], rng.uniform(0, 480, (60, 2))]
+        places.append(_fs(xy, np.r_[desc[own] + 0.01 * rng.normal(size=(s, 32)), noise]))
+    return query, places
+
+
+def verifier(places: list[FeatureSet], **kw: object) -> Verifier:
+    return Verifier(lambda r: [places[r]], **kw)  # type: ignore[arg-type]
+
+
+def column(n: int, best: int, *others: int) -> np.ndarray:
+    s = -np.abs(np.arange(n) - best).astype(np.float32)
+    for o in others:
+        s = np.maximum(s, -np.abs(np.arange(n) - o).astype(np.float32) - 0.5)
+    return s[:, None]
+
+
+def test_the_answer_climbs_to_the_peak_of_the_support() -> None:
+    support = [8, 8, 8, 8, 8, 30, 45, 60, 40, 8, 8, 8]
+    q, places = route(support)
+    b = verifier(places).verify(column(12, 5), [q])
+    assert b.answer.tolist() == [7] and b.verified.tolist() == [True]
+    assert b.support[0] >= 55 and b.strength[0] > 2 and b.confidence[0] > 0.9
+    # Climbing off: the method's place is not the peak of its support, so it is not verified.
+    b0 = verifier(places, rule=VerificationRule(climb=0)).verify(column(12, 5), [q])
+    assert b0.answer.tolist() == [5] and b0.verified.tolist() == [True]  # unchecked neighbours: a peak by default
+    b1 = verifier(places, rule=VerificationRule(climb=1)).verify(column(12, 5), [q])
+    assert b1.verified.tolist() == [False] and b1.answer.tolist() == [5]  # still rising after one step
+
+
+def test_a_neighbour_the_query_may_not_be_leaves_it_unverified() -> None:
+    support = [8, 8, 60, 35, 8, 8]
+    q, places = route(support, seed=1)
+    col = column(6, 3)
+    col[:3] = -np.inf  # places 0-2 are where the query is: not among the answers (a hard negative)
+    b = verifier(places).verify(col, [q])
+    assert b.verified.tolist() == [False] and b.answer.tolist() == [3]
+    assert b.S[:, 0].max() < 1  # unverified: below every verified answer
+
+
+def test_the_floor_and_the_maps_confusion_are_needed() -> None:
+    q, places = route([8, 8, MIN_SUPPORT - 3, 8, 8], seed=2)
+    assert verifier(places).verify(column(5, 2), [q]).verified.tolist() == [False]
+    q, places = route([8, 8, 50, 8, 8], seed=3)
+    assert verifier(places).verify(column(5, 2), [q]).verified.tolist() == [True]
+    confusable = np.array([0, 0, 70, 0, 0], np.float32)  # place 2 has a look-alike in the map reaching 70
+    b = verifier(places, confusable=confusable).verify(column(5, 2), [q])
+    assert b.verified.tolist() == [False] and b.strength[0] < 1
+    with pytest.raises(ValueError, match="confusion"):
+        verifier(places, confusable=np.zeros(3)).verify(column(5, 2), [q])
+
+
+def test_a_distinct_peak_with_clearly_more_support_wins() -> None:
+    support = [8] * 20
+    support[3], support[15] = 25, 90
+    q, places = route(support, seed=4)
+    b = verifier(places).verify(column(20, 3, 15), [q])
+    assert b.candidates[0, :2].tolist() == [3, 15]
+    assert b.answer.tolist() == [15] and b.verified.tolist() == [True] and int(b.S[:, 0].argmax()) == 15
+
+
+def test_a_query_or_a_place_without_features_is_an_answer_never_an_error() -> None:
+    q, places = route([30, 30, 30], seed=5)
+    empty = FeatureSet(keypoints=np.zeros((0, 5), np.float32), descriptors=np.zeros((0, 32), np.float32),
+                       image_shape=(32, 64))
+    b = Verifier(lambda r: [] if r == 1 else [places[r]]).verify(np.c_[column(3, 1), column(3, 1)], [q, empty])
+    assert b.verified.tolist() == [False, False] and b.S.shape == (3, 2)
