@@ -25,7 +25,7 @@ def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: 
     m = _evaluate(cli, rf, tmp_path / "v", "--verify")
     assert m["params"]["verify"] is True
     assert m["run"]["spec"]["verification"] == {"enabled": True, "candidates": None, "confirm": False,
-                                                "min_support": 20, "ratio": 0.9, "max_iters": 1000, "climb": 3}
+                                                "min_support": 20}
     v = m["verification"]
     assert v["candidates"] == 3 and 0.5 <= v["verified_fraction"] <= 1 and v["ms_per_query"] > 0
     assert v["min_support"] == 20 and v["confusion"] is True and v["confidence_model"]["on"] == "strength"

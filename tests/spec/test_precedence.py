@@ -42,6 +42,7 @@ SAMPLES: dict[str, tuple[Any, Any]] = {
     "execution.scheduler": ("tcp://a:1", "tcp://b:2"), "execution.scheduler_timeout": (5, 6.5),
     "execution.cache_dir": ("c1", Path("c2")),
     "verification.enabled": (True, False), "verification.candidates": (5, 8), "verification.confirm": (True, False),
+    "verification.min_support": (25, 30),
     "stream": ("rtsp://a/x", "rtsp://b/y"),
 }
 

@@ -35,8 +35,13 @@ def test_verified_answers_rank_above_unverified_and_nearest_places_first() -> No
     assert Sv.shape == S.shape and Sv.dtype == np.float32
     assert int(Sv[:, 0].argmax()) == 40  # the reranking
     assert Sv[:, 0].max() > 1 > Sv[:, 1].max()  # verified above unverified, whatever the method's scores
-    # Unverified: the method's order and its confidence squashed into (0, 1), one map for every query.
-    np.testing.assert_allclose(Sv[:, 1], squash(S[:, 1]), rtol=1e-6)
+    # Unverified: the method's order and its confidence squashed into (0, 1), one map for every query, the
+    # answer (the candidate with most support) on top of its column, below 1.
+    rest = np.arange(n) != 20
+    np.testing.assert_allclose(Sv[rest, 1], squash(S[rest, 1]), rtol=1e-6)
+    assert int(Sv[:, 1].argmax()) == 20 and Sv[20, 1] < 1
+    Sv2 = verified_scores(S, np.array([40, 50]), np.array([True, False]), np.array([3.0, 0.2]))
+    assert int(Sv2[:, 1].argmax()) == 50 and Sv2[50, 1] == pytest.approx(Sv[20, 1])  # reranked, same level
     # The verified place's route neighbours come next, whatever the method scored them; no farther place.
     order = np.argsort(-Sv[:, 0], kind="stable")
     assert set(order[:3].tolist()) == {39, 40, 41} and Sv[38, 0] < 1 and Sv[42, 0] < 1

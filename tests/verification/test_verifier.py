@@ -69,7 +69,7 @@ def test_the_answer_climbs_to_the_peak_of_the_support() -> None:
     b0 = verifier(places, rule=VerificationRule(climb=0)).verify(column(12, 5), [q])
     assert b0.answer.tolist() == [5] and b0.verified.tolist() == [True]  # unchecked neighbours: a peak by default
     b1 = verifier(places, rule=VerificationRule(climb=1)).verify(column(12, 5), [q])
-    assert b1.verified.tolist() == [False] and b1.answer.tolist() == [5]  # still rising after one step
+    assert b1.verified.tolist() == [False] and b1.answer.tolist() == [6]  # still rising after one step
 
 
 def test_a_neighbour_the_query_may_not_be_leaves_it_unverified() -> None:
@@ -79,7 +79,7 @@ def test_a_neighbour_the_query_may_not_be_leaves_it_unverified() -> None:
     col[:3] = -np.inf  # places 0-2 are where the query is: not among the answers (a hard negative)
     b = verifier(places).verify(col, [q])
     assert b.verified.tolist() == [False] and b.answer.tolist() == [3]
-    assert b.S[:, 0].max() < 1  # unverified: below every verified answer
+    assert b.S[:, 0].max() < 1 and int(b.S[:, 0].argmax()) == 3  # unverified: below every verified answer
 
 
 def test_the_floor_and_the_maps_confusion_are_needed() -> None:
@@ -109,3 +109,20 @@ def test_a_query_or_a_place_without_features_is_an_answer_never_an_error() -> No
                        image_shape=(32, 64))
     b = Verifier(lambda r: [] if r == 1 else [places[r]]).verify(np.c_[column(3, 1), column(3, 1)], [q, empty])
     assert b.verified.tolist() == [False, False] and b.S.shape == (3, 2)
+
+
+def test_pairs_left_unfitted_never_change_an_answer_or_a_decision() -> None:
+    """A route neighbour whose distinctive matches could not beat the answer is not fitted: the same answers."""
+    class FitsAll(Verifier):
+        def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int, bar: int = -1) -> tuple:  # type: ignore[override]
+            return super()._check(xy_q, dq, row, -1)
+
+    rng = np.random.default_rng(7)
+    for seed in range(6):
+        support = rng.integers(5, 90, 16).tolist()
+        q, places = route(support, seed=seed)
+        col = np.c_[column(16, int(rng.integers(16)), int(rng.integers(16)), int(rng.integers(16)))]
+        a = verifier(places).verify(col, [q])
+        b = FitsAll(lambda r, places=places: [places[r]]).verify(col, [q])
+        assert a.answer.tolist() == b.answer.tolist() and a.verified.tolist() == b.verified.tolist(), seed
+        assert np.array_equal(a.S, b.S) and a.support[a.verified].tolist() == b.support[b.verified].tolist(), seed

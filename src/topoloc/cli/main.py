@@ -22,6 +22,7 @@ from topoloc.cli.options import (
     MaxFeaturesOption,
     MaxSideAutoOption,
     MethodOption,
+    MinSupportOption,
     PairsOutOption,
     ParamOption,
     PoseTopicOption,
@@ -71,6 +72,7 @@ def evaluate(
     sequence: SequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
+    min_support: MinSupportOption = 20,
     confirm: ConfirmOption = False,
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")

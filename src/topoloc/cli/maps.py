@@ -29,6 +29,7 @@ from topoloc.cli.options import (
     MaxFeaturesOption,
     MaxSideAutoOption,
     MethodOption,
+    MinSupportOption,
     PairsOutOption,
     ParamOption,
     PoseTopicOption,
@@ -86,6 +87,7 @@ def map_build(
         help="Build the map as this many partial models of place ranges, one task each, merged into the "
              "same map as a one-piece build (docs/map_shards.md).")] = 1,
     verify: VerifyOption = None,
+    min_support: MinSupportOption = 20,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
     config: ConfigOption = None,
@@ -272,6 +274,7 @@ def localize(
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
+    min_support: MinSupportOption = 20,
     confirm: ConfirmOption = False,
     quiet: QuietOption = False,
     topic: TopicOption = None,

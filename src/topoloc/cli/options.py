@@ -72,6 +72,10 @@ VerifyOption = Annotated[bool | None, typer.Option(
                                  "it by its inliers (docs/protocol.md, Verification). Default: wherever the map's "
                                  "images can be read (a saved map: as it was calibrated or built; maps saved before "
                                  "verification existed are not verified unless asked).")]
+MinSupportOption = Annotated[int, typer.Option(
+    "--min-support", help="Support (inliers that are distinctive matches) a verified answer needs, at 1000 features "
+                          "per image (scaled to --max-features); chosen on the development data (docs/protocol.md, "
+                          "Verification).")]
 ConfirmOption = Annotated[bool, typer.Option(
     "--confirm/--no-confirm", help="Temporal consistency: an answer the previous frame's does not confirm ranks below "
                                    "every confirmed one (docs/protocol.md, Verification; off by default).")]

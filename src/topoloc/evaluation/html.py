@@ -362,8 +362,10 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
 def _calibrated_threshold(m: dict[str, Any], on: str) -> float | None:
     """The acceptance threshold of the calibrated map the run scored (``evaluate --map-file``) where it applies to
     ``on`` (``"confidence"`` or ``"score"``), or None."""
+    from topoloc.maps.calibration import threshold_kind
+
     cal = m.get("run", {}).get("calibration")
-    if not isinstance(cal, dict) or str(cal.get("threshold_on", "score")) != on:
+    if not isinstance(cal, dict) or threshold_kind(cal) != on:
         return None
     value = cal.get("threshold")
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value) \

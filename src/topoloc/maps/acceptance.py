@@ -25,7 +25,7 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
     the ROS node say so before the first frame.  ``verify`` is the run's option
     (None: not given; the map's record and ``$TOPOLOC_VERIFY`` decide).
     """
-    from topoloc.maps.calibration import threshold_kind
+    from topoloc.maps.calibration import calibrated_verify, threshold_kind, tours_added_since
 
     choice = m.verify_choice(verify)
     verifies = choice.enabled is not False and not m.verification_blocker()
@@ -40,10 +40,9 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
                         "threshold", map_file, map_file)
         return
     if m.calibration_stale:
-        assert m.calibration is not None
         log.warning("%s: the calibration predates tours added since (%s), which change the scores; run "
                     "`topoloc map calibrate %s --query FOLDER` again", map_file,
-                    ", ".join(m.calibration.get("tours_added_since", [])), map_file)
+                    ", ".join(tours_added_since(m.calibration)), map_file)
     if threshold_kind(m.calibration) == "stale":
         log.warning("%s: the threshold was calibrated on verified scores before answers had a confidence, and no "
                     "longer applies: a frame is accepted when its answer is verified; run `topoloc map calibrate` "
@@ -53,7 +52,7 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
         log.warning("%s: the threshold was calibrated on %s, not on %s as this run matches: its precision does not "
                     "hold; run `topoloc map calibrate` with the same --sequence", map_file,
                     _sequence_words(cal.length, cal.mode), _sequence_words(sequence.length, sequence.mode))
-    recorded = (m.calibration or {}).get("verify")
+    recorded = calibrated_verify(m.calibration)
     if recorded is not None and choice.enabled is not None and choice.enabled != recorded:
         log.warning("%s: the threshold was calibrated %s verification, and this run matches %s (%s): its precision "
                     "does not hold; run `topoloc map calibrate` with the same --verify/--no-verify", map_file,

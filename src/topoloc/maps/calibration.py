@@ -41,6 +41,22 @@ def json_calibration(calibration: dict[str, Any] | None) -> dict[str, Any] | Non
     return {**calibration, "threshold": None}
 
 
+def calibrated_verify(calibration: dict[str, Any] | None) -> bool | None:
+    """Whether the calibration's answers were verified (None: not recorded, or no calibration)."""
+    cal = calibration or {}
+    return bool(cal["verify"]) if "verify" in cal else None
+
+
+def is_stale(calibration: dict[str, Any] | None) -> bool:
+    """Whether tours were added after the calibration (its threshold was chosen on other scores)."""
+    return bool(calibration and calibration.get("stale"))
+
+
+def tours_added_since(calibration: dict[str, Any] | None) -> list[str]:
+    """The tours added after the calibration (:func:`mark_stale`)."""
+    return [str(t) for t in (calibration or {}).get("tours_added_since", [])]
+
+
 def threshold_of(calibration: dict[str, Any] | None) -> float | None:
     """The score above which a localisation is accepted, or None without a calibration (``inf``: none reached)."""
     if calibration is None:
@@ -87,8 +103,8 @@ def _sweep(values: np.ndarray, right: np.ndarray, counted: np.ndarray, n_pos: in
 
 def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99, query: str = "",
                      ground_truth: str = "", tolerance: str = "", sequence: SequenceSpec | None = None,
-                     verified: VerifiedBlock | None = None,
-                     confidence: ConfidenceModel | None = None) -> dict[str, Any]:
+                     verified: VerifiedBlock | None = None, confidence: ConfidenceModel | None = None,
+                     verify: bool | None = None) -> dict[str, Any]:
     """The calibration record of a labelled tour's scores (:meth:`topoloc.maps.Map.calibrate` documents it).
 
     Without ``verified``, each query's answer is the best place of ``S`` and the
@@ -98,6 +114,13 @@ def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
     tour (:meth:`~topoloc.verification.ConfidenceModel.fit`, from ``confidence``'s
     slope where the tour has too few wrong answers to fit one) and the
     threshold is on that confidence (``threshold_on: "confidence"``).
+    ``verify`` records whether the tour's answers were verified (None: not recorded).
+
+    The record's keys (the ``calibration`` of a map file's header): ``threshold`` (null: none reached),
+    ``threshold_on``, ``precision_asked``, ``precision``, ``recall``, ``query``, ``ground_truth``,
+    ``tolerance``, ``n_queries``, ``n_with_right_place``, ``sequence`` (``length``, ``mode``),
+    ``confidence_model``, ``recall_of``, ``date``, ``verify``; :func:`mark_stale` adds ``stale``,
+    ``stale_since`` and ``tours_added_since``.  Every reader goes through this module.
     """
     check_precision(precision)
     if S.shape != gt.shape:
@@ -134,6 +157,7 @@ def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
         "confidence_model": model.to_dict(),
         "recall_of": "queries with a right place in the map (n_with_right_place)",
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        **({} if verify is None else {"verify": bool(verify)}),
     }
 
 
@@ -151,7 +175,7 @@ def threshold_kind(calibration: dict[str, Any] | None) -> str:
     cal = calibration or {}
     if "threshold_on" in cal:
         return str(cal["threshold_on"])
-    return "stale" if cal.get("verify") else "score"
+    return "stale" if calibrated_verify(cal) else "score"
 
 
 def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: float | None,
@@ -175,5 +199,17 @@ def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: flo
     return value is not None and t is not None and value >= t
 
 
-__all__ = ["accepts", "calibrated_sequence", "check_precision", "choose_threshold", "confidence_model",
-           "json_calibration", "mark_stale", "threshold_kind", "threshold_of"]
+__all__ = [
+    "accepts",
+    "calibrated_sequence",
+    "calibrated_verify",
+    "check_precision",
+    "choose_threshold",
+    "confidence_model",
+    "is_stale",
+    "json_calibration",
+    "mark_stale",
+    "threshold_kind",
+    "threshold_of",
+    "tours_added_since",
+]

@@ -338,9 +338,9 @@ class Localizer:
         else:
             confidence, verified = float(block.confidence[0]), bool(block.verified[0])
         out: dict[str, Any] = {
-            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": round(score, 6),
+            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": score,
             "accepted": m.accepts(score=score, confidence=confidence, is_verified=verified),
-            "top": [[int(m.place_ids[i]), round(float(own[i]), 6)] for i in top],
+            "top": [[int(m.place_ids[i]), float(own[i])] for i in top],
         }
         if block is not None:
             out["verified"] = verified

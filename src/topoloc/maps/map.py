@@ -224,7 +224,11 @@ class Map:
         # A vocabulary given by folders is trained on first use; a method that uses none still keeps it.
         voc = res.vocabulary if res.has_vocabulary else None
         m = cls.from_fitted(rec, maps, features=config, vocabulary=voc)
-        if learn_confusion:
+        if learn_confusion and executor is not None and executor.name != "local":
+            # Learning it reads map images' features here; a map built on a cluster never gathers them on the
+            # client (tests/maps/test_cluster_client_memory.py), so it verifies without a confusion (c_p = 0).
+            log.info("the map's confusion is not learned on a cluster: its answers are verified without it")
+        elif learn_confusion:
             m.confusion = confusion_of(rec, maps, res, progress=progress)
         m.spec = spec_to_dict(MapBuildSpec(
             method=method, params=rec.get_params(), shards=shards,
@@ -294,7 +298,7 @@ class Map:
     @property
     def calibration_stale(self) -> bool:
         """Whether tours were added after the calibration (its threshold was chosen on other scores)."""
-        return bool(self.calibration and self.calibration.get("stale"))
+        return _cal.is_stale(self.calibration)
 
     # -- persistence ------------------------------------------------------------------------
     def save(self, path: str | Path, *, timeout: float | None = None) -> Path:
@@ -799,8 +803,7 @@ class Map:
         self.calibration = _cal.choose_threshold(
             S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
             query=label or (str(q.root) if q.kind == "files" else q.name), verified=block,
-            confidence=None if verifier is None else verifier.confidence_model)
-        self.calibration["verify"] = bool(verify)
+            confidence=None if verifier is None else verifier.confidence_model, verify=verify)
         return self.calibration
 
     def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:

@@ -49,13 +49,19 @@ def frame_sha1(frame: Any) -> bytes:
     return h.digest()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TourImages:
     """The images of one tour: names, places and content digests (module docstring)."""
 
     names: tuple[str, ...]
     places: np.ndarray
     sha1: np.ndarray
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, TourImages) and self.names == other.names
+                and np.array_equal(self.places, other.places) and np.array_equal(self.sha1, other.sha1))
+
+    __hash__ = None  # type: ignore[assignment]
 
     @classmethod
     def of_tour(cls, tour: Traverse) -> TourImages:
@@ -76,8 +82,8 @@ class TourImages:
         encoded = [n.encode("utf-8", "surrogateescape") for n in self.names]
         blob = np.frombuffer(b"".join(encoded), np.uint8).copy()
         ends = np.cumsum([len(e) for e in encoded], dtype=np.int64)
-        return {f"{PREFIX}{k}/images/{n}": a for n, a in zip(_NAMES, (blob, ends, self.places, self.sha1),
-                                                             strict=True)}
+        parts: tuple[np.ndarray, ...] = (blob, ends, self.places, self.sha1)
+        return {f"{PREFIX}{k}/images/{n}": a for n, a in zip(_NAMES, parts, strict=True)}
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray], k: int) -> TourImages | None:

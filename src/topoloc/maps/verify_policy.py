@@ -22,6 +22,7 @@ import numpy as np
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureConfig
+from topoloc.maps.calibration import calibrated_verify
 from topoloc.maps.tour_images import TourImages, read_again
 from topoloc.maps.tours import reload_tour
 from topoloc.resources import Resources
@@ -106,9 +107,9 @@ def recorded_verify(calibration: dict[str, Any] | None, spec: dict[str, Any] | N
     existed, or calibrated before it was recorded, scores as it always did
     (False); else the build's ``--verify/--no-verify`` (None: wherever it can).
     """
-    cal = calibration or {}
-    if "verify" in cal:
-        return bool(cal["verify"])
+    calibrated = calibrated_verify(calibration)
+    if calibrated is not None:
+        return calibrated
     if calibration is not None or not spec or "verification" not in spec:
         return False
     return (spec.get("verification") or {}).get("enabled")
@@ -122,8 +123,7 @@ def choice_for(asked: bool | None, *, calibration: dict[str, Any] | None, spec: 
     the build's (``verification.enabled``); a map with neither (built before
     verification existed, or calibrated before it was recorded) is ``legacy``.
     """
-    cal = calibration or {}
-    calibrated = bool(cal["verify"]) if "verify" in cal else None
+    calibrated = calibrated_verify(calibration)
     recorded = bool(spec) and "verification" in (spec or {})
     built = ((spec or {}).get("verification") or {}).get("enabled") if recorded else None
     legacy = calibrated is None and (calibration is not None or not recorded)

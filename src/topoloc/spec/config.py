@@ -42,7 +42,7 @@ FLAT_NAMES: dict[str, str] = {
     "ground_truth": "ground_truth.file",
     "sequence": "sequence.length", "sequence_mode": "sequence.mode",
     "verify": "verification.enabled", "verify_candidates": "verification.candidates",
-    "confirm": "verification.confirm",
+    "confirm": "verification.confirm", "min_support": "verification.min_support",
     "scheduler": "execution.scheduler", "scheduler_timeout": "execution.scheduler_timeout",
     "cache_dir": "execution.cache_dir",
 }

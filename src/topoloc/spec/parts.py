@@ -26,14 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from topoloc.errors import ParameterError, TopolocError
-from topoloc.verification.decision import (
-    CLIMB,
-    DEFAULT_MAX_ITERS,
-    MIN_SUPPORT,
-    VerificationRule,
-    support_floor,
-)
-from topoloc.verification.pairs import RATIO
+from topoloc.verification.decision import MIN_SUPPORT, VerificationRule, support_floor
 
 log = logging.getLogger(__name__)
 
@@ -651,22 +644,14 @@ class VerificationSpec:
         The support (inliers that are distinctive matches) a verified answer
         needs with 1000 features per image; scaled to the run's feature cap
         (:func:`topoloc.verification.support_floor`).  Default
-        :data:`topoloc.verification.MIN_SUPPORT`, chosen on the development data.
-    ratio : float
-        Lowe's ratio of a distinctive match, in (0, 1].
-    max_iters : int
-        RANSAC iterations per candidate.
-    climb : int
-        Steps an answer may move along the route to the peak of the support (0: route neighbours not checked).
+        :data:`topoloc.verification.MIN_SUPPORT`, chosen on the development data
+        (``docs/results/verification.md``, part ``floor``); ``--min-support``.
     """
 
     enabled: bool | None = None
     candidates: int | None = None
     confirm: bool = False
     min_support: int = MIN_SUPPORT
-    ratio: float = RATIO
-    max_iters: int = DEFAULT_MAX_ITERS
-    climb: int = CLIMB
 
     def __post_init__(self) -> None:
         if not isinstance(self.confirm, bool):
@@ -676,17 +661,12 @@ class VerificationSpec:
         if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
                                             or self.candidates < 1):
             raise ParameterError("verification.candidates", f"must be a whole number >= 1, got {self.candidates!r}")
-        for name, value, low in (("min_support", self.min_support, 8), ("max_iters", self.max_iters, 1),
-                                 ("climb", self.climb, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ParameterError(f"verification.{name}", f"must be a whole number >= {low}, got {value!r}")
-        if isinstance(self.ratio, bool) or not isinstance(self.ratio, int | float) or not 0 < self.ratio <= 1:
-            raise ParameterError("verification.ratio", f"must be in (0, 1], got {self.ratio!r}")
+        if isinstance(self.min_support, bool) or not isinstance(self.min_support, int) or self.min_support < 8:
+            raise ParameterError("verification.min_support", f"must be a whole number >= 8, got {self.min_support!r}")
 
     def rule(self, max_features: int | None = None) -> VerificationRule:
         """The decision's settings for images of at most ``max_features`` features."""
-        return VerificationRule(min_support=support_floor(self.min_support, max_features), ratio=float(self.ratio),
-                                max_iters=self.max_iters, climb=self.climb)
+        return VerificationRule(min_support=support_floor(self.min_support, max_features))
 
 
 PARTS: dict[str, type] = {

@@ -10,12 +10,14 @@ Candidates
     of the route; distinct peaks are the alternatives a wrong answer comes from.
 
 The winner (:func:`choose_winner`)
-    The candidate with the most support, unless the method's best candidate
+    The candidate with the most inliers, unless the method's best candidate
     (c = 0) has as good as the same: ``n_w - n_0 <= sqrt(n_w + n_0)`` (one
     standard deviation of the difference of two counts), where the method's
     answer stands (chosen on the development data, ``docs/results/verification.md``:
     reranking on any difference lost R@1 on the webcams, where night queries
-    reach similar support at several candidates).  The answer may then move
+    reach similar counts at several candidates).  Every inlier counts here, as
+    in GV-Bench's ranking: which candidate is best is a comparison among
+    candidates; whether it is verified is the decision's, on distinctive ones.  The answer may then move
     along the route to the peak of the support (:mod:`topoloc.verification.decision`).
 
 Verified scores (``docs/protocol.md``, "Verification")
@@ -27,15 +29,22 @@ Verified scores (``docs/protocol.md``, "Verification")
         s'_i = 1 + g(log x + 1 / (2 (1 + |i - a|)))   for |i - a| <= 1   (in (1, 2))
         s'_i = g(s_i)                                  otherwise          (in (0, 1))
 
-    and ``s'_i = g(s_i)`` for every place of a query that is not verified (its
-    answer is the method's best place).  So every verified answer ranks above every
-    unverified one, verified answers rank by their strength, and the verified
-    place's route neighbours come next, whatever the method scored them: the
-    protocol scores the best place outside the tolerance's soft band, and a
-    verified answer there is best followed by its neighbours.  No farther: a
-    raised place outside the tolerance would count as a confident wrong answer
-    (a reach of a method's whole peak lost R@100P on the crowded map,
-    ``docs/results/verification.md``).
+    and for any query the other places of its answer's peak (the answer is the
+    candidate with most inliers, verified or not: checking the candidates
+    reranks them; ``p`` the peak's farther reach, made symmetric)::
+
+        s'_i = t + (1 - t) 0.999 / (2 (1 + |i - a|))   for |i - a| <= p,   t = (1 + max_i g(s_i)) / 2
+
+    above the rest of its column, nearest first, below 1 (an unverified answer
+    itself scores so, across queries in the order of the method's best score).
+    So every verified answer ranks above every unverified one, verified answers
+    rank by their strength, and the answer's neighbourhood along the route comes
+    next, whatever the method scored it: the protocol scores the best place
+    outside the tolerance's soft band, and once an answer is chosen the route's
+    topology says which place is next.  Only the answer's route neighbours rise
+    with a verified answer above 1: a place of its peak outside the tolerance
+    raised so would count as a confident wrong answer (it lost R@100P on the
+    crowded map, ``docs/results/verification.md``).
 """
 
 from __future__ import annotations
@@ -98,13 +107,14 @@ def candidate_rows(S: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def choose_winner(rows: np.ndarray, support: np.ndarray) -> np.ndarray:
-    """The candidate each query answers with (module docstring): most support, the method's best when as good.
+    """The candidate each query answers with (module docstring): the largest count, the method's best when as good.
 
     Parameters
     ----------
     rows : ndarray of int64, shape (n_queries, k)
         Candidates (:func:`candidate_rows`; row -1 = none).
     support : ndarray of int, shape (n_queries, k)
+        Each candidate's count (its inliers).
 
     Returns
     -------
@@ -128,7 +138,7 @@ REACH = 1
 
 
 def verified_scores(S: np.ndarray, answer: np.ndarray, is_verified: np.ndarray, x: np.ndarray, *,
-                    reach: int = REACH) -> np.ndarray:
+                    peak: np.ndarray | int = 0, reach: int = REACH) -> np.ndarray:
     """The verified similarity ``s'`` of every place and query (module docstring).
 
     Parameters
@@ -136,10 +146,12 @@ def verified_scores(S: np.ndarray, answer: np.ndarray, is_verified: np.ndarray, 
     S : ndarray, shape (n_places, n_queries)
         The method's scores.
     answer : ndarray of int64, shape (n_queries,)
-        Each verified query's answer row (ignored for the others).
+        Each query's answer row.
     is_verified : ndarray of bool, shape (n_queries,)
     x : ndarray, shape (n_queries,)
         Each answer's strength.
+    peak : int or ndarray of int, shape (n_queries,)
+        How far the peak of each answer's candidate reaches on either side of it.
     reach : int
         Places on either side of a verified answer raised with it.
 
@@ -153,13 +165,20 @@ def verified_scores(S: np.ndarray, answer: np.ndarray, is_verified: np.ndarray, 
         if np.shape(arr) != (m,):
             raise ValueError(f"{name} must have one entry per query ({m}), got shape {np.shape(arr)}")
     out = squash(S)
-    q = np.flatnonzero(is_verified)
-    if len(q) and len(out):
-        a = answer[q][None, :]
-        r = np.arange(S.shape[0])[:, None]
-        band = np.abs(r - a) <= reach
-        raised = 1.0 + squash(np.log(np.maximum(x[q], 1e-3))[None, :] + 0.5 / (1.0 + np.abs(r - a)))
-        out[:, q] = np.where(band, raised, out[:, q])
+    if not len(out) or not m:
+        return out.astype(np.float32)
+    r = np.arange(S.shape[0])[:, None]
+    d = np.abs(r - np.asarray(answer)[None, :])
+    near = 0.5 / (1.0 + d)
+    v = np.asarray(is_verified, bool)
+    # The answer's peak, nearest first, above the rest of the column and below 1 ...
+    top = (1.0 + out.max(axis=0))[None, :] / 2.0
+    low = top + (1.0 - top) * near * 0.999
+    within = d <= np.broadcast_to(np.asarray(peak), (m,))[None, :]
+    out = np.where(within, low, out)
+    # ... and a verified answer with its route neighbours in (1, 2), by strength.
+    raised = 1.0 + squash(np.log(np.maximum(np.asarray(x, np.float64), 1e-3))[None, :] + near)
+    out = np.where(v[None, :] & (d <= reach), raised, out)
     return out.astype(np.float32)
 
 
