@@ -44,26 +44,29 @@ Nothing is downloaded at run time.
 
 Threads, determinism and devices
 --------------------------------
-One image is extracted on one thread (:data:`THREADS`) and images are
-extracted in parallel, as many at a time as :func:`extraction_workers` allows:
-the cores that are free (CPU affinity less the tasks running beside the caller
-at that moment).  PyTorch's oneDNN convolutions split their sums differently
-with the thread count, so one thread is the setting whose output does not
-depend on the machine's load; ONNX Runtime's output does not depend on its
-thread count (``tests/features/test_learned.py`` checks both).  In
-``localize`` the frame being extracted runs on one core beside the matching of
-the one before it.  The device is ``"cpu"`` unless ``device=`` or
+Images are extracted in parallel, as many at a time as
+:func:`extraction_workers` allows: the cores that are free (CPU affinity less
+the tasks running beside the caller at that moment).  On ONNX Runtime a frame
+also takes the free cores that no other extraction of the process uses (one
+frame on 2 idle cores: both; two frames of a traverse at once: one each;
+``localize`` describing a frame while it matches the one before: one): its
+output does not depend on its thread count.  PyTorch's oneDNN convolutions
+split their sums differently with the thread count, so the PyTorch runtime
+runs a frame on one thread (:data:`THREADS`), the setting whose output does
+not depend on the machine's load (``tests/features/test_learned.py`` checks
+both).  The device is ``"cpu"`` unless ``device=`` or
 ``$TOPOLOC_DEVICE`` says ``"cuda"`` or ``"auto"`` (CUDA where ONNX Runtime's
 CUDA provider or PyTorch sees one).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -197,6 +200,30 @@ def network(device: str = "cpu", runtime: str | None = None) -> Network:
         return net
 
 
+_running = 0  # extractions in flight in this process (guarded by _lock)
+
+
+@contextlib.contextmanager
+def _in_flight() -> Iterator[int]:
+    """Count this extraction as running while the block runs; yields the count, this one included."""
+    global _running
+    with _lock:
+        _running += 1
+        count = _running
+    try:
+        yield count
+    finally:
+        with _lock:
+            _running -= 1
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
 def _runnable_others() -> float:
     """Runnable tasks on the machine now, less the one asking: ``/proc/loadavg``'s instantaneous count.
 
@@ -222,18 +249,14 @@ def free_cores() -> int:
     process's own busy threads too (``localize`` matching one frame while the
     next is described).
     """
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
+    cores = _cores()
     return max(1, min(cores, round(cores - _runnable_others())))
 
 
 def extraction_workers(n_jobs: int = -1) -> int:
     """Images extracted at the same time for ``n_jobs`` (-1: all): at most the :func:`free_cores`.
 
-    Each extraction runs on one thread (:data:`THREADS`), so the parallelism is
-    across images and follows the cores that are free.
+    The parallelism is across images and follows the cores that are free.
     """
     from topoloc._parallel import n_workers
 
@@ -278,7 +301,12 @@ def detect_xfeat(
         raise ValueError("detect_xfeat: every image of a batch must have the same shape")
     net = network(device, runtime)
     size = postprocess.network_size(h0, w0)
-    desc, logits, rel = net(postprocess.network_input(list(images), size))
+    batch = postprocess.network_input(list(images), size)
+    with _in_flight() as running:
+        # Every free core for this frame, shared with the extractions running beside it in this process (a pool's
+        # other workers are runnable tasks too, but may not have started yet when this one looks).
+        threads = max(1, min(free_cores(), _cores() // running))
+        desc, logits, rel = net(batch, threads)
     # Pixel-centre convention of the resize (as cv2.resize): x = (x_net + 0.5) * sx - 0.5.
     scale = np.array([w0 / size[1], h0 / size[0]], np.float32)
     out = []

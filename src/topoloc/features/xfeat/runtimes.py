@@ -27,6 +27,7 @@ import importlib.util
 import io
 import json
 import logging
+import threading
 from typing import Any, Protocol
 
 import numpy as np
@@ -44,7 +45,8 @@ FILES = {"onnxruntime": "xfeat.onnx", "torch": "xfeat.npz"}
 INSTALL = {"onnxruntime": "pip install onnxruntime (a dependency of topoloc)",
            "torch": "pip install 'topoloc[learned]'"}
 
-#: PyTorch threads, ONNX Runtime intra-op threads of one extraction (see :mod:`topoloc.features.learned`).
+#: PyTorch threads of one extraction, whatever it is asked (see :mod:`topoloc.features.learned`); ONNX Runtime's
+#: threads follow the free cores.
 THREADS = 1
 
 
@@ -149,43 +151,67 @@ def torch_sees_cuda() -> bool:
 
 
 class Network(Protocol):
-    """XFeat's network on one runtime and device: float32 (B, 1, H, W) -> descriptors, keypoint logits, reliability."""
+    """XFeat's network on one runtime and device: float32 (B, 1, H, W) -> descriptors, keypoint logits, reliability.
+
+    ``threads`` is a wish: a runtime whose output depends on its thread count
+    (PyTorch's oneDNN) runs on :data:`THREADS` whatever it is asked.
+    """
 
     runtime: str
     device: str
 
-    def __call__(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def __call__(self, batch: np.ndarray, threads: int = THREADS) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
 
 class OnnxNetwork:
-    """``xfeat.onnx`` in an ONNX Runtime session on :data:`THREADS` intra-op threads; thread-safe."""
+    """``xfeat.onnx`` in ONNX Runtime sessions, one per intra-op thread count asked for; thread-safe.
+
+    ONNX Runtime's CPU kernels split a convolution's work between threads
+    without splitting its sums, so the output is the same whatever the thread
+    count (``tests/features/test_learned.py``): a frame may use every free
+    core without its features depending on the machine's load.
+    """
 
     runtime = "onnxruntime"
 
     def __init__(self, device: str = "cpu") -> None:
-        ort = import_runtime("onnxruntime")
-        opts = ort.SessionOptions()
-        # One thread: images run in parallel, one per core (topoloc.features.learned); the output does not depend
-        # on the thread count (tests/features/test_learned.py) but latency beside busy processes does.
-        opts.intra_op_num_threads = THREADS
-        opts.inter_op_num_threads = 1
-        opts.log_severity_level = 3
-        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device == "cuda" else ["CPUExecutionProvider"]
-        try:
-            self.session = ort.InferenceSession(network_bytes("onnxruntime"), opts, providers=providers)
-        except MissingExtraError:
-            raise
-        except Exception as exc:
-            raise MissingExtraError(f"xfeat features: onnxruntime does not load the network ({_short(exc)}): "
-                                    f"reinstall it ({INSTALL['onnxruntime']}) or use --features sift") from None
+        self._ort = import_runtime("onnxruntime")
+        self._model = network_bytes("onnxruntime")
+        self._lock = threading.Lock()
+        self._sessions: dict[int, Any] = {}
+        self.device = device
+        self.session = self._session(THREADS)
         if device == "cuda" and "CUDAExecutionProvider" not in self.session.get_providers():
             raise TopolocError("device cuda was asked for but ONNX Runtime's CUDA provider does not start here "
                                "(use --device cpu or auto)")
-        self.device = device
         self._input = self.session.get_inputs()[0].name
 
-    def __call__(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        desc, logits, rel = self.session.run(None, {self._input: np.ascontiguousarray(batch, np.float32)})
+    def _session(self, threads: int) -> Any:
+        with self._lock:
+            sess = self._sessions.get(threads)
+            if sess is not None:
+                return sess
+            ort = self._ort
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = threads
+            opts.inter_op_num_threads = 1
+            opts.log_severity_level = 3
+            # Helper threads sleep between frames rather than spin: they would take the core that matches the frame
+            # before (localize describes one frame while it matches another).
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            providers = (["CUDAExecutionProvider", "CPUExecutionProvider"] if self.device == "cuda"
+                         else ["CPUExecutionProvider"])
+            try:
+                sess = ort.InferenceSession(self._model, opts, providers=providers)
+            except Exception as exc:
+                raise MissingExtraError(f"xfeat features: onnxruntime does not load the network ({_short(exc)}): "
+                                        f"reinstall it ({INSTALL['onnxruntime']}) or use --features sift") from None
+            self._sessions[threads] = sess
+            return sess
+
+    def __call__(self, batch: np.ndarray, threads: int = THREADS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        sess = self.session if threads == THREADS or self.device == "cuda" else self._session(threads)
+        desc, logits, rel = sess.run(None, {self._input: np.ascontiguousarray(batch, np.float32)})
         return desc, logits, rel
 
 
@@ -204,7 +230,7 @@ class TorchNetwork:
         self.device = device
         self._torch = torch
 
-    def __call__(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def __call__(self, batch: np.ndarray, threads: int = THREADS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         torch = self._torch
         if torch.get_num_threads() != THREADS:
             torch.set_num_threads(THREADS)  # process-wide in PyTorch; every extraction sets what it runs with
