@@ -643,12 +643,12 @@ def render(o: dict[str, Any]) -> str:
                      "descriptors at the same position.\n\n| folder | images | keypoints ONNX / PyTorch | same "
                      f"position | smallest cosine | cosine >= {SAME_COSINE} |\n| --- | --- | --- | --- | --- | --- |\n")
         for r in rt["folders"]:
-            cmin = "-" if r["cos_min"] is None else f"{r['cos_min']:.6f}"
+            cmin = "-" if r["cos_min"] is None else f"{r['cos_min']:.7f}"
             ok = "-" if r["share_cos_ok"] is None else f"{r['share_cos_ok']:.2%}"
             lines.append(f"| {r['folder']} | {r['images']} | {r['keypoints_onnx']} / {r['keypoints_torch']} | "
                          f"{r['same_positions']:.4%} | {cmin} | {ok} |\n")
         lines.append(f"| **all** | {rt['images']} | {rt['keypoints_onnx']} / {rt['keypoints_torch']} | "
-                     f"**{rt['same_positions']:.4%}** | **{rt['cos_min']:.6f}** | {rt['share_cos_ok']:.2%} |\n")
+                     f"**{rt['same_positions']:.4%}** | **{rt['cos_min']:.7f}** | {rt['share_cos_ok']:.2%} |\n")
         w = rt["worst_image"]
         if "image" in w:
             lines.append(f"\nFewest keypoints at the same position in one image: {w['image']} ({w['share']:.2%} of "

@@ -105,6 +105,21 @@ def resolve_index(index: str, n_landmarks: int) -> str:
     return index
 
 
+HNSW_SMALL_GRAPH = 65536
+"""Largest map (landmarks) searched with HNSW's ``efSearch`` at twice ``n_candidates``; larger maps search 64 deep.
+
+A query feature's landmark matches are its few nearest means within a small radius (the 0.6 floor of
+normalised descriptors, where every gardens_point landmark's radius lies), which a shallow search finds:
+``benchmarks/bench_landmark_index.py`` measures the recall of each size it times (``docs/results/
+landmark_index.md``).  The deeper search of larger graphs is the one ``docs/results/localize_100k.md``
+was measured with."""
+
+
+def hnsw_ef_search(n_landmarks: int, n_candidates: int) -> int:
+    """HNSW's ``efSearch`` for a map of ``n_landmarks``: ``2 n_candidates``, at least 64 above :data:`HNSW_SMALL_GRAPH`."""
+    return 2 * n_candidates if n_landmarks <= HNSW_SMALL_GRAPH else max(64, 2 * n_candidates)
+
+
 def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
     """A faiss index of kind ``kind`` over the landmark means, as :class:`LandmarkModel` searches them.
 
@@ -113,7 +128,7 @@ def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
     kind : {"flat", "hnsw"}
     means : ndarray of float32, shape (n_landmarks, d)
     n_candidates : int
-        Neighbours looked up per query feature; HNSW's ``efSearch`` is at least twice that.
+        Neighbours looked up per query feature; HNSW's ``efSearch`` is :func:`hnsw_ef_search`.
 
     Returns
     -------
@@ -123,7 +138,7 @@ def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
     index: Any
     if kind == "hnsw":
         index = faiss.IndexHNSWFlat(d, 32)
-        index.hnsw.efSearch = max(64, 2 * n_candidates)
+        index.hnsw.efSearch = hnsw_ef_search(len(means), n_candidates)
     elif kind == "flat":
         index = faiss.IndexFlatL2(d)
     else:
