@@ -63,9 +63,9 @@ import os
 import subprocess
 import tempfile
 import time
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -717,7 +717,8 @@ def render(o: dict[str, Any]) -> str:
         lines.append("\n## `localize` end to end\n\n`topoloc map build --method coocmap` of day_left (default "
                      "vocabulary), then `topoloc localize --verify` of the 100 day_right frames (960 x 540 JPEG files, "
                      "default prefetch), quiet and beside 3 busy processes paced at 10 Hz; its summary line (the "
-                     "matching stage includes verification).\n\n| features | beside | frames/s | ms decode / features / "
+                     "matching stage includes verification).\n\n| features | beside | frames/s | "
+                     "ms decode / features / "
                      "quantisation / matching / of which verification (mean) |\n| --- | --- | --- | --- |\n")
         for f, loads in lo.items():
             for load, r in loads.items():

@@ -107,7 +107,8 @@ def export(net, out: Path) -> dict[str, str]:  # type: ignore[no-untyped-def]
     from topoloc.features.xfeat.network import OUTPUTS
 
     out.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().float().numpy() for k, v in net.state_dict().items() if not k.endswith("num_batches_tracked")}
+    state = {k: v.detach().float().numpy() for k, v in net.state_dict().items()
+             if not k.endswith("num_batches_tracked")}
     np.savez(out / "xfeat.npz", **state)
     dynamic = {"image": {0: "batch", 2: "height", 3: "width"}, **{o: {0: "batch", 2: "h8", 3: "w8"} for o in OUTPUTS}}
     torch.onnx.export(net, (torch.zeros(1, 1, 352, 640),), str(out / "xfeat.onnx"), input_names=["image"],
@@ -156,7 +157,8 @@ def main() -> None:
             export(net, Path(tmp))
             fresh = compare(net, Path(tmp) / "xfeat.onnx")
             same = sha256(Path(tmp) / "xfeat.onnx") == shipped["files"]["xfeat.onnx"]["sha256"]
-        print(f"check: shipped files match PROVENANCE.json; shipped ONNX within {compare(net, DEST / 'xfeat.onnx'):.1e} "
+        shipped_diff = compare(net, DEST / "xfeat.onnx")
+        print(f"check: shipped files match PROVENANCE.json; shipped ONNX within {shipped_diff:.1e} "
               f"of PyTorch, a fresh export within {fresh:.1e}; fresh export byte-identical: {same}")
         return
     settings = export(net, DEST)

@@ -8,13 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from topoloc.errors import TopolocError
-from topoloc.features import FeatureConfig, FeatureExtractor, extract_features
-
 from tests.features.test_local import textured_image, write_images
 
-from topoloc.features import learned
+from topoloc.errors import TopolocError
+from topoloc.features import FeatureConfig, FeatureExtractor, extract_features, learned
 from topoloc.features.xfeat import runtimes
 
 # The PyTorch runtime (the 'learned' extra) is compared with ONNX Runtime where it is installed; without it those
@@ -227,7 +224,7 @@ def test_devices(monkeypatch: pytest.MonkeyPatch) -> None:
         learned.resolve_runtime("cpu")
     monkeypatch.delenv("TOPOLOC_XFEAT_RUNTIME")
     if not has_cuda:
-        with pytest.raises(TopolocError, match="neither ONNX Runtime's CUDA provider .* nor PyTorch .* sees a CUDA"):
+        with pytest.raises(TopolocError, match=r"neither ONNX Runtime's CUDA provider .* nor PyTorch .* sees a CUDA"):
             learned.resolve_device("cuda")
 
 

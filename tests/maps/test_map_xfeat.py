@@ -15,7 +15,6 @@ from topoloc.maps import Map
 from topoloc.methods import available_methods, get_method
 from topoloc.spec import FeatureSpec
 
-
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20}, "coocmap": {"top_k": 3}}
 LOCAL_FEATURE_METHODS = sorted(n for n in available_methods() if get_method(n).tags.uses_local_features)
 XFEAT_KIND = "xfeat-64-float32"

@@ -95,7 +95,7 @@ _networks: dict[tuple[str, str], Network] = {}
 
 
 def parse_runtime(runtime: str | None = None) -> str:
-    """``runtime`` (default ``$TOPOLOC_XFEAT_RUNTIME``, else ``"auto"``) checked: ``auto`` or one of :data:`RUNTIMES`."""
+    """``runtime`` (default ``$TOPOLOC_XFEAT_RUNTIME``, else ``"auto"``), checked: ``auto`` or a :data:`RUNTIMES`."""
     name = str(runtime or os.environ.get("TOPOLOC_XFEAT_RUNTIME") or "auto").strip().lower()
     if name != "auto" and name not in RUNTIMES:
         raise TopolocError(f"XFeat runtime must be auto or one of {', '.join(RUNTIMES)}, got {name!r} "

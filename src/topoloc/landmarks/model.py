@@ -112,7 +112,7 @@ was measured with."""
 
 
 def hnsw_ef_search(n_landmarks: int, n_candidates: int) -> int:
-    """HNSW's ``efSearch`` for a map of ``n_landmarks``: ``2 n_candidates``, at least 64 above :data:`HNSW_SMALL_GRAPH`."""
+    """HNSW's ``efSearch`` for ``n_landmarks``: ``2 n_candidates``, at least 64 above :data:`HNSW_SMALL_GRAPH`."""
     return 2 * n_candidates if n_landmarks <= HNSW_SMALL_GRAPH else max(64, 2 * n_candidates)
 
 

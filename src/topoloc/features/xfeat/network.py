@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-from torch.nn import functional as F  # noqa: N812 - PyTorch's own spelling
+from torch.nn import functional as F
 
 #: Names of the network's outputs, in order (also the ONNX graph's output names).
 OUTPUTS = ("descriptors", "keypoint_logits", "reliability")

@@ -120,7 +120,7 @@ def _gather(values: np.ndarray, xy: np.ndarray, size: tuple[int, int], taps: int
 
 
 def sample_bilinear(values: np.ndarray, xy: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Map ``values`` (C, h, w) sampled bilinearly at pixel positions ``xy`` (n, 2) of an image of ``size`` -> (n, C)."""
+    """Map ``values`` (C, h, w) sampled bilinearly at pixel positions ``xy`` (n, 2) of a ``size`` image -> (n, C)."""
     grid, tx, ty = _gather(values, xy, size, 2)
     tx, ty = tx[:, None].astype(np.float32), ty[:, None].astype(np.float32)
     top = grid[:, 0, 0] * (1 - tx) + grid[:, 0, 1] * tx
@@ -137,7 +137,7 @@ def _cubic_weights(t: np.ndarray, a: float = -0.75) -> np.ndarray:
 
 
 def sample_bicubic(values: np.ndarray, xy: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Map ``values`` (C, h, w) sampled bicubically at pixel positions ``xy`` (n, 2) of an image of ``size`` -> (n, C)."""
+    """Map ``values`` (C, h, w) sampled bicubically at pixel positions ``xy`` (n, 2) of a ``size`` image -> (n, C)."""
     grid, tx, ty = _gather(values, xy, size, 4)
     weights = (_cubic_weights(ty)[:, :, None] * _cubic_weights(tx)[:, None, :]).astype(np.float32)
     n, c = len(xy), values.shape[0]
