@@ -146,15 +146,16 @@ def _provenance(runtime: str) -> tuple[tuple[str, str], ...]:
     return (("network", "xfeat"), ("weights_sha256", str(info["source"]["sha256"])),
             ("licence", str(info["source"]["licence"])), ("runtime", runtime),
             ("runtime_version", runtimes.version(runtime)),
-            ("network_sha256", str(info["files"][runtimes.FILES[runtime]]["sha256"])))
+            ("network_sha256", str(info["files"][runtimes.FILES[runtime]]["sha256"])),
+            ("postprocess", str(postprocess.VERSION)))
 
 
 def provenance(runtime: str | None = None) -> dict[str, str]:
     """Where the weights come from and what runs them; part of the feature cache key.
 
     The weights' SHA-256 and licence, the runtime (``onnxruntime`` or
-    ``torch``) with its major.minor release, and the SHA-256 of the network
-    file it loads.  The device is not part of it: CUDA and CPU features agree
+    ``torch``) with its major.minor release, the SHA-256 of the network
+    file it loads and the version of the shared post-processing.  The device is not part of it: CUDA and CPU features agree
     within the tolerance ``tests/features/test_learned.py`` states, and a cache
     must not hold two copies of one image's features.
     """

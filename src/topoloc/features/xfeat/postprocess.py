@@ -39,6 +39,10 @@ NMS_WINDOW = 5
 #: Descriptor columns.
 DIM = 64
 
+#: Version of the arithmetic below; part of the feature cache key (:func:`topoloc.features.learned.provenance`), so
+#: that features computed by an earlier post-processing are never read as this one's.
+VERSION = 1
+
 _NMS_KERNEL = np.ones((NMS_WINDOW, NMS_WINDOW), np.uint8)
 
 
@@ -138,10 +142,16 @@ def _cubic_weights(t: np.ndarray, a: float = -0.75) -> np.ndarray:
 
 def sample_bicubic(values: np.ndarray, xy: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Map ``values`` (C, h, w) sampled bicubically at pixel positions ``xy`` (n, 2) of a ``size`` image -> (n, C)."""
-    grid, tx, ty = _gather(values, xy, size, 4)
-    weights = (_cubic_weights(ty)[:, :, None] * _cubic_weights(tx)[:, None, :]).astype(np.float32)
-    n, c = len(xy), values.shape[0]
-    return np.matmul(weights.reshape(n, 1, 16), grid.reshape(n, 16, c))[:, 0]
+    c, h, w = values.shape
+    u, v = _grid_coords(xy, size, (h, w))
+    x0, y0 = np.floor(u), np.floor(v)
+    pad = 2  # the 4 x 4 taps reach 1 cell before and 2 after the position's cell
+    flat = _padded(values, pad).reshape(-1, c)
+    wp = w + 2 * pad
+    first = (y0.astype(np.intp) - 1 + pad) * wp + (x0.astype(np.intp) - 1 + pad)
+    taps = np.clip(first[:, None] + (np.arange(4)[:, None] * wp + np.arange(4)).ravel(), 0, len(flat) - 1)
+    weights = (_cubic_weights(v - y0)[:, :, None] * _cubic_weights(u - x0)[:, None, :]).reshape(-1, 16)
+    return np.einsum("nk,nkc->nc", weights.astype(np.float32), flat[taps])
 
 
 def normalise_rows(x: np.ndarray, axis: int) -> np.ndarray:
