@@ -311,8 +311,8 @@ def page(result: dict[str, Any]) -> str:
                 "costs more than the limit many times over")
         if rule["decided_by"] == "the flat search time":
             text.append(f". On the scorecard's `landmarks_day` map ({change['map']}) HNSW's scores of the "
-                        f"{change['queries']} {change['query']} queries (unverified) differ from the exact index's by up "
-                        f"to {change['max_abs_score_difference']:.4f}, the same best place for "
+                        f"{change['queries']} {change['query']} queries (unverified) differ from the exact index's "
+                        f"by up to {change['max_abs_score_difference']:.4f}, the same best place for "
                         f"{100 * change['same_best_place']:.0f}% of them")
         text.append(". ")
         if rule["switch"] == code:

@@ -718,9 +718,9 @@ def render(o: dict[str, Any]) -> str:
     if lo:
         lines.append("\n## `localize` end to end\n\n`topoloc map build --method coocmap` of day_left (default "
                      "vocabulary), then `topoloc localize --verify` of the 100 day_right frames (960 x 540 JPEG files, "
-                     "default prefetch), quiet and beside 3 busy processes paced at 10 Hz; its summary line.\n\n| features | beside | frames/s | "
-                     "ms decode / features / "
-                     "quantisation / matching / verification (mean) |\n| --- | --- | --- | --- |\n")
+                     "default prefetch), quiet and beside 3 busy processes paced at 10 Hz; its summary line.\n\n"
+                     "| features | beside | frames/s | ms decode / features / quantisation / matching / verification "
+                     "(mean) |\n| --- | --- | --- | --- |\n")
         for f, loads in lo.items():
             for load, r in loads.items():
                 stages = " / ".join(f"{r.get(k) or float('nan'):.1f}" for k in (
