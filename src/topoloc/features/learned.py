@@ -155,9 +155,10 @@ def provenance(runtime: str | None = None) -> dict[str, str]:
 
     The weights' SHA-256 and licence, the runtime (``onnxruntime`` or
     ``torch``) with its major.minor release, the SHA-256 of the network
-    file it loads and the version of the shared post-processing.  The device is not part of it: CUDA and CPU features agree
-    within the tolerance ``tests/features/test_learned.py`` states, and a cache
-    must not hold two copies of one image's features.
+    file it loads and the version of the shared post-processing.  The device
+    is not part of it: CUDA and CPU features agree within the tolerance
+    ``tests/features/test_learned.py`` states, and a cache must not hold two
+    copies of one image's features.
     """
     return dict(_provenance(resolve_runtime(resolve_device(), runtime)))
 
