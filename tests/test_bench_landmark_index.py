@@ -52,9 +52,10 @@ def test_the_switch_passes_both_the_time_and_the_development_maps(bench: ModuleT
     rule = bench.choose_switch(rows, 10_000, few_ms=5.0, room=1.5)
     assert rule["switch"] == 16_384 and rule["decided_by"] == "the development maps"
     assert rule["few_ms_size"] == 2_048 and rule["hnsw_faster_size"] == 4_096 and rule["room_size"] == 15_000
-    # Small development maps: the time decides.
+    # Small development maps: the time decides, where HNSW is faster too (at 2,048 flat costs 8 ms, HNSW 14).
     rule = bench.choose_switch(rows, 100, few_ms=5.0, room=1.5)
-    assert rule["switch"] == 2_048 and rule["decided_by"] == "the flat search time"
+    assert rule["switch"] == 4_096 and rule["decided_by"] == "the flat search time"
+    assert bench.choose_switch(rows, 10_000, few_ms=5.0, room=0.0)["switch"] == 4_096
     # Nothing measured is large enough.
     assert bench.choose_switch(rows, 30_000, few_ms=5.0, room=1.5)["switch"] is None
     # HNSW "faster from" is the start of the last run of sizes at which it wins.
@@ -76,7 +77,7 @@ def test_page_says_whether_the_code_agrees_and_every_development_map_is_flat(ben
             for r in _rows([1, 2, 4, 8, 16, 32, 64, 128], [10, 12, 14, 16, 15, 18, 20, 22])]
     result = {"machine": "m", "date": "d", "load_before": 0.5, "args": "", "repeats": 3, "pool": 9_000,
               "code_switch": 16_384, "queries": {"n": 20, "features_median": 770.0},
-              "dev_maps": maps, "lookups": rows, "rule": bench.choose_switch(rows, 9_000), "route": None,
+              "dev_maps": maps, "lookups": rows, "rule": bench.choose_switch(rows, 9_000, room=1.5), "route": None,
               "hnsw_change": {"map": "gardens_point/day_left", "query": "gardens_point/day_right", "queries": 100,
                               "max_abs_score_difference": 0.008, "same_best_place": 1.0}}
     text = bench.page(result)

@@ -46,3 +46,28 @@ def test_the_page_reports_the_targets_and_the_worse_cells(bench: ModuleType) -> 
     assert "XFeat is worse than SIFT by more than 0.02 AUC in 1: `bow` on gardens_point day_left + day_right" in page
     assert "two day tours, single images, XFeat R@1: 0.950 (>= 0.75: met)" in page
     assert "bag of words by day, XFeat R@1: 0.980 (>= 0.95: met)" in page
+
+
+def test_runtimes_are_compared_at_the_same_positions(bench: ModuleType) -> None:
+    from topoloc.features import FeatureSet
+
+    rng = np.random.default_rng(1)
+    kp = np.zeros((4, 5), np.float32)
+    kp[:, :2] = [[1, 2], [3, 4], [5, 6], [7, 8]]
+    d = rng.standard_normal((4, 64)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    a = FeatureSet(kp, d, (10, 10))
+    other = kp.copy()
+    other[3, :2] = [9, 9]  # one keypoint moved: 3 of 4 at the same position
+    b = FeatureSet(other[[2, 0, 1, 3]], d[[2, 0, 1, 3]], (10, 10))  # another order
+    c = bench.compare_features(a, b)
+    assert c["same"] == 3 and c["n_a"] == c["n_b"] == 4
+    np.testing.assert_allclose(c["cos"], 1.0, rtol=1e-6)
+    page = bench.render({"date": "today", "machine": "m", "runtimes": {
+        "images": 2, "folders": [{"folder": "x", "images": 2, "keypoints_onnx": 8, "keypoints_torch": 8,
+                                  "same_positions": 0.75, "cos_min": 0.9999, "share_cos_ok": 1.0}],
+        "keypoints_onnx": 8, "keypoints_torch": 8, "same_positions": 0.75, "cos_min": 0.9999, "cos_p001": 0.9999,
+        "share_cos_ok": 1.0, "worst_image": {"share": 0.75, "image": "x/1.jpg", "n_a": 4, "n_b": 4},
+        "onnxruntime": "1", "torch": "2"}})
+    assert "PyTorch's positions, every development image (share): 0.750 (>= 0.99: NOT met)" in page
+    assert "smallest descriptor cosine at the same positions: 1.000 (>= 0.999: met)" in page

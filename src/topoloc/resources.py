@@ -500,17 +500,16 @@ class InMemoryResources(_MemoisedResources):
             from topoloc.features import FeatureExtractor
 
             extractor = FeatureExtractor(extractor.config, use_cache=False, n_jobs=extractor.n_jobs)
-        elif feature_config is not None:
-            from topoloc.features import FeatureExtractor
-
-            extractor = FeatureExtractor(feature_config, use_cache=False)
+        # A feature_config's extractor is made when features are first needed: a saved map opens (map info) where
+        # its features cannot be computed (XFeat's runtime missing), and says so when they are.
+        self._feature_config = feature_config
         super().__init__(extractor=extractor, vocabulary=vocabulary, progress=progress, n_jobs=n_jobs,
                          training=training, training_images=training_images, memoise=memoise)
 
     def _default_extractor(self) -> FeatureExtractor:
         from topoloc.features import FeatureExtractor
 
-        return FeatureExtractor(use_cache=False)
+        return FeatureExtractor(self._feature_config, use_cache=False)
 
 
 @dataclass(frozen=True)

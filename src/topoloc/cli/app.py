@@ -102,7 +102,8 @@ def _setup(
         "--version", help="Print the version and exit.", callback=_print_version, is_eager=True)] = False,
     device: Annotated[str | None, typer.Option(
         "--device", help="Where learned features (--features xfeat) are extracted: cpu (default), cuda, or auto "
-                         "(CUDA when PyTorch sees one). Sets TOPOLOC_DEVICE for this run and its local workers.",
+                         "(CUDA where onnxruntime-gpu or PyTorch sees one). Sets TOPOLOC_DEVICE for this run and its "
+                         "local workers.",
     )] = None,
 ) -> None:
     from topoloc.cli.progress import LogHandler

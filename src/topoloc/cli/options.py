@@ -31,7 +31,7 @@ ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="Settings file (TOML, YAML, or a run's metrics.json); flags given here override it.")]
 # -- features and vocabulary ------------------------------------------------------------------------------
 FeaturesOption = Annotated[str, typer.Option(
-    help="Local features: auto (xfeat where pip install 'topoloc[learned]' put it, else sift with a warning), "
+    help="Local features: auto (xfeat, on ONNX Runtime; sift with a warning where that is not installed), "
          "xfeat (learned), sift, rootsift, orb, akaze.")]
 SlamFeaturesOption = Annotated[str, typer.Option(
     "--features", help="Local features: sift (the default of slam: online FAB-MAP with XFeat merged most of a loop "

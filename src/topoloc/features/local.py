@@ -17,7 +17,8 @@ akaze       akaze-61-uint8         Alcantarilla et al. 2013, 486-bit binary (MLD
                                    ``cv2.xfeatures2d.AKAZE_create`` exists
 xfeat       xfeat-64-float32       Potje et al., CVPR 2024: a learned detector and
                                    descriptor (:mod:`topoloc.features.learned`);
-                                   unit-norm rows; needs ``topoloc[learned]``
+                                   unit-norm rows; runs on ONNX Runtime (a
+                                   dependency), or PyTorch (``topoloc[learned]``)
 ==========  =====================  ==================================================
 
 Keypoints are returned strongest first (by detector response) and capped at
@@ -279,13 +280,14 @@ def _akaze_factory() -> Callable[..., Any] | None:
 def check_method_available(method: str) -> None:
     """Raise :class:`TopolocError` if this OpenCV build lacks the detector for ``method``.
 
-    For a learned method, if its extra (PyTorch and the weights) is not installed.
+    For a learned method, if what runs it (ONNX Runtime, or PyTorch where chosen) is missing or does not load.
     """
     if method in LEARNED_METHODS:
         from topoloc.features import learned
 
+        # The runtime imported and its network file checked, a CUDA device asked for and absent said: all before
+        # any work starts.
         learned.check_available()
-        learned.resolve_device()  # a CUDA device asked for and absent is said before any work starts
         return
     if method == "akaze" and _akaze_factory() is None:
         raise TopolocError(

@@ -64,23 +64,19 @@ from topoloc.landmarks.tracking import Tracks
 #: The faiss indexes a model can search its landmark means with: exact, or HNSW (approximate).
 INDEX_KINDS = ("flat", "hnsw")
 
-AUTO_FLAT_MAX_LANDMARKS = 32768
+AUTO_FLAT_MAX_LANDMARKS = 2048
 """Most landmarks for which ``index="auto"`` keeps the exact flat index; HNSW above.
 
-From ``benchmarks/bench_landmark_index.py`` (``docs/results/landmark_index.md`` and its .json,
-which also list the development maps' landmark counts and check this value against the rule
-below).  Flat search compares every query feature with every landmark mean, so a query costs
-time linear in the landmarks: with the gardens_point ``day_right`` queries (median 772 SIFT
-features, one thread) 3.6 ms at 1,024 landmarks, 9.1 ms at 2,048, more than HNSW's from 8,192
-on (31.8 ms against 20.8 ms) and 131 ms at 32,768 (HNSW 34 ms).  A switch where flat search
-first costs more than a few ms (5 ms: 2,048 landmarks) would put every gardens_point map that
-the scorecard and the results pages build (6,762 to 15,424 landmarks) on the approximate index,
-whose scores are not the exact index's (up to 0.008 apart on the scorecard's ``landmarks_day`` map), so the results
-pages' numbers would change.  The rule is therefore: the smallest measured size past 5 ms that
-is at least 1.5 times the largest development map (20,594 landmarks: all three gardens_point
-traverses), i.e. 32,768, 2.1 times the largest map a results page reports (15,424).  A long
-route is far above it (``docs/results/localize_100k.md``: 2.9 million landmarks, 5,725 ms per
-query flat against 30.6 ms with HNSW).
+From ``benchmarks/bench_landmark_index.py`` (``docs/results/landmark_index.md`` and its .json, which
+also list the development maps' landmark counts and check this value against the rule below).  Flat
+search compares every query feature with every landmark mean, so a query costs time linear in the
+landmarks; HNSW, searched :func:`hnsw_ef_search` deep, costs nearly the same at every size.  The rule:
+the smallest measured size at which a flat look-up costs more than 5 ms (a tenth of the 50 ms a
+landmark frame may take at camera rate) and HNSW is faster.  Until issue #47 the switch was also kept
+above every development map (32,768), so that the results pages stayed those of the exact index; with
+XFeat's 1,000 64-D features a query, the flat look-up of the scorecard's ``landmarks_day`` map (11,623
+landmarks) took most of a camera-rate frame, while HNSW gives that map the same AUC, R@100P and R@1
+(``landmark_index.md``, section 3, and the scorecard).
 """
 
 
@@ -105,6 +101,21 @@ def resolve_index(index: str, n_landmarks: int) -> str:
     return index
 
 
+HNSW_SMALL_GRAPH = 65536
+"""Largest map (landmarks) searched with HNSW's ``efSearch`` at twice ``n_candidates``; larger maps search 64 deep.
+
+A query feature's landmark matches are its few nearest means within a small radius (the 0.6 floor of
+normalised descriptors, where every gardens_point landmark's radius lies), which a shallow search finds:
+``benchmarks/bench_landmark_index.py`` measures the recall of each size it times (``docs/results/
+landmark_index.md``).  The deeper search of larger graphs is the one ``docs/results/localize_100k.md``
+was measured with."""
+
+
+def hnsw_ef_search(n_landmarks: int, n_candidates: int) -> int:
+    """HNSW's ``efSearch`` for ``n_landmarks``: ``2 n_candidates``, at least 64 above :data:`HNSW_SMALL_GRAPH`."""
+    return 2 * n_candidates if n_landmarks <= HNSW_SMALL_GRAPH else max(64, 2 * n_candidates)
+
+
 def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
     """A faiss index of kind ``kind`` over the landmark means, as :class:`LandmarkModel` searches them.
 
@@ -113,7 +124,7 @@ def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
     kind : {"flat", "hnsw"}
     means : ndarray of float32, shape (n_landmarks, d)
     n_candidates : int
-        Neighbours looked up per query feature; HNSW's ``efSearch`` is at least twice that.
+        Neighbours looked up per query feature; HNSW's ``efSearch`` is :func:`hnsw_ef_search`.
 
     Returns
     -------
@@ -123,7 +134,7 @@ def landmark_index(kind: str, means: np.ndarray, n_candidates: int) -> Any:
     index: Any
     if kind == "hnsw":
         index = faiss.IndexHNSWFlat(d, 32)
-        index.hnsw.efSearch = max(64, 2 * n_candidates)
+        index.hnsw.efSearch = hnsw_ef_search(len(means), n_candidates)
     elif kind == "flat":
         index = faiss.IndexFlatL2(d)
     else:

