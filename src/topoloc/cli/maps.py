@@ -49,7 +49,6 @@ from topoloc.cli.options import (
 )
 from topoloc.cli.progress import rich_progress
 from topoloc.errors import TopolocError
-from topoloc.features.local import check_method_available
 from topoloc.io.scratch import spill_to
 from topoloc.maps.acceptance import warn_before_localizing
 from topoloc.spec.parts import STREAM_SEQUENCE_MODE, stream_sequence_for
@@ -302,8 +301,6 @@ def localize(
     spec = spec_from_cli(LocalizeSpec, ctx, values, config=config)
     assert spec.map_file is not None
     m = Map.load(spec.map_file)
-    # The map opens without its features' runtime (map info needs none); localising needs it: said before any output.
-    check_method_available(m.features.method)
     if not single and not spec.sequence.length:  # not given: match as the threshold was calibrated
         spec = dataclasses.replace(spec, sequence=m.calibrated_sequence)
     assert spec.out is not None

@@ -28,6 +28,7 @@ from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig
+from topoloc.features.local import check_method_available
 from topoloc.io.lock import file_lock
 from topoloc.io.scratch import spill_to
 from topoloc.maps import calibration as _cal
@@ -650,6 +651,9 @@ class Map:
         TopolocError
             Before the first frame: verification asked for where the map cannot verify, bad settings.
         """
+        # The map opens without its features' runtime (map info needs none); localising needs it: said here,
+        # before any frame or output, for every caller.
+        check_method_available(self.features.method)
         cal = self.calibrated_sequence
         length = cal.length if sequence is None else sequence
         vspec = verification or VerificationSpec()
