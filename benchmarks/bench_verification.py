@@ -30,7 +30,8 @@ Parts:
 - ``confidence``: the confidence model fitted on every set's answers pooled, the frames of no mapped
   place among them (all wrong; the defaults in ``topoloc.verification.decision``), its reliability
   (confidence against the fraction right, by bins), and the same fitted leaving each set out, scored on
-  the set left out.
+  the set left out.  The answers come from the ``quality`` (Cooc-Map) and ``offmap`` parts of this run, or
+  of the last run (kept in the JSON) when only ``confidence`` is asked for.
 - ``speed``: the stage alone on 640 px gardens_point day frames, quiet and beside 3 busy processes,
   one frame per period at 10 Hz.
 - ``localize``: ``topoloc localize`` of the 100 day_right frames against a day_left map, with and without
@@ -675,18 +676,22 @@ def main(argv: Sequence[str] | None = None) -> None:
     pooled: dict[str, list[dict[str, np.ndarray]]] = {}
     try:
         t0 = time.perf_counter()
-        if "quality" in parts or "confidence" in parts:
+        if "quality" in parts:
             fresh = quality(rows, args.methods.split(","), tmp, pooled)
             _thin_curves(fresh)
-            if "quality" in parts:
-                res["quality"] = {r: {**old.get("quality", {}).get(r, {}), **fresh.get(r, {})}
-                                  for r in ROWS if r in fresh or r in old.get("quality", {})}
-                pr_figure(res["quality"], OUT_PNG)
-        if "offmap" in parts or "confidence" in parts:
-            fresh_off = offmap(tmp, pooled)
-            if "offmap" in parts:
-                res["offmap"] = fresh_off
+            res["quality"] = {r: {**old.get("quality", {}).get(r, {}), **fresh.get(r, {})}
+                              for r in ROWS if r in fresh or r in old.get("quality", {})}
+            pr_figure(res["quality"], OUT_PNG)
+        if "offmap" in parts:
+            res["offmap"] = offmap(tmp, pooled)
+        if pooled:
+            # The labelled answers the confidence is fitted on, kept so that ``--parts confidence`` alone refits.
+            res["pooled"] = {k: [{f: np.asarray(a[f]).tolist() for f in ("strength", "verified", "right")}
+                                 for a in v] for k, v in pooled.items()}
         if "confidence" in parts:
+            if not pooled:
+                pooled = {k: [{f: np.asarray(a[f], bool if f != "strength" else float) for f in a} for a in v]
+                          for k, v in old.get("pooled", {}).items()}
             res["confidence"] = confidence(pooled)
         if "floor" in parts:
             res["floor"] = floor(rows, tmp)

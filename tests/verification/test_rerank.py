@@ -45,6 +45,12 @@ def test_verified_answers_rank_above_unverified_and_nearest_places_first() -> No
     # The verified place's route neighbours come next, whatever the method scored them; no farther place.
     order = np.argsort(-Sv[:, 0], kind="stable")
     assert set(order[:3].tolist()) == {39, 40, 41} and Sv[38, 0] < 1 and Sv[42, 0] < 1
+    # With the peak it came from: the answer and its neighbours above 1.5, the rest of the peak in (1, 1.5),
+    # nearest first; beyond the peak the method's scores.
+    Sp = verified_scores(S, answer, np.array([True, False]), np.array([3.0, 0.2]), peak=np.array([5, 3]))
+    assert (Sp[39:42, 0] > 1.5).all() and ((Sp[35:39, 0] > 1) & (Sp[35:39, 0] < 1.5)).all() and Sp[34, 0] < 1
+    assert np.all(np.diff(Sp[35:41, 0]) > 0) and np.all(np.diff(Sp[40:46, 0]) < 0)
+    assert ((Sp[17:24, 1] < 1) & (Sp[17:24, 1] > Sp[24:, 1].max())).all()  # an unverified answer's peak, below 1
     with pytest.raises(ValueError):
         verified_scores(S, answer[:1], np.array([True]), np.array([1.0]))
 

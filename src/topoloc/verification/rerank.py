@@ -24,27 +24,28 @@ Verified scores (``docs/protocol.md``, "Verification")
     With ``g(s) = 1/2 + arctan(s)/pi`` a map of any real score into (0, 1) that
     keeps the order of every column and across columns, ``a`` the answer's row
     and ``x`` its strength (:func:`topoloc.verification.decision.strength`), the
-    score of place ``i`` for a verified query is::
+    score of place ``i`` for a verified query is, with ``h = g(log x + 1 / (2 (1 + |i - a|)))``
+    and ``p`` the farther reach of the peak the answer came from (made symmetric)::
 
-        s'_i = 1 + g(log x + 1 / (2 (1 + |i - a|)))   for |i - a| <= 1   (in (1, 2))
-        s'_i = g(s_i)                                  otherwise          (in (0, 1))
+        s'_i = 1.5 + h / 2        for |i - a| <= 1        (in (1.5, 2))
+        s'_i = 1 + 0.999 h / 2    for 1 < |i - a| <= p    (in (1, 1.5))
 
-    and for any query the other places of its answer's peak (the answer is the
-    candidate with most inliers, verified or not: checking the candidates
-    reranks them; ``p`` the peak's farther reach, made symmetric)::
+    and for an unverified query (the answer is the candidate with most inliers,
+    verified or not: checking the candidates reranks them)::
 
         s'_i = t + (1 - t) 0.999 / (2 (1 + |i - a|))   for |i - a| <= p,   t = (1 + max_i g(s_i)) / 2
 
-    above the rest of its column, nearest first, below 1 (an unverified answer
-    itself scores so, across queries in the order of the method's best score).
-    So every verified answer ranks above every unverified one, verified answers
+    above the rest of its column, nearest first, below 1, across queries in the
+    order of the method's best score; every other place ``s'_i = g(s_i)``.  So
+    every verified answer ranks above every unverified one, verified answers
     rank by their strength, and the answer's neighbourhood along the route comes
     next, whatever the method scored it: the protocol scores the best place
     outside the tolerance's soft band, and once an answer is chosen the route's
-    topology says which place is next.  Only the answer's route neighbours rise
-    with a verified answer above 1: a place of its peak outside the tolerance
-    raised so would count as a confident wrong answer (it lost R@100P on the
-    crowded map, ``docs/results/verification.md``).
+    topology says which place is next.  The rest of a verified answer's peak
+    ranks below every verified answer and its route neighbours: a place of it
+    outside the tolerance would otherwise count as a confident wrong answer (one
+    tier for the whole peak lost R@100P on the crowded map,
+    ``docs/results/verification.md``).
 """
 
 from __future__ import annotations
@@ -176,9 +177,10 @@ def verified_scores(S: np.ndarray, answer: np.ndarray, is_verified: np.ndarray, 
     low = top + (1.0 - top) * near * 0.999
     within = d <= np.broadcast_to(np.asarray(peak), (m,))[None, :]
     out = np.where(within, low, out)
-    # ... and a verified answer with its route neighbours in (1, 2), by strength.
-    raised = 1.0 + squash(np.log(np.maximum(np.asarray(x, np.float64), 1e-3))[None, :] + near)
-    out = np.where(v[None, :] & (d <= reach), raised, out)
+    # ... a verified answer's peak in (1, 1.5), and the answer with its route neighbours in (1.5, 2), by strength.
+    g = squash(np.log(np.maximum(np.asarray(x, np.float64), 1e-3))[None, :] + near)
+    out = np.where(v[None, :] & within, 1.0 + 0.5 * 0.999 * g, out)
+    out = np.where(v[None, :] & (d <= reach), 1.5 + 0.5 * g, out)
     return out.astype(np.float32)
 
 
