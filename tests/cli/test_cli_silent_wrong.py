@@ -118,11 +118,12 @@ def test_every_number_is_checked_before_work(cli: Cli, rf: dict[str, Path], args
                                                                          "--top-k", "inf"],
                                   ["bench", "fabmap2", "--places", "nan"]])
 def test_a_whole_number_option_refuses_nan_and_inf(args: list[str]) -> None:
-    # The command-line parser refuses them (exit 2, naming the option) before the command runs.
+    # The command-line parser refuses them (exit 2, one line naming the option) before the command runs.
     from typer.testing import CliRunner
 
     r = CliRunner().invoke(app, args)
-    assert r.exit_code == 2 and "Invalid value for '--" in r.stderr and "integer" in r.stderr
+    assert r.exit_code == 2 and r.stderr.startswith("topoloc: error: invalid value for '--"), r.stderr
+    assert "integer" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 # -- calibration -------------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 
 import typer
 
-from topoloc.cli.app import app, bench_app, handle_errors, vocab_app
+from topoloc.cli.app import app, bench_app, handle_errors, needs, vocab_app
 from topoloc.cli.options import (
     CacheDirOption,
     ConfigOption,
@@ -50,7 +50,7 @@ from topoloc.errors import TopolocError
 __all__ = ["app", "main"]
 
 
-@app.command()
+@app.command(cls=needs("(--map <path>... --method <str> | --map-file <path>)", "query", "out"))
 @handle_errors
 def evaluate(
     ctx: typer.Context,
@@ -112,7 +112,7 @@ def evaluate(
                + (f"; {spec.pairs_out}" if spec.pairs_out else ""))
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def report(
     runs: Annotated[list[Path], typer.Argument(help="Output folders of `topoloc evaluate`.")],
@@ -149,7 +149,7 @@ def _earlier_report(folder: Path) -> bool:
     return all((folder / name).is_file() for name in REPORT_FILES)
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def methods(
     name: Annotated[str | None, typer.Argument(help="A method: explain each of its parameters.")] = None,
@@ -187,7 +187,7 @@ def _defaults(cls: type) -> dict[str, Any]:
     return {p.name: p.default for p in sig.parameters.values() if p.kind is p.KEYWORD_ONLY}
 
 
-@vocab_app.command("train")
+@vocab_app.command("train", cls=needs("folders", "out"))
 @handle_errors
 def vocab_train_cmd(
     ctx: typer.Context,
@@ -227,7 +227,7 @@ def vocab_train_cmd(
 VOCAB_TRAIN_NAMES = {"words": "vocabulary.words", "seed": "vocabulary.seed"}
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the tours into.")],
@@ -280,7 +280,7 @@ def _tours(hours: str) -> list[tuple[str, float]]:
     return [(f"tour_{int(h):02d}{round((h % 1) * 60):02d}", h) for h in hs]
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def demo(
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("demo_out"),
@@ -299,7 +299,7 @@ def demo(
     typer.echo(f"\nPR curves: {report_path.parent / 'pr_curves.png'}")
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def convert(
     format: Annotated[str, typer.Argument(help="vpr-bench, utm-names, dbstruct, msls, kitti or latlon-csv.")],
@@ -340,11 +340,11 @@ def convert(
     typer.echo(f"evaluate with: topoloc evaluate ... {result.evaluate}")
 
 
-@app.command("show-match")
+@app.command("show-match", cls=needs())
 @handle_errors
 def show_match_cmd(
     query_image: Annotated[Path, typer.Argument(help="Query image.")],
-    map: Annotated[list[Path], typer.Option("--map", help="Map traverse folder (repeatable): the tours.")],
+    map: Annotated[list[Path], typer.Option("--map", metavar="<path>", help="Map traverse folder (repeatable): the tours.")],
     out: Annotated[Path, typer.Option(help="PNG to write.")],
     vocab: VocabOption = None,
     vocab_train: VocabTrainOption = None,
@@ -407,7 +407,7 @@ def slam_verify(verify: bool | None) -> bool:
     return True if env is None else env
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def slam(
     traverse: Annotated[Path, typer.Argument(
@@ -473,7 +473,7 @@ def slam(
                f"wrote {out}/posterior.npy, loop_closures.csv, loop_closures.png")
 
 
-@bench_app.command("fabmap2")
+@bench_app.command("fabmap2", cls=needs())
 @handle_errors
 def bench_fabmap2_cmd(
     places: Annotated[int, typer.Option(help="Places in the map.")] = 100000,
@@ -495,7 +495,7 @@ def bench_fabmap2_cmd(
     _print_bench(res, as_json)
 
 
-@bench_app.command("coocmap")
+@bench_app.command("coocmap", cls=needs())
 @handle_errors
 def bench_coocmap_cmd(
     locations: Annotated[int, typer.Option(help="Locations in the map.")] = 2200,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from topoloc.cli.app import app, command_group, handle_errors
+from topoloc.cli.app import app, command_group, handle_errors, needs
 from topoloc.cli.options import (
     CacheDirOption,
     CalibrateSequenceOption,
@@ -61,7 +61,7 @@ log = logging.getLogger(__name__)
 map_app = command_group(help="Saved maps: build once from tours, add tours later, inspect, calibrate.")
 app.add_typer(map_app, name="map")
 
-@map_app.command("build")
+@map_app.command("build", cls=needs("method", "map", "out"))
 @handle_errors
 def map_build(
     ctx: typer.Context,
@@ -120,7 +120,7 @@ def map_build(
                            "seconds": round(time.perf_counter() - t0, 2)}))
 
 
-@map_app.command("add")
+@map_app.command("add", cls=needs())
 @handle_errors
 def map_add(
     map_file: Annotated[Path, typer.Argument(help="Map file to extend (rewritten atomically).")],
@@ -175,7 +175,7 @@ def map_add(
     typer.echo(json.dumps(out))
 
 
-@map_app.command("info")
+@map_app.command("info", cls=needs())
 @handle_errors
 def map_info(
     map_file: Annotated[Path, typer.Argument(help="Map file.")],
@@ -204,7 +204,7 @@ def map_info(
                        "run `topoloc map calibrate` again")
 
 
-@map_app.command("calibrate")
+@map_app.command("calibrate", cls=needs())
 @handle_errors
 def map_calibrate(
     map_file: Annotated[Path, typer.Argument(help="Map file (rewritten atomically with the threshold).")],
@@ -254,7 +254,7 @@ def map_calibrate(
     typer.echo(json.dumps(cal))
 
 
-@app.command()
+@app.command(cls=needs("map_file", "inputs", "out"))
 @handle_errors
 def localize(
     ctx: typer.Context,
@@ -461,7 +461,7 @@ cache_app = command_group(help="The feature and vocabulary cache (~/.cache/topol
 app.add_typer(cache_app, name="cache")
 
 
-@cache_app.command("info")
+@cache_app.command("info", cls=needs())
 @handle_errors
 def cache_info(
     cache_dir: CacheDirOption = None,
@@ -493,7 +493,7 @@ def cache_info(
         typer.echo(f"  {key}: {agg['traverses']} traverses, {agg['images']} images, {agg['bytes'] / 2**20:.1f} MiB")
 
 
-@cache_app.command("clean")
+@cache_app.command("clean", cls=needs())
 @handle_errors
 def cache_clean(
     cache_dir: CacheDirOption = None,

@@ -110,21 +110,62 @@ _FLAT_TO_FLAG = {"vocabulary": "--vocab/--vocab-train", "maps": "--map", "params
 _NOT_SPEC = {"config", "quiet", "ctx"}
 #: Values a command passes under another name than its parameter's: localize's INPUTS become images or a stream.
 _CLI_PARAMETER = {"images": "inputs", "stream": "inputs"}
+#: A setting that is several of a command's parameters at once.
+_GROUPS = {"vocabulary": ("vocab", "vocab_train")}
+#: Where a command keeps its own flat names (``vocab train``'s ``--words``), for the errors raised after parsing.
+NAMES_KEY = "topoloc.flat_names"
 
 
-def flag_of(param: str, names: Mapping[str, str] | None = None) -> str:
+def flag_of(param: str, names: Mapping[str, str] | None = None, *, command: Any = None) -> str:
     """The flag a parameter of a run specification comes from: ``features.max_side`` -> ``--max-side``.
 
     ``names`` are the command's own flat names for dotted ones (``vocab train``'s ``words``).
+    ``command`` (a click command) names it as that command takes it: its option's flag or its
+    argument's name (``localize``'s ``MAP_FILE``, not ``evaluate``'s ``--map-file``), so that a
+    message never names a flag of another command (issue #49); a setting the command has no
+    flag for (one only a ``--config`` file gives) keeps its name in that file.
     """
     from topoloc.spec.config import DOTTED_NAMES
 
+    own = {dotted: flat for flat, dotted in (names or {}).items()}
     parts = []
     for one in param.split("/"):
-        own = {dotted: flat for flat, dotted in (names or {}).items()}
         flat = own.get(one) or DOTTED_NAMES.get(one, one)
-        parts.append(_FLAT_TO_FLAG.get(flat) or "--" + flat.replace("_", "-").replace(".", "-"))
-    return "/".join(parts)
+        if command is not None:
+            parts.append(_command_flag(command, one, flat))
+        else:
+            parts.append(_FLAT_TO_FLAG.get(flat) or "--" + flat.replace("_", "-").replace(".", "-"))
+    return "/".join(dict.fromkeys(parts))
+
+
+def _command_flag(command: Any, dotted: str, flat: str) -> str:
+    """How ``command`` takes the setting ``flat`` (dotted: ``dotted``): ``--flag``, ``ARGUMENT``, or its config name."""
+    by_name = {p.name: p for p in command.params}
+    cli = {v: k for k, v in _CLI_TO_FLAT.items()}.get(flat, _CLI_PARAMETER.get(flat, flat))
+    found = [by_name[n] for n in _GROUPS.get(flat, (cli,)) if n in by_name]
+    if not found:
+        return dotted  # not a flag of this command: the name a configuration file gives it
+    shown = []
+    for p in found:
+        if p.param_type_name == "argument":
+            shown.append(p.metavar or (p.name or "").upper())
+        else:
+            shown.append(max((o for o in p.opts if o.startswith("--")), key=len, default=p.opts[0]))
+    return "/".join(shown)
+
+
+def parameter_message(exc: ParameterError) -> str:
+    """The one line of a :class:`ParameterError` at the command line: the flags of the command typed."""
+    from typer._click.globals import get_current_context
+
+    ctx = get_current_context(silent=True)
+    command = ctx.command if ctx is not None else None
+    names = ctx.meta.get(NAMES_KEY) if ctx is not None else None
+
+    def name(p: str) -> str:
+        return flag_of(p, names, command=command)
+
+    return f"{name(exc.param)} {exc.render(name)}"
 
 
 def parse_params(items: list[str]) -> dict[str, str]:
@@ -164,6 +205,8 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
     from topoloc.spec import load_config, merge, nest, spec_from_dict
     from topoloc.spec.config import typed_config
 
+    if names:
+        ctx.meta[NAMES_KEY] = dict(names)
     flat: dict[str, Any] = {}
     for key, value in values.items():
         if key in _NOT_SPEC:
@@ -193,7 +236,7 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
         if config is None or any(_dotted(given, p) not in (None, (), [], "") for p in exc.param.split("/")):
             raise
         # A value the file set, not a flag: say where it came from.
-        raise ParameterError(exc.param, f"{exc.detail} (set in {config})") from None
+        raise ParameterError(exc.param, f"{exc.template} (set in {config})", exc.refs) from None
 
 
 #: Settings that are alternatives to one another: a flag giving one replaces a file's other (issue #41).

@@ -185,7 +185,7 @@ class FeatureSpec:
             return FeatureConfig(method=self.method, max_features=self.max_features, max_side=side,
                                  preprocess=self.preprocess)
         except ParameterError as exc:
-            raise ParameterError(f"features.{exc.param.rsplit('.', 1)[-1]}", exc.detail) from None
+            raise ParameterError(f"features.{exc.param.rsplit('.', 1)[-1]}", exc.template, exc.refs) from None
 
     def config(self) -> FeatureConfig:
         """The feature settings this spec resolves to: ``"auto"`` is :data:`AUTO_MAX_SIDE`.
@@ -382,7 +382,8 @@ class GroundTruthSpec:
 
         if self.file is not None:
             if not maps:
-                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours, not a saved map")
+                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours ({maps}), not a saved "
+                                                         "map", ("maps",))
             return ground_truth_from_file(self.file, map_traverse=maps[0], place_ids=place_ids,
                                           n_queries=len(query))
         if self.tolerance_m is not None:

@@ -139,9 +139,9 @@ class EvaluateSpec(_ChecksOutputs):
         if self.map_file is not None and self.maps:
             raise ParameterError("maps/map_file", "exclude each other: give map tours or a saved map, not both")
         if not self.maps and self.map_file is None:
-            raise ParameterError("maps", "needs at least one map traverse (or a saved map in map_file)")
+            raise ParameterError("maps", "needs at least one map traverse (or a saved map: {map_file})", ("map_file",))
         if not self.method and self.map_file is None:
-            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map in map_file")
+            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map: {map_file}", ("map_file",))
         if self.query is None:
             raise ParameterError("query", "is needed: the traverse to localise")
         if self.out is None:
@@ -149,9 +149,9 @@ class EvaluateSpec(_ChecksOutputs):
         parse_recall_at(self.recall_at)
         _whole("top_k", self.top_k, 0)
         if self.pairs_out is not None and not self.top_k:
-            raise ParameterError("pairs_out", "writes the K best map images of each query: give top_k too")
+            raise ParameterError("pairs_out", "writes the K best map images of each query: give {top_k} too", ("top_k",))
         if self.top_k and self.html is not None:
-            raise ParameterError("html", "draws the whole S: leave out top_k, or html")
+            raise ParameterError("html", "draws the whole S: leave out {top_k}, or {html}", ("top_k", "html"))
         if self.map_file is not None and (self.params or self.vocabulary.given):
             raise ParameterError("map_file", "fixes its parameters and vocabulary: method parameters and a vocabulary "
                                              f"cannot be given with it ({self.map_file})")
