@@ -37,14 +37,19 @@ class ParameterError(TopolocError):
         field name the user did not type, issue #49).
     refs : tuple of str
         The dotted names of the parameters ``detail`` mentions as ``{name}``.
+    owner : str
+        What the parameter belongs to where it is not a setting of a run
+        (``"features"``, ``"seqslam"``): the message then reads
+        ``"<owner>: <param> <detail>"``.
     """
 
-    def __init__(self, param: str, detail: str, refs: tuple[str, ...] = ()) -> None:
+    def __init__(self, param: str, detail: str, refs: tuple[str, ...] = (), *, owner: str = "") -> None:
         self.param = param
         self.refs = tuple(refs)
+        self.owner = owner
         #: ``detail`` as given, other parameters still ``{name}``.
         self.template = " ".join(detail.split())
-        super().__init__(f"{param} {self.detail}")
+        super().__init__(f"{owner}: {param} {self.detail}" if owner else f"{param} {self.detail}")
 
     @property
     def detail(self) -> str:
@@ -59,7 +64,7 @@ class ParameterError(TopolocError):
         return text
 
     def __reduce__(self) -> tuple[Any, ...]:  # a Dask task's error travels back pickled
-        return (type(self), (self.param, self.template, self.refs))
+        return (_parameter_error, (type(self), self.param, self.template, self.refs, self.owner))
 
 
 class WriteError(TopolocError, OSError):
@@ -91,6 +96,11 @@ class WriteError(TopolocError, OSError):
 
     def __str__(self) -> str:
         return f"cannot write {self.filename}: {self.strerror}"
+
+
+def _parameter_error(cls: type[ParameterError], param: str, template: str, refs: tuple[str, ...],
+                     owner: str) -> ParameterError:
+    return cls(param, template, refs, owner=owner)
 
 
 def input_error(problem: str, path: str | Path | None = None) -> TopolocError:

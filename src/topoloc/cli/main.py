@@ -41,6 +41,7 @@ from topoloc.cli.options import (
     VocabTrainOption,
     VocabWordsOption,
     at_least,
+    own_names,
     parse_params,
     spec_from_cli,
 )
@@ -230,6 +231,7 @@ VOCAB_TRAIN_NAMES = {"words": "vocabulary.words", "seed": "vocabulary.seed"}
 @app.command(cls=needs())
 @handle_errors
 def synth(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Argument(help="Folder to write the tours into.")],
     places: Annotated[int, typer.Option(help="Number of places along the route.")] = 60,
     hours: Annotated[str, typer.Option(help="Comma-separated times of day of the tours.")] = "9,13,17,22",
@@ -242,6 +244,7 @@ def synth(
     from topoloc.io.dirs import Output, check_outputs
     from topoloc.synth import RouteConfig, generate_route
 
+    own_names(ctx, ROUTE_NAMES)
     tours = _tours(hours)
     names = tuple(name for name, _ in tours)
     check_outputs([Output(out, "folder", names=names, earlier=_earlier_route(names), what="output folder")], [])
@@ -249,6 +252,10 @@ def synth(
                                                   seed=seed), tours=tours)
     for d in dirs:
         typer.echo(str(d))
+
+
+# ``synth`` and ``demo`` say --places for the route's n_places.
+ROUTE_NAMES = {"places": "n_places"}
 
 
 def _earlier_route(names: tuple[str, ...]) -> Callable[[Path], bool]:
@@ -275,7 +282,7 @@ def _tours(hours: str) -> list[tuple[str, float]]:
         hs = [float(h) for h in hours.split(",") if h.strip()]
     except ValueError:
         raise TopolocError(f"--hours {hours!r} is not a comma-separated list of numbers") from None
-    if not all(math.isfinite(h) for h in hs):
+    if not all(math.isfinite(h) and 0 <= h <= 24 for h in hs):
         raise TopolocError(f"--hours {hours!r} needs finite hours of the day in [0, 24]")
     return [(f"tour_{int(h):02d}{round((h % 1) * 60):02d}", h) for h in hs]
 
@@ -283,6 +290,7 @@ def _tours(hours: str) -> list[tuple[str, float]]:
 @app.command(cls=needs())
 @handle_errors
 def demo(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("demo_out"),
     places: Annotated[int, typer.Option(help="Places along the generated route.")] = 60,
     quiet: QuietOption = False,
@@ -291,6 +299,7 @@ def demo(
     from topoloc.demo import DEMO_FILES, run_demo
     from topoloc.io.dirs import Output, check_outputs
 
+    own_names(ctx, ROUTE_NAMES)
     check_outputs([Output(out, "folder", names=DEMO_FILES, what="output folder",
                           earlier=lambda d: _earlier_route(("tour_0900",))(d / "route"))], [])
     with rich_progress(not quiet) as progress:

@@ -116,6 +116,13 @@ _GROUPS = {"vocabulary": ("vocab", "vocab_train")}
 NAMES_KEY = "topoloc.flat_names"
 
 
+def own_names(ctx: typer.Context, names: Mapping[str, str]) -> None:
+    """Record that this command's flags ``names`` (``{"places": "n_places"}``) give the parameters named so."""
+    meta = getattr(ctx, "meta", None)
+    if meta is not None:  # a context click made (not a stand-in)
+        meta[NAMES_KEY] = dict(names)
+
+
 def flag_of(param: str, names: Mapping[str, str] | None = None, *, command: Any = None) -> str:
     """The flag a parameter of a run specification comes from: ``features.max_side`` -> ``--max-side``.
 
@@ -131,31 +138,37 @@ def flag_of(param: str, names: Mapping[str, str] | None = None, *, command: Any 
     parts = []
     for one in param.split("/"):
         flat = own.get(one) or DOTTED_NAMES.get(one, one)
-        if command is not None:
-            parts.append(_command_flag(command, one, flat))
+        shown = _command_flag(command, one, flat) if command is not None else None
+        if shown is not None:
+            parts.append(shown)
+        elif command is not None:
+            parts.append(one)  # not a flag of this command: the name a configuration file or a method gives it
         else:
             parts.append(_FLAT_TO_FLAG.get(flat) or "--" + flat.replace("_", "-").replace(".", "-"))
     return "/".join(dict.fromkeys(parts))
 
 
-def _command_flag(command: Any, dotted: str, flat: str) -> str:
-    """How ``command`` takes the setting ``flat`` (dotted: ``dotted``): ``--flag``, ``ARGUMENT``, or its config name."""
+def _command_flag(command: Any, dotted: str, flat: str) -> str | None:
+    """How ``command`` takes the setting ``flat`` (dotted: ``dotted``): ``--flag`` or ``ARGUMENT``; None: it has none."""
     by_name = {p.name: p for p in command.params}
     cli = {v: k for k, v in _CLI_TO_FLAT.items()}.get(flat, _CLI_PARAMETER.get(flat, flat))
     found = [by_name[n] for n in _GROUPS.get(flat, (cli,)) if n in by_name]
-    if not found:
-        return dotted  # not a flag of this command: the name a configuration file gives it
     shown = []
     for p in found:
         if p.param_type_name == "argument":
             shown.append(p.metavar or (p.name or "").upper())
         else:
             shown.append(max((o for o in p.opts if o.startswith("--")), key=len, default=p.opts[0]))
-    return "/".join(shown)
+    return "/".join(shown) or None
 
 
 def parameter_message(exc: ParameterError) -> str:
-    """The one line of a :class:`ParameterError` at the command line: the flags of the command typed."""
+    """The one line of a :class:`ParameterError` at the command line: the flags of the command typed.
+
+    A parameter the command has no flag for keeps its own name: a setting
+    of a ``--config`` file, or a method's parameter (``--param ds=...``), said
+    with what it belongs to (``seqslam: ds must be ...``).
+    """
     from typer._click.globals import get_current_context
 
     ctx = get_current_context(silent=True)
@@ -165,7 +178,10 @@ def parameter_message(exc: ParameterError) -> str:
     def name(p: str) -> str:
         return flag_of(p, names, command=command)
 
-    return f"{name(exc.param)} {exc.render(name)}"
+    head = name(exc.param)
+    if exc.owner and head == exc.param:
+        head = f"{exc.owner}: {exc.param}"
+    return f"{head} {exc.render(name)}"
 
 
 def parse_params(items: list[str]) -> dict[str, str]:
@@ -206,7 +222,7 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
     from topoloc.spec.config import typed_config
 
     if names:
-        ctx.meta[NAMES_KEY] = dict(names)
+        own_names(ctx, names)
     flat: dict[str, Any] = {}
     for key, value in values.items():
         if key in _NOT_SPEC:
