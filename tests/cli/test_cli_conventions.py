@@ -145,7 +145,7 @@ def test_the_number_options_are_found() -> None:
 @pytest.mark.parametrize(("command", "option"), NUMBER_CASES)
 def test_a_value_of_the_wrong_type_is_one_error_line(command: str, option: str) -> None:
     line = _one_error_line([*_words(command), option, "not-a-number"])
-    assert option in line and "not-a-number" in line or option in line
+    assert (option in line and "not-a-number" in line) or option in line
 
 
 @pytest.mark.parametrize("command", [c for c in LEAVES if any(p.required for p in ALL[c].params

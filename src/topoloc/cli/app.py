@@ -244,7 +244,7 @@ def _add_shared_options(cmd: Any) -> None:
     if not _SHARED:
         _SHARED.update(_shared_params())
     have = {o for p in cmd.params for o in getattr(p, "opts", ())}
-    for name, shared in _SHARED.items():
+    for shared in _SHARED.values():
         if not set(shared.opts) & have:
             extra = copy.copy(shared)
             extra.expose_value = False  # the command's function does not take it: the callback does the work

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import sys
+import tempfile
 import time
 from collections import deque
 from pathlib import Path
@@ -92,6 +93,7 @@ def map_build(
 ) -> None:
     """Build a map from one or more tours and save it in one file."""
     values = dict(locals())  # before any name is imported here
+    from topoloc.io.paths import is_discard
     from topoloc.maps import Map
     from topoloc.spec import MapBuildSpec, spec_to_dict
     from topoloc.spec.setup import build_method
@@ -103,9 +105,10 @@ def map_build(
     tours = spec.inputs.load(spec.maps)
     params = build_method(spec.method, spec.params).get_params()  # checks names and types first
     t0 = time.perf_counter()
+    discard = is_discard(spec.out)  # --out /dev/null: built (and timed), not kept
     # The map's large intermediates (merged shards, inverted files) as scratch files beside the map,
     # until it is saved: the process then holds chunks of the map, not all of it (io.scratch).
-    with spill_to(spec.out.parent):
+    with spill_to(Path(tempfile.gettempdir()) if discard else spec.out.parent):
         with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
             v = spec.vocabulary
             m = Map.build(executor=executor, method=spec.method, tours=tours, params=params, vocabulary=v.file,
@@ -113,7 +116,8 @@ def map_build(
                           features=spec.features.config(), cache_dir=spec.execution.cache_dir,
                           progress=progress, shards=spec.shards)
         m.spec = spec_to_dict(spec)
-        m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
+        if not discard:
+            m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
     info = m.info()
     typer.echo(json.dumps({"out": str(spec.out), "bytes": info["bytes"], "method": info["method"],
                            "places": info["places"], "tours": [t["name"] for t in m.tours],
@@ -144,7 +148,7 @@ def map_add(
     """
     from dataclasses import replace
 
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, container_marker
     from topoloc.maps import Map
     from topoloc.spec import ExecutionSpec, FeatureSpec, InputSpec
     from topoloc.vocabulary import Vocabulary
@@ -155,7 +159,7 @@ def map_add(
     # `map add` or a `map calibrate` waits, then extends this one's result).
     with Map.update(map_file) as m:
         # The map is rewritten (that is the command); what it reads beside it must not be the map.
-        check_outputs([Output(map_file, what="map file")], [tour, vocab, cache_dir])
+        check_outputs([Output(map_file, what="map file", earlier=container_marker("map"))], [tour, vocab, cache_dir])
         # Options left out take the map's own values, so only those given are compared.
         have = FeatureSpec(method=m.features.method, max_features=m.features.max_features,
                            preprocess=m.features.preprocess)
@@ -232,7 +236,7 @@ def map_calibrate(
     Precision is right accepted frames over accepted frames; recall is right accepted frames over the frames
     that have a right place in the map.  Calibrating again clears a calibration that `map add` marked stale.
     """
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, container_marker
     from topoloc.maps import Map
     from topoloc.maps.map import check_precision
     from topoloc.spec import GroundTruthSpec, InputSpec, SequenceSpec
@@ -242,7 +246,7 @@ def map_calibrate(
     gt = GroundTruthSpec.for_calibration(tolerance, tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     with Map.update(map_file) as m:  # no tour another writer adds meanwhile is lost
-        check_outputs([Output(map_file, what="map file")], [query, cache_dir])
+        check_outputs([Output(map_file, what="map file", earlier=container_marker("map"))], [query, cache_dir])
         q = inputs.load([query])[0]
         if seq is None:  # not told: sequences where the tour travels the route, as a stream would
             seq = stream_sequence_for(q.places)

@@ -149,7 +149,7 @@ def flag_of(param: str, names: Mapping[str, str] | None = None, *, command: Any 
 
 
 def _command_flag(command: Any, dotted: str, flat: str) -> str | None:
-    """How ``command`` takes the setting ``flat`` (dotted: ``dotted``): ``--flag`` or ``ARGUMENT``; None: it has none."""
+    """How ``command`` takes the setting ``flat`` (dotted: ``dotted``): ``--flag``, ``ARGUMENT``, or None."""
     by_name = {p.name: p for p in command.params}
     cli = {v: k for k, v in _CLI_TO_FLAT.items()}.get(flat, _CLI_PARAMETER.get(flat, flat))
     found = [by_name[n] for n in _GROUPS.get(flat, (cli,)) if n in by_name]

@@ -43,6 +43,8 @@ from topoloc.evaluation.columns import NOT_USED, distinct_labels, run_columns, s
 from topoloc.evaluation.metrics import best_matches, pr_curve
 from topoloc.evaluation.report import load_run, run_title
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.dirs import HTML_GENERATOR
+from topoloc.io.paths import through_link
 from topoloc.progress import ProgressFactory, no_progress
 
 log = logging.getLogger(__name__)
@@ -402,7 +404,7 @@ def render_html(run_dirs: list[Path], title: str = "Results", progress: Progress
     data = json.dumps(payload, separators=(",", ":")).replace("<", "\\u003c")
     generated = datetime.now(UTC).isoformat(timespec="seconds")
     return (
-        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>{HTML_GENERATOR}"
         f"<title>{html.escape(title)}</title>"
         "<meta name='viewport' content='width=device-width, initial-scale=1'>"
         f"<style>{_asset('report.css')}</style></head><body>"
@@ -423,10 +425,13 @@ def render_html(run_dirs: list[Path], title: str = "Results", progress: Progress
 def build_html_report(
     run_dirs: list[Path], out: Path, title: str = "Results", progress: ProgressFactory | None = None
 ) -> Path:
-    """Write :func:`render_html` of ``run_dirs`` to ``out`` (an ``.html`` file) atomically; return ``out``."""
-    out = Path(out)
+    """Write :func:`render_html` of ``run_dirs`` to ``out`` (an ``.html`` file) atomically; return ``out``.
+
+    ``out`` named through a symbolic link is written where the link points (the link kept).
+    """
+    out = through_link(Path(out))
     if out.exists() and out.is_dir():
-        out = out / "index.html"
+        out = through_link(out / "index.html")
     page = render_html([Path(d) for d in run_dirs], title=title, progress=progress)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, page.encode("utf-8", "surrogateescape"))

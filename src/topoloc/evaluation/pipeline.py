@@ -45,6 +45,7 @@ from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.paths import is_discard
 from topoloc.io.dirs import staged_dir
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.progress import ProgressFactory, no_progress
@@ -228,12 +229,16 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         write_outputs(stage, S, place_ids, query.places, metrics, scores, None if top is not None else gt, top=top)
         if ver is not None and verifier is not None:
             atomic_write_bytes(stage / "verification.npz", _npz(**verification_arrays(ver, verifier)))
+        if spec.html is not None and is_discard(out):  # the run is discarded: its page is drawn before
+            from topoloc.evaluation.html import build_html_report
+
+            build_html_report([stage], Path(spec.html), progress=prog)
     if spec.pairs_out is not None:
         assert top is not None  # EvaluateSpec refuses pairs_out without top_k
         if place_images is None:
             place_images = place_names(place_ids, (first_images(m) for m in maps))
         write_pairs(spec.pairs_out, retrieval_pairs(image_names(query), top.rows, place_images))
-    if spec.html is not None:
+    if spec.html is not None and not is_discard(out):
         from topoloc.evaluation.html import build_html_report
 
         build_html_report([out], Path(spec.html), progress=prog)

@@ -47,6 +47,7 @@ import numpy as np
 
 from topoloc.errors import WriteError, input_error
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
+from topoloc.io.paths import is_discard
 from topoloc.io.scratch import chunk_rows, release
 
 MAGIC = b"TOPOLOC\x00"
@@ -100,10 +101,22 @@ def atomic_write_bytes(path: str | Path, chunks: Iterable[bytes | memoryview] | 
         When the folder or the file cannot be written (disk full, quota,
         read-only file system...): one line naming ``path``; any earlier file
         at ``path`` is left as it was.  It is also an :class:`OSError`.
+
+    Notes
+    -----
+    ``path`` itself is replaced: a symbolic link there is replaced by the file,
+    never followed (a cache's planted link must not redirect a write).  An
+    output a user named through a link is written at the link's target by its
+    writer (:func:`topoloc.io.paths.through_link`).  The null device
+    (``/dev/null``) takes the bytes and keeps nothing.
     """
     path = Path(path)
     if isinstance(chunks, bytes):
         chunks = [chunks]
+    if is_discard(path):  # --out /dev/null: discarded (never a temporary file renamed over the device)
+        for _ in chunks:
+            pass
+        return
     tmp: str | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

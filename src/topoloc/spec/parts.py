@@ -382,8 +382,8 @@ class GroundTruthSpec:
 
         if self.file is not None:
             if not maps:
-                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours ({maps}), not a saved "
-                                                         "map", ("maps",))
+                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours ({maps}), not "
+                                                          "a saved map", ("maps",))
             return ground_truth_from_file(self.file, map_traverse=maps[0], place_ids=place_ids,
                                           n_queries=len(query))
         if self.tolerance_m is not None:

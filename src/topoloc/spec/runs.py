@@ -15,7 +15,16 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.errors import ParameterError
-from topoloc.io.dirs import Output, check_outputs, container_marker, json_marker, jsonl_marker, pairs_marker
+from topoloc.io.paths import is_discard
+from topoloc.io.dirs import (
+    Output,
+    check_outputs,
+    container_marker,
+    html_marker,
+    json_marker,
+    jsonl_marker,
+    pairs_marker,
+)
 from topoloc.spec.parts import (
     ExecutionSpec,
     FeatureSpec,
@@ -73,6 +82,8 @@ def html_page(html: Path, out: Path | None) -> Path:
     """The file an HTML page given as ``html`` is written to: ``html/index.html`` for a folder or ``out``."""
     # The page of a folder is its index.html (evaluation.html.build_html_report), and so is the
     # page of the run folder itself, which exists by the time the page is written.
+    if is_discard(html):
+        return html
     if html.is_dir() or (out is not None and Path(os.path.realpath(html)) == Path(os.path.realpath(out))):
         return html / "index.html"
     return html
@@ -141,7 +152,8 @@ class EvaluateSpec(_ChecksOutputs):
         if not self.maps and self.map_file is None:
             raise ParameterError("maps", "needs at least one map traverse (or a saved map: {map_file})", ("map_file",))
         if not self.method and self.map_file is None:
-            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map: {map_file}", ("map_file",))
+            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map: {map_file}",
+                                 ("map_file",))
         if self.query is None:
             raise ParameterError("query", "is needed: the traverse to localise")
         if self.out is None:
@@ -149,7 +161,8 @@ class EvaluateSpec(_ChecksOutputs):
         parse_recall_at(self.recall_at)
         _whole("top_k", self.top_k, 0)
         if self.pairs_out is not None and not self.top_k:
-            raise ParameterError("pairs_out", "writes the K best map images of each query: give {top_k} too", ("top_k",))
+            raise ParameterError("pairs_out", "writes the K best map images of each query: give {top_k} too",
+                                 ("top_k",))
         if self.top_k and self.html is not None:
             raise ParameterError("html", "draws the whole S: leave out {top_k}, or {html}", ("top_k", "html"))
         if self.map_file is not None and (self.params or self.vocabulary.given):
@@ -166,7 +179,7 @@ class EvaluateSpec(_ChecksOutputs):
         assert self.out is not None
         outs = [Output(self.out, "run", earlier=EARLIER_RUN, what="run folder")]
         if self.html is not None:
-            outs.append(Output(html_page(self.html, self.out), what="HTML page"))
+            outs.append(Output(html_page(self.html, self.out), what="HTML page", earlier=html_marker()))
         if self.pairs_out is not None:
             outs.append(Output(self.pairs_out, what="pairs file", earlier=pairs_marker()))
         return tuple(outs)
