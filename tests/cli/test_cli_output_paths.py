@@ -231,7 +231,7 @@ def test_the_html_markers_recognise_topolocs_pages_and_only_them(tmp_path: Path)
     import cv2
     import numpy as np
 
-    ok, buf = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
+    _, buf = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
     mine, ours = tmp_path / "photo.png", tmp_path / "match.png"
     mine.write_bytes(buf.tobytes())
     ours.write_bytes(signed_png(buf.tobytes()))

@@ -45,8 +45,8 @@ from topoloc.evaluation.report import render_run_report, run_title
 from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
-from topoloc.io.paths import is_discard
 from topoloc.io.dirs import staged_dir
+from topoloc.io.paths import is_discard
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage

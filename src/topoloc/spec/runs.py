@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.errors import ParameterError
-from topoloc.io.paths import is_discard
 from topoloc.io.dirs import (
     Output,
     check_outputs,
@@ -25,6 +24,7 @@ from topoloc.io.dirs import (
     jsonl_marker,
     pairs_marker,
 )
+from topoloc.io.paths import is_discard
 from topoloc.spec.parts import (
     ExecutionSpec,
     FeatureSpec,
