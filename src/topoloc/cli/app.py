@@ -50,20 +50,21 @@ class TopolocCommand(typer.core.TyperCommand):
         configurable = any(p.name == "config" for p in self.params)
         for p in self.params:
             if p.name in self.needed and p.param_type_name == "option":
-                p.help = f"{p.help or ''} [required{', or set in --config' if configurable else ''}]".strip()
+                text = getattr(p, "help", None) or ""
+                p.help = f"{text} [required{', or set in --config' if configurable else ''}]".strip()  # type: ignore[attr-defined]
 
-    def collect_usage_pieces(self, ctx: typer.Context) -> list[str]:
+    def collect_usage_pieces(self, ctx: Any) -> list[str]:
         pieces = [self.options_metavar] if self.options_metavar else []
         named = {p.name: p for p in self.params}
         for p in self.params:
             if p.param_type_name == "argument":
                 pieces.append(_argument_usage(p, needed=bool(p.required or p.name in self.needed)))
         for item in self.needed:
-            p = named.get(item)
-            if p is None:
+            one = named.get(item)
+            if one is None:
                 pieces.append(item)  # a group of alternatives, as written
-            elif p.param_type_name == "option":
-                pieces.append(_option_usage(p, ctx))
+            elif one.param_type_name == "option":
+                pieces.append(_option_usage(one, ctx))
         # Options click itself requires (no default) are needed too.
         pieces += [_option_usage(p, ctx) for p in self.params
                    if p.param_type_name == "option" and p.required and p.name not in self.needed]
@@ -103,10 +104,10 @@ class TopolocGroup(typer.core.TyperGroup):
             _add_shared_options(cmd)
 
     def main(self, args: Sequence[str] | None = None, prog_name: str | None = None, complete_var: str | None = None,
-             standalone_mode: bool = True, **extra: Any) -> Any:
+             standalone_mode: bool = True, windows_expand_args: bool = True, **extra: Any) -> Any:
         try:
             rv = super().main(args=args, prog_name=prog_name, complete_var=complete_var, standalone_mode=False,
-                              **extra)
+                              windows_expand_args=windows_expand_args, **extra)
         except NoArgsIsHelpError as exc:
             if not standalone_mode:
                 raise
