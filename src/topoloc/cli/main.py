@@ -128,8 +128,10 @@ def report(
     """Put several evaluate runs side by side: one table and one PNG of PR curves (and an HTML page)."""
     from topoloc.evaluation.report import build_report
     from topoloc.io.dirs import Output, check_outputs, html_marker, writing_into
+    from topoloc.spec.parts import distinct_paths
     from topoloc.spec.runs import html_page
 
+    distinct_paths("runs", runs)  # a run given twice would be two rows of one run (issue #49)
     outputs = [Output(out, "folder", names=REPORT_FILES, earlier=_earlier_report, what="report folder")]
     if html is not None:
         outputs.append(Output(html_page(html, None), what="HTML page", earlier=html_marker()))
@@ -384,22 +386,23 @@ def show_match_cmd(
     file, time); the footer the score, the rank among all places, the number of consistent
     correspondences (green; inconsistent ones red) and whether the match is right.
     """
-    from topoloc.datasets.traverse import load_traverse
+    from topoloc.datasets.traverse import check_distinct_tours, load_traverse
     from topoloc.drawing.match_figure import labelled_match
     from topoloc.drawing.show_match import write_png
     from topoloc.io.dirs import Output, check_outputs, png_marker
+    from topoloc.io.paths import check_kind
     from topoloc.spec import FeatureSpec, VocabularySpec
     from topoloc.spec.setup import build_method, make_resources
 
     check_outputs([Output(out, what="PNG", earlier=png_marker())], [query_image, *map, vocab, *(vocab_train or ()),
                                                                     cache_dir])
     at_least("--tolerance", tolerance, 0)
-    if not query_image.is_file():
-        raise TopolocError(f"query image not found: {query_image}")
+    check_kind(query_image, "file", "query image")
     rec = build_method(method, parse_params(param or []))
     voc_spec = VocabularySpec(file=vocab, train=tuple(vocab_train or ()), words=vocab_words)
     feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     maps = [load_traverse(m) for m in map]
+    check_distinct_tours(maps)
     config_ = feature_spec.config()
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(

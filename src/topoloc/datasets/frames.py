@@ -13,6 +13,7 @@ import numpy as np
 
 from topoloc.datasets.traverse import image_entry, natural_key, read_image
 from topoloc.errors import input_error
+from topoloc.io.paths import not_an_input
 
 
 def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
@@ -34,7 +35,7 @@ def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
         elif item.is_file():
             files.append(item)
         else:
-            raise input_error("input does not exist", item)
+            raise input_error(not_an_input(item), item)
     from topoloc.datasets.decode import has_image_reader
 
     # Before the first frame: an empty file or one no decoder recognises (its header) stops the run

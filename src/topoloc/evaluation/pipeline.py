@@ -36,7 +36,7 @@ import numpy as np
 
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.datasets.traverse import Traverse
+from topoloc.datasets.traverse import Traverse, check_distinct_tours
 from topoloc.errors import ParameterError, TopolocError
 from topoloc.evaluation.metrics import Scores, compute_metrics
 from topoloc.evaluation.pairs import first_images, image_names, place_names, retrieval_pairs, write_pairs
@@ -116,6 +116,7 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     # Folders, or bags and videos (their keyframes in memory: topoloc.datasets.sources).
     loaded = spec.inputs.load([*spec.maps, spec.query])
     maps, query = loaded[:-1], loaded[-1]
+    check_distinct_tours(maps)  # as map build and map add refuse a tour given twice (issue #49)
     if seq.length >= len(query):
         raise ParameterError("sequence.length", f"{seq.length} needs more than {seq.length} queries; "
                                                 f"{spec.query} has {len(query)}")

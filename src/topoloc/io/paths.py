@@ -20,7 +20,7 @@ import os
 import stat
 from pathlib import Path
 
-__all__ = ["is_discard", "kind_of", "kind_problem", "through_link"]
+__all__ = ["check_kind", "is_discard", "kind_of", "kind_problem", "not_an_input", "through_link"]
 
 _KINDS = (
     (stat.S_ISFIFO, "a named pipe (FIFO)"),
@@ -70,6 +70,12 @@ def kind_problem(path: str | Path, expected: str) -> str | None:
     return f"is {kind}, not a {expected}"
 
 
+def not_an_input(path: str | Path) -> str:
+    """Why ``path`` is no input of ``localize`` or a tour: ``"input does not exist"``, ``"input is a socket, ..."``."""
+    kind = kind_of(path)
+    return "input does not exist" if kind == "missing" else f"input is {kind}, not an image, folder or recording"
+
+
 def through_link(path: str | Path) -> Path:
     """The path an output named ``path`` is written at: a symbolic link's target (followed to the end), else itself."""
     p = Path(path)
@@ -84,3 +90,20 @@ def is_discard(path: str | Path | None) -> bool:
         return os.path.samefile(path, os.devnull)
     except OSError:
         return False
+
+
+def check_kind(path: str | Path, expected: str, what: str) -> None:
+    """Refuse ``path`` unless it is the ``expected`` kind (``"file"``, ``"folder"``): one line naming what it is.
+
+    ``what`` is what the command reads there (``"traverse folder"``, ``"map file"``):
+    ``"map file is a named pipe (FIFO), not a file: /tmp/x"``.
+
+    Raises
+    ------
+    TopolocError
+    """
+    from topoloc.errors import input_error
+
+    problem = kind_problem(path, expected)
+    if problem is not None:
+        raise input_error(f"{what} {problem}", path)

@@ -29,7 +29,7 @@ import numpy as np
 from topoloc._parallel import n_workers
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.datasets.traverse import Traverse, load_traverse
+from topoloc.datasets.traverse import Traverse, check_distinct_tours, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig, FeatureSet
 from topoloc.io.lock import file_lock
@@ -285,6 +285,7 @@ class Map:
         maps = [t if isinstance(t, Traverse) else load_traverse(t) for t in tours]
         if not maps:
             raise ParameterError("maps", "needs at least one tour")
+        check_distinct_tours(maps)  # as map add refuses a tour the map holds (issue #49)
         if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1:
             raise ParameterError("shards", f"must be a whole number >= 1, got {shards!r}")
         rec = build_method(method, params or {})  # before any feature is extracted

@@ -56,6 +56,24 @@ def _paths(value: Any) -> tuple[Path, ...]:
     return tuple(Path(v) for v in value)
 
 
+def distinct_paths(param: str, paths: Sequence[Path]) -> tuple[Path, ...]:
+    """``paths``, refused with one line naming ``param`` where one names the same file or folder twice.
+
+    Compared resolved (links followed), as every command compares what it reads (issue #49: a
+    folder given twice counted its images twice).
+    """
+    import os
+
+    seen: dict[str, Path] = {}
+    for p in paths:
+        real = os.path.realpath(p)
+        if real in seen:
+            shown = str(p) if str(seen[real]) == str(p) else f"{seen[real]} and {p}"
+            raise ParameterError(param, f"names the same folder twice ({shown}): give each once")
+        seen[real] = p
+    return tuple(paths)
+
+
 def _opt_path(value: Any) -> Path | None:
     return None if value is None or value == "" else Path(value)
 
@@ -230,7 +248,7 @@ class VocabularySpec:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "file", _opt_path(self.file))
-        object.__setattr__(self, "train", _paths(self.train))
+        object.__setattr__(self, "train", distinct_paths("vocabulary.train", _paths(self.train)))
         if self.file is not None and self.train:
             raise ParameterError("vocabulary", NOT_BOTH)
         if isinstance(self.words, bool) or not isinstance(self.words, int) or self.words < 1:
@@ -344,7 +362,9 @@ class GroundTruthSpec:
             except TopolocError as exc:
                 raise ParameterError(f"ground_truth.{name}", str(exc).removeprefix("tolerance ")) from None
         if self.file is not None and not self.file.is_file():
-            raise ParameterError("ground_truth.file", f"names no file: {self.file}")
+            from topoloc.io.paths import kind_problem
+
+            raise ParameterError("ground_truth.file", f"{kind_problem(self.file, 'file')}: {self.file}")
 
     @classmethod
     def for_calibration(cls, tolerance: str = "8", tolerance_m: str | None = None) -> GroundTruthSpec:

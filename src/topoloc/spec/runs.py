@@ -35,6 +35,7 @@ from topoloc.spec.parts import (
     VocabularySpec,
     _opt_path,
     _paths,
+    distinct_paths,
     parse_recall_at,
 )
 
@@ -328,7 +329,7 @@ class VocabTrainSpec(_ChecksOutputs):
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "folders", _paths(self.folders))
+        object.__setattr__(self, "folders", distinct_paths("folders", _paths(self.folders)))
         object.__setattr__(self, "out", _opt_path(self.out))
         if not self.folders:
             raise ParameterError("folders", "needs at least one image folder")
