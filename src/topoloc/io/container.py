@@ -342,7 +342,7 @@ def read_container(
         raise input_error(f"not a topoloc {what} file (it does not start with topoloc's magic bytes)", path)
     if len(data) < _PREFIX_V1.size:
         raise input_error(f"{what} file is truncated (only {len(data)} bytes)", path)
-    magic, version, hlen = _PREFIX_V1.unpack_from(bytes(data[: _PREFIX_V1.size]))
+    _, version, hlen = _PREFIX_V1.unpack_from(bytes(data[: _PREFIX_V1.size]))
     if version not in (1, CONTAINER_VERSION):
         raise input_error(f"unsupported topoloc container version {version}", path)
     prefix = _PREFIX_V1.size if version == 1 else _PREFIX.size
