@@ -362,8 +362,11 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
     """``localize`` of a camera or network stream: the newest frame each time, until Ctrl-C or the stream ends.
 
     The lines are those of a recording, ``time`` the wall-clock time the frame
-    was captured (Unix seconds); the last line adds what the stream gave:
-    frames read, skipped (arrived while others were matched) and how it ended.
+    was captured (Unix seconds), ``frame`` its number in the stream (the frames
+    skipped leave gaps); the last line adds what the stream gave: frames read,
+    skipped (arrived while others were matched), refused by the decoding
+    (``frames_bad``: random bytes, a truncated or too large JPEG; each said in a
+    warning line, the first and every 100th) and how it ended.
     Ctrl-C (SIGINT) or SIGTERM stops the reading: the frames already read are
     answered, then the summary; a second one stops at once.
     """
@@ -406,6 +409,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
         log.warning("the stream ended after %d frames: %s", source.frames_read, source.name)
     typer.echo(json.dumps({"out": str(spec.out), "stream": source.name, "ended": stopped_by[0] if stopped_by
                            else "stream", "frames_read": source.frames_read, "frames_skipped": source.buffer.skipped,
+                           "frames_bad": source.frames_bad,
                            **loc.summary()}), err=spec.to_stdout)
 
 

@@ -361,7 +361,7 @@ def read_container(
         raise input_error(f"{what} file has a corrupt header", path)
     if header.get("kind") != kind:
         found = header.get("kind")
-        raise input_error(f"expected a {what} file but found a {_KIND_WORDS.get(found, found)!r} file", path)
+        raise input_error(f"expected a {what} file but found a {_KIND_WORDS.get(str(found), found)!r} file", path)
     if kind_version is not None and header.get("kind_version") != kind_version:
         raise input_error(
             f"{what} file has schema version {header.get('kind_version')}, "

@@ -313,11 +313,12 @@ class InputSpec:
 
     def frames(self, inputs: Sequence[str | Path], *, on_frame: Callable[[str], None] | None = None,
                check_name: Callable[[str, Path], None] | None = None,
-               ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
-        """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
+               ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray, int]]]:
+        """``(frames at most, iterator of (name, time_s or None, grey image, index))`` over files, folders, bags, videos.
 
         Every input is opened and checked before the first frame; bags and
-        videos are then streamed (one frame decoded at a time, nothing kept).
+        videos are then streamed (one frame decoded at a time, nothing kept);
+        ``index`` is the frame's number in the inputs (:func:`topoloc.datasets.frames.frame_index`).
         ``on_frame``, ``check_name``: see :func:`topoloc.datasets.frames.frame_stream`.
         """
         from topoloc.datasets.frames import frame_stream
