@@ -314,7 +314,7 @@ class InputSpec:
     def frames(self, inputs: Sequence[str | Path], *, on_frame: Callable[[str], None] | None = None,
                check_name: Callable[[str, Path], None] | None = None,
                ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray, int]]]:
-        """``(frames at most, iterator of (name, time_s or None, grey image, index))`` over files, folders, bags, videos.
+        """``(frames at most, iterator of (name, time_s or None, grey image, index))``: files, folders, recordings.
 
         Every input is opened and checked before the first frame; bags and
         videos are then streamed (one frame decoded at a time, nothing kept);
