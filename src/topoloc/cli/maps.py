@@ -142,9 +142,14 @@ def map_add(
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
-    """Add a tour to a saved map without rebuilding it from the earlier images.
+    """Add a tour to a saved map: the map is then what `map build` of all its tours gives.
 
-    Another `map add`, `map calibrate` or `map build` of the same file waits for this one (and says so once).
+    Most maps learn the tour alone, without revisiting the earlier images. A map whose vocabulary was trained on
+    its own tours (map build without --vocab/--vocab-train) is built again from all its tours, the vocabulary
+    trained again with the new tour (its words, and the map's checksum, change), and so is a map of a method
+    that cannot add a tour exactly; the earlier tours' features come from the cache. It says so in one line when
+    it does. Another `map add`, `map calibrate` or `map build` of the same file waits for this one (and says so
+    once).
     """
     from dataclasses import replace
 
@@ -168,6 +173,10 @@ def map_add(
         m.check_compatible(features=replace(have, **given),
                            vocabulary=Vocabulary.load(vocab) if vocab is not None else None)
         t = inputs.load([tour])[0]
+        if m.add_rebuilds:  # said before the work: minutes where a vocabulary is trained again (issue #49)
+            n = len(m.tours)
+            log.warning("%s: %s: building it again from its %d tour%s and this one, as map build of them would",
+                        map_file, m.add_rebuilds_why, n, "" if n == 1 else "s")
         with execution.connect() as executor, rich_progress(not quiet) as progress:
             m.add_tour(t, cache_dir=execution.cache_dir, progress=progress, executor=executor)
     out: dict[str, Any] = {"out": str(map_file), "places": len(m.place_ids), "tours": [x["name"] for x in m.tours]}
@@ -203,9 +212,21 @@ def map_info(
                 typer.echo(f"  - {t['name']}: {t['n_images']} images, {t['n_places']} places{when} ({where})")
         else:
             typer.echo(f"{key}: {json.dumps(value, default=str) if isinstance(value, dict | list) else value}")
+        if key == "verification" and isinstance(value, dict) and "default" in value:
+            typer.echo(f"  default {json.dumps(value['default'])}: {VERIFY_DEFAULT_WORDS[value['default']]}")
         if key == "calibration" and isinstance(value, dict) and value.get("stale"):
             typer.echo(f"  stale: tours added since it was made ({', '.join(value.get('tours_added_since', []))}); "
                        "run `topoloc map calibrate` again")
+
+
+#: What a map's ``verification.default`` means to localize and evaluate --map-file, said under it by map info.
+VERIFY_DEFAULT_WORDS = {
+    True: "answers are verified (as the map was built or calibrated); --no-verify turns it off",
+    False: "answers are not verified (the map was calibrated without verification, or saved before it existed): "
+           "--verify turns it on",
+    None: "not set: answers are verified wherever the map's images can be read (verification.can_verify); "
+          "--no-verify turns it off",
+}
 
 
 @map_app.command("calibrate", cls=needs())

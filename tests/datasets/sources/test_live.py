@@ -323,8 +323,7 @@ def test_one_rule_refuses_a_bad_frame_from_every_source(kind: str, tmp_path: Pat
     finally:
         server.close()
     assert source.frames_read == 3 and source.frames_bad + source.buffer.skipped >= 1
-    assert [index for _, _, _, index in got] == [k for k in (0, 2) if k in [i for _, _, _, i in got]]
-    assert 1 not in [index for _, _, _, index in got]
+    assert {index for _, _, _, index in got} <= {0, 2}  # the bad part (1) is never handed over
 
 
 def test_localize_goes_on_past_a_bad_part_of_a_stream(stream_map: dict[str, Any]) -> None:
