@@ -215,6 +215,11 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
             "vocabulary": vocab_info,
             # The saved map's acceptance threshold, where it has one (the HTML slider opens there).
             **({"calibration": calibration} if calibration is not None else {}),
+            # The saved map's tours, each as its folder and fingerprint: the HTML page shows their images where
+            # the folder still holds exactly what the map was built from (issue #49: "no image" for every place).
+            **({"map_tours": [{k: t.get(k) for k in ("name", "root", "fingerprint")} for t in tour_records
+                              if not t.get("source") and not str(t.get("root", "")).startswith("<")]}
+               if spec.map_file is not None else {}),
             # "local", or the Dask scheduler the features were extracted and quantised on.
             "executor": resources.executor.name if isinstance(resources, CachedResources) else "local",
             "fit_seconds": fit_s,
@@ -380,7 +385,9 @@ def _saved_map(
     res = saved.resources(cache_dir=spec.execution.cache_dir, progress=progress, executor=executor)
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
-        voc.update({"file": f"embedded in {spec.map_file}", **saved.vocabulary.provenance_})
+        # n_words as a run that trained or loaded the vocabulary records it: one vocabulary, one name (issue #49).
+        voc.update({"file": f"embedded in {spec.map_file}", "n_words": saved.vocabulary.n_words,
+                    **saved.vocabulary.provenance_})
     return rec, res, voc, saved.place_xy, saved.place_image_names(), saved.calibration, list(saved.tours)
 
 
