@@ -395,7 +395,8 @@ def calibrated_threshold(m: dict[str, Any]) -> tuple[float | None, str]:
     if not (isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)):
         return None, ""
     params = m.get("params", {})
-    seq = cal.get("sequence") if isinstance(cal.get("sequence"), dict) else {}
+    given = cal.get("sequence")
+    seq: dict[str, Any] = given if isinstance(given, dict) else {}
     cal_len, run_len = int(seq.get("length", 0) or 0), int(params.get("sequence", 0) or 0)
 
     def matching(n: int, mode: Any) -> str:
