@@ -1,4 +1,4 @@
-"""Regenerate docs/results/fresh_clone.md: the README's quick-start figures, measured on a fresh clone as a new user runs it.
+"""Regenerate docs/results/fresh_clone.md: the README's quick-start figures, measured on a fresh clone.
 
     .venv/bin/python -m benchmarks.bench_fresh_clone              # install and demo, first run included (minutes)
     .venv/bin/python -m benchmarks.bench_fresh_clone --tests      # also the README's test command (10 minutes more)
