@@ -31,16 +31,26 @@ def test_the_readmes_fresh_clone_figures_are_the_measured_ones(benchmark_module:
 
 def test_the_rewrite_replaces_only_what_the_markers_hold(benchmark_module: Callable[[str], ModuleType]) -> None:
     bench = benchmark_module("bench_fresh_clone")
-    summary = {"date": "2026-01-02", "machine": "x86_64, 2 cores, Python 3.11", "sizes": {"xfeat.pt MB": 6.2},
-               "steps": [{"step": "install", "seconds": 90.0, "load_before": 0.1, "load_after": 0.2},
-                         {"step": "demo, first run", "seconds": 61.0, "load_before": 0.1, "load_after": 0.2},
-                         {"step": "demo, later run", "seconds": 14.0, "load_before": 0.1, "load_after": 0.2}]}
+    step = {"part": "demo", "date": "2026-01-02", "load_before": 0.1, "load_after": 0.2}
+    summary = {"machine": "x86_64, 2 cores, Python 3.11", "sizes": {"xfeat.pt MB": 6.2},
+               "steps": [{**step, "step": "install", "seconds": 90.0},
+                         {**step, "step": "demo, first run", "seconds": 61.0},
+                         {**step, "step": "demo, later run", "seconds": 14.0, "load_after": 3.1}]}
     text = "a <!-- fresh-clone:demo -->old<!-- /fresh-clone:demo --> b <!-- fresh-clone:weights -->x" \
            "<!-- /fresh-clone:weights --> c"
     out = bench.rewrite_readme(summary, text)
     assert out.startswith("a <!-- fresh-clone:demo -->on a fresh clone the install took 1.5 min")
     assert "61 s" in out and "later runs 14 s" in out and "6.2 MB, measured on 2026-01-02" in out
+    assert "beside other jobs (load up to 3.1)" in out  # a figure measured on a busy machine says so
     assert out.endswith("<!-- /fresh-clone:weights --> c")
+    # A run of the tests part keeps the demo's figures, each part with its own date.
+    tests = {**summary, "steps": [{**step, "part": "tests", "date": "2026-02-03", "step": "tests, install",
+                                   "seconds": 60.0}, {**step, "part": "tests", "date": "2026-02-03", "step": "tests",
+                                                      "seconds": 300.0}], "sizes": {}}
+    both = bench.merged(summary, tests)
+    said = bench.readme_sentences(both)
+    assert "measured on 2026-01-02" in said["demo"] and "measured on 2026-02-03" in said["tests"]
+    assert "its tests 5.0 min" in said["tests"]
 
 
 def test_a_bare_topoloc_comes_after_the_readme_says_the_environment_must_be_active() -> None:
