@@ -154,7 +154,7 @@ def test_an_input_is_said_as_what_it_is_on_every_command(cli: Cli, rf: dict[str,
 
 
 def _twice(rf: dict[str, Path], tmp: Path) -> list[tuple[str, Callable[[Path, Path], list[str]]]]:
-    q, noon, morning = str(rf["query"]), rf["map"], rf["morning"]
+    q, noon = str(rf["query"]), rf["map"]
     ev = ["--method", "seqslam", "--param", "ds=3", "-q"]
     return [
         ("map build --map", lambda a, b: ["map", "build", "--map", str(a), "--map", str(b), "--out",
