@@ -476,7 +476,7 @@ def check_distinct_tours(tours: Sequence[Traverse], *, where: str | Path | None 
         if fp in seen:
             first = seen[fp]
             what = f"tour {t.name!r} is given twice" if t.name == first.name else \
-                f"tour {t.name!r} is tour {first.name!r} again"
+                f"tours {first.name!r} and {t.name!r} are one tour given twice"
             raise input_error(f"{what} (same images and places): give each tour once",
                               where if where is not None else (t.root if t.root == first.root else
                                                                f"{first.root} and {t.root}"))
