@@ -470,6 +470,8 @@ def check_distinct_tours(tours: Sequence[Traverse], *, where: str | Path | None 
     TopolocError
         One line naming both tours.
     """
+    if len(tours) < 2:
+        return  # nothing to compare: no fingerprint computed (it reads every image's size)
     seen: dict[str, Traverse] = {}
     for t in tours:
         fp = t.fingerprint()
