@@ -118,6 +118,11 @@ class TopolocGroup(typer.core.TyperGroup):
                 raise
             print(f"topoloc: error: {usage_error_line(exc)}", file=sys.stderr)
             sys.exit(2)
+        except typer.Abort:  # end of input where a value was asked for: no command of topoloc asks, still one line
+            if not standalone_mode:
+                raise
+            print("topoloc: error: aborted", file=sys.stderr)
+            sys.exit(2)
         if standalone_mode:
             sys.exit(rv if isinstance(rv, int) else 0)
         return rv
