@@ -20,10 +20,12 @@ def test_the_readmes_fresh_clone_figures_are_the_measured_ones(benchmark_module:
     assert {"demo", "tests", "weights"} <= set(marked)
     measured = bench.readme_sentences(summary)
     assert "demo" in measured and "weights" in measured
-    for name, sentence in measured.items():
-        assert marked[name] == sentence, name
     for name, text in marked.items():
-        assert re.search(r"measured on \d{4}-\d\d-\d\d", text), (name, text)  # every figure carries its date
+        if name in measured:
+            assert text == measured[name], name
+            assert re.search(r"measured on \d{4}-\d\d-\d\d", text), (name, text)  # every figure carries its date
+        else:  # a part not measured yet says so, never a figure typed by hand
+            assert text == "(not measured yet)", (name, text)
     # The demo's figure counts its first run on a fresh clone (issue #49: 13 s stated, 59-71 s measured).
     first = next(s for s in summary["steps"] if s["step"] == "demo, first run")
     assert f"{first['seconds']:.0f} s" in marked["demo"]
