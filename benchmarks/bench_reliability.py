@@ -26,6 +26,7 @@ import csv
 import json
 import os
 import platform
+import re
 import shutil
 import signal
 import subprocess
@@ -112,6 +113,10 @@ FAMILIES = {
     "configuration": "a configuration file is untrusted input: bounded, typed, one line naming the setting and "
                      "the file; flags always win",
     "misleading": "the message names what is wrong and where, before the work; what a user asked for is done",
+    "live inputs": "a bad frame of a camera or stream is skipped and counted and the stream goes on; every source "
+                   "decodes a frame by one rule; `frame` is the frame's number in its input",
+    "conventions": "-h/--help, -V, -q/-v before and after the command, usage naming what is needed, one error "
+                   "style (`topoloc: error: ...`, exit 2) for every error, flags of the command typed",
 }
 CASE_TIMEOUT_S = 120
 ODD = "a b ü 'q\" <script>alert(1) <!--<script> &amp;\nline"
@@ -434,6 +439,7 @@ def family_cases(work: Path, route: Path, env: dict[str, str]) -> list[dict[str,
     case("names", "folder and image names with spaces, unicode, quotes, <script>, a newline: evaluate, "
                   "--html, map build, localize", odd_names)
     campaign3_cases(work, route, env, case, tlm)
+    campaign4_cases(work, route, env, case, tlm)
     return rows
 
 
@@ -877,6 +883,368 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
     case("misleading", "localize --out -: the lines on standard output, nothing else", out_dash)
     case("misleading", "a GIF read in a folder as when named", gif_rule)
     case("misleading", "localize on a bag whose image topic has no messages: one line", empty_topic)
+
+
+# -- the cases of issue #49: outputs, live streams, classes of campaign 3, conventions ------------------------
+class _Mjpeg:
+    """An HTTP MJPEG stream (multipart/x-mixed-replace) of ``parts`` at ``fps`` on 127.0.0.1, served once."""
+
+    def __init__(self, parts: list[bytes], fps: float) -> None:
+        import http.server
+        import socketserver
+        import threading
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                try:
+                    for data in parts:
+                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
+                                         % len(data) + data + b"\r\n")
+                        time.sleep(1.0 / fps)
+                except (BrokenPipeError, ConnectionResetError):
+                    return
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        self.server = socketserver.ThreadingTCPServer(("127.0.0.1", 0), Handler)
+        self.server.daemon_threads = True
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/stream.mjpg"
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def _other_byte_order(src: Path, dst: Path) -> Path:
+    """A topoloc container written again with its arrays in the other byte order (a big-endian machine's file)."""
+    import struct
+    import sys
+
+    from topoloc.io.container import read_container, write_container
+
+    data = src.read_bytes()
+    header = json.loads(data[24:24 + struct.unpack_from("<Q", data, 12)[0]])
+    meta, arrays = read_container(src, header["kind"])
+    order = ">" if sys.byteorder == "little" else "<"
+    swapped = {k: a.astype(a.dtype.newbyteorder(order)) if a.dtype.itemsize > 1 else a for k, a in arrays.items()}
+    write_container(dst, header["kind"], header["kind_version"], swapped, meta)
+    return dst
+
+
+def campaign4_cases(work: Path, route: Path, env: dict[str, str], case: Callable[[str, str, Callable[[], str]], None],
+                    tlm: Path) -> None:
+    """The cases of issue #49 (and their neighbours), run as a user would."""
+    import stat
+
+    noon, dusk, morning = route / "noon", route / "dusk", route / "morning"
+    seq = ["--method", "seqslam", "--param", "ds=3", "--quiet"]
+    mine = b"years of work\n"
+    vocab = work / "c4_vocab.tlv"
+    rc, _, err, _ = _run(["vocab", "train", str(morning), "--words", "100", "--out", str(vocab), "--quiet"], env)
+    if rc != 0:
+        raise SystemExit(f"vocab train for the campaign-4 cases failed: {err}")
+    run = work / "c4_run"
+    _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(run), *seq], env)
+
+    def user_file(name: str) -> Path:
+        f = work / "c4_user" / name
+        f.parent.mkdir(exist_ok=True)
+        f.write_bytes(mine)
+        return f
+
+    # -- data loss --
+    def html_over(args_of: Callable[[Path], list[str]], name: str) -> Callable[[], str]:
+        def check() -> str:
+            f = user_file(name)
+            rc, _, err, _ = _run(args_of(f), env)
+            if f.read_bytes() != mine:
+                return f"exit {rc}: the user's {name} was replaced"
+            return _one_line_error(rc, err, str(f), "not an earlier output")
+        return check
+
+    def config_html() -> str:
+        f = user_file(".bashrc")
+        cfg = work / "c4_html.yaml"
+        cfg.write_text(f"method: seqslam\nparams: {{ds: 3}}\nmaps: ['{noon}']\nquery: '{dusk}'\n"
+                       f"out: '{work / 'c4_cfg_run'}'\nhtml: '{f}'\n")
+        rc, _, err, _ = _run(["evaluate", "--config", str(cfg), "--quiet"], env)
+        if f.read_bytes() != mine:
+            return f"exit {rc}: the user's .bashrc was replaced by a page"
+        return _one_line_error(rc, err, str(f), "not an earlier output")
+
+    def out_link_to_a_run() -> str:
+        target = work / "c4_runs" / "monday"
+        target.parent.mkdir()
+        _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(target), *seq], env)
+        link = work / "c4_current"
+        link.symlink_to(target)
+        rc, _, err, _ = _run(["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(link),
+                              "--tolerance", "0:3", *seq], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        if not link.is_symlink():
+            return "the link was replaced by a folder"
+        debris = [p.name for p in (*work.iterdir(), *target.parent.iterdir()) if ".staging-" in p.name]
+        if debris:
+            return f"staging left behind: {debris}"
+        ground = json.loads((target / "metrics.json").read_text())["run"]["ground_truth"]
+        return "" if "0:3" in ground else "the run the link names was not updated"
+
+    def links_to_a_users_file() -> str:
+        bad = []
+        for name, args_of in (
+                ("localize --out", lambda o: ["localize", str(tlm), str(dusk), "--out", str(o), "--quiet"]),
+                ("map build --out", lambda o: ["map", "build", "--map", str(noon), "--out", str(o), *seq]),
+                ("vocab train --out", lambda o: ["vocab", "train", str(morning), "--words", "20", "--out", str(o),
+                                                 "--quiet"]),
+                ("evaluate --pairs-out", lambda o: ["evaluate", "--map", str(noon), "--query", str(dusk), "--out",
+                                                    str(work / "c4_pairs_run"), "--top-k", "2", "--pairs-out",
+                                                    str(o), *seq]),
+                ("slam --html", lambda o: ["slam", str(noon), "--vocab", str(vocab), "--out", str(work / "c4_slam"),
+                                           "--html", str(o), "--quiet"])):
+            f = user_file(f"{name.replace(' ', '_')}.txt")
+            link = work / f"c4_link_{name.replace(' ', '_')}"
+            link.symlink_to(f)
+            rc, _, err, _ = _run(args_of(link), env)
+            problem = _one_line_error(rc, err, str(link))
+            if f.read_bytes() != mine or not link.is_symlink():
+                problem = "the user's file or the link was replaced"
+            if problem:
+                bad.append(f"{name}: {problem}")
+        return "; ".join(bad)
+
+    def dev_null() -> str:
+        bad = []
+        for args in (["localize", str(tlm), str(dusk), "--out", os.devnull, "--quiet"],
+                     ["evaluate", "--map", str(noon), "--query", str(dusk), "--out", os.devnull, "--html", os.devnull,
+                      *seq],
+                     ["map", "build", "--map", str(noon), "--out", os.devnull, *seq],
+                     ["vocab", "train", str(morning), "--words", "20", "--out", os.devnull, "--quiet"],
+                     ["report", str(run), "--out", os.devnull]):
+            rc, _, err, _ = _run(args, env)
+            if rc != 0:
+                bad.append(f"{' '.join(args[:2])}: exit {rc}: {err.strip()[-100:]}")
+        if not stat.S_ISCHR(os.stat(os.devnull).st_mode):
+            bad.append("/dev/null is no longer the null device")
+        return "; ".join(bad)
+
+    case("data loss", "evaluate --html notes.txt: refused, the file kept",
+         html_over(lambda f: ["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(work / "c4_h"),
+                              "--html", str(f), *seq], "notes.txt"))
+    case("data loss", "html: ~/.bashrc in a --config file: refused, the file kept", config_html)
+    case("data loss", "report --html draft.txt: refused, the file kept",
+         html_over(lambda f: ["report", str(run), "--out", str(work / "c4_rep"), "--html", str(f)], "draft.txt"))
+    case("data loss", "show-match --out on a user's PNG: refused, the photo kept",
+         html_over(lambda f: ["show-match", str(next(dusk.glob("*.jpg"))), "--map", str(noon), "--out", str(f), *seq],
+                   "photo.png"))
+    case("data loss", "evaluate --out LINK to an earlier run: the linked run updated, the link kept, no staging left",
+         out_link_to_a_run)
+    case("data loss", "five outputs given as a link to a user's file: refused, file and link kept",
+         links_to_a_users_file)
+    case("data loss", "--out /dev/null (localize, evaluate with --html, map build, vocab train, report): "
+                      "discarded, the device kept", dev_null)
+
+    # -- live inputs --
+    import cv2
+
+    jpegs = [p.read_bytes() for p in sorted(dusk.glob("*.jpg"))]
+    rng = np.random.default_rng(SEED)
+    enormous = bytearray(jpegs[0])
+    at = enormous.find(b"\xff\xc0")
+    enormous[at + 5:at + 9] = bytes([0xEA, 0x60, 0xEA, 0x60])  # 60000 x 60000 announced
+    bad_parts = {"random bytes": rng.integers(0, 256, 5000, dtype=np.uint8).tobytes(),
+                 "an enormous JPEG": bytes(enormous), "a truncated JPEG": jpegs[1][: len(jpegs[1]) // 2]}
+
+    def stream_with(kind: str) -> Callable[[], str]:
+        def check() -> str:
+            parts = [*jpegs[:3], bad_parts[kind], *jpegs[3:]]
+            server = _Mjpeg(parts, fps=4.0)
+            out = work / f"c4_live_{kind.replace(' ', '_')}.jsonl"
+            try:
+                rc, stdout, err, _ = _run(["localize", str(tlm), server.url, "--out", str(out), "--quiet",
+                                           "--prefetch", "0"], env)
+            finally:
+                server.close()
+            if rc != 0:
+                return f"exit {rc}: {err.strip()[-160:]}"
+            summary = json.loads(stdout.strip().splitlines()[-1])
+            lines = [json.loads(x) for x in out.read_text().splitlines()]
+            frames = [x["frame"] for x in lines]
+            if summary["frames_read"] != len(parts):
+                return f"the stream stopped after {summary['frames_read']} of {len(parts)} frames"
+            if 3 in frames:
+                return "the bad part was answered as a frame"
+            if not frames or max(frames) <= 3:
+                return "no frame after the bad part was answered"
+            if any(x["frame"] != int(x["image"].rsplit("#", 1)[1]) for x in lines):
+                return "frame is not the frame's number in the stream"
+            return "" if summary["frames_bad"] + summary["frames_skipped"] >= 1 else "the bad part was not counted"
+        return check
+
+    def one_rule() -> str:
+        from topoloc.datasets.decode import read_image
+        from topoloc.errors import TopolocError
+
+        f = work / "c4_truncated.jpg"
+        f.write_bytes(bad_parts["a truncated JPEG"])
+        try:
+            read_image(f)
+        except TopolocError:
+            pass
+        else:
+            return "a truncated JPEG file was decoded"
+        ok, _ = cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))
+        return "" if ok else "no JPEG encoder"
+
+    for kind in bad_parts:
+        case("live inputs", f"an MJPEG stream with {kind} between good frames: localize goes on, the part skipped "
+                            "and counted, frame = the frame's number", stream_with(kind))
+    case("live inputs", "a truncated JPEG refused from a file as from a stream (one decoding rule)", one_rule)
+
+    # -- classes of campaign 3 --
+    def own_flags() -> str:
+        bad = []
+        for args, want in ((["localize", "--out", str(work / "l.jsonl")], "MAP_FILE"),
+                           (["vocab", "train", str(morning), "--out", str(work / "v.tlv"), "--words", "0"], "--words"),
+                           (["synth", str(work / "c4_s"), "--places", "0"], "--places"),
+                           (["evaluate", "--map", str(noon), "--query", str(dusk), "--out", str(work / "c4_x"),
+                             "--max-features", "0", *seq], "--max-features"),
+                           (["evaluate"], "--map-file")):
+            rc, _, err, _ = _run(args, env)
+            problem = _one_line_error(rc, err, want)
+            if not problem and re.search(r"\b[a-z]+_[a-z_]+\b", err.split(":", 2)[-1].replace(str(work), "")):
+                problem = f"a field name in {err.strip()!r}"
+            if not problem and args[0] == "localize" and "--map-file" in err:
+                problem = "names --map-file, which localize does not take"
+            if problem:
+                bad.append(f"{' '.join(args[:2])}: {problem}")
+        return "; ".join(bad)
+
+    def special_inputs() -> str:
+        fifo = work / "c4_fifo"
+        os.mkfifo(fifo)
+        bad = []
+        for args, what in ((["evaluate", "--map", str(fifo), "--query", str(dusk), "--out", str(work / "c4_f"), *seq],
+                            "named pipe"),
+                           (["map", "info", str(fifo)], "named pipe"),
+                           (["map", "info", "/dev/zero"], "character device"),
+                           (["evaluate", "--map-file", str(tlm), "--query", str(dusk), "--out", str(work / "c4_f"),
+                             "--cache-dir", str(fifo), "--quiet"], "named pipe"),
+                           (["vocab", "train", str(fifo), "--out", str(work / "c4_v.tlv")], "named pipe"),
+                           (["report", str(fifo), "--out", str(work / "c4_r")], "named pipe")):
+            rc, _, err, _ = _run(args, env, timeout=60)
+            problem = _one_line_error(rc, err, what)
+            if problem or "does not exist" in err:
+                bad.append(f"{' '.join(args[:2])}: {problem or err.strip()}")
+        return "; ".join(bad)
+
+    def duplicates() -> str:
+        link = work / "c4_noon_link"
+        link.symlink_to(noon)
+        bad = []
+        for args in (["map", "build", "--map", str(noon), "--map", str(link), "--out", str(work / "c4_d.tlm"), *seq],
+                     ["evaluate", "--map", str(noon), "--map", str(noon), "--query", str(dusk), "--out",
+                      str(work / "c4_d"), *seq],
+                     ["show-match", str(next(dusk.glob("*.jpg"))), "--map", str(noon), "--map", str(noon), "--out",
+                      str(work / "c4_d.png"), *seq],
+                     ["vocab", "train", str(morning), str(morning), "--out", str(work / "c4_d.tlv")],
+                     ["report", str(run), str(run), "--out", str(work / "c4_drep")]):
+            rc, _, err, _ = _run(args, env)
+            problem = _one_line_error(rc, err, "twice")
+            if problem:
+                bad.append(f"{' '.join(args[:2])}: {problem}")
+        return "; ".join(bad)
+
+    def byte_order() -> str:
+        native = work / "c4_cooc.tlm"
+        rc, _, err, _ = _run(["map", "build", "--method", "coocmap", "--map", str(noon), "--vocab", str(vocab),
+                              "--out", str(native), "--quiet"], env)
+        if rc != 0:
+            return f"map build exit {rc}"
+        other = _other_byte_order(native, work / "c4_cooc_other.tlm")
+        outs = []
+        for m in (native, other):
+            out = work / f"{m.stem}.jsonl"
+            rc, _, err, _ = _run(["localize", str(m), str(dusk), "--out", str(out), "--quiet"], env)
+            if rc != 0:
+                return f"exit {rc}: {err.strip()[-160:]}"
+            outs.append(out.read_text())
+        return "" if outs[0] == outs[1] else "the lines differ from the map in this machine's order"
+
+    case("names", "errors name the flags of the command typed (MAP_FILE, --words, --places, --max-features, "
+                  "--map-file), never another command's flag or a field name", own_flags)
+    case("misleading", "a named pipe, a device as a tour, map file, cache folder, training folder or run: "
+                       "said as what it is, never 'does not exist'", special_inputs)
+    case("misleading", "a tour, training folder or run given twice (map build, evaluate, show-match, vocab train, "
+                       "report): one line each, as map add refuses", duplicates)
+    case("tracebacks", "a Cooc-Map map in the other byte order: localize answers as from the native map", byte_order)
+
+    # -- conventions --
+    def usage_errors() -> str:
+        bad = []
+        for args in (["map", "calibrate", str(tlm)], ["evaluate", "--bogus"], ["localize", str(tlm), str(dusk),
+                                                                             "--out", "x", "--top-k", "x"],
+                     ["report"], ["map", "nosuch"]):
+            rc, _, err, _ = _run(args, env)
+            problem = _one_line_error(rc, err)
+            if problem or "Usage:" in err or len(err.strip().splitlines()) != 1:
+                bad.append(f"{' '.join(args[:2])}: {problem or err.strip()[:120]}")
+        return "; ".join(bad)
+
+    def help_and_flags() -> str:
+        bad = []
+        for args in (["-h"], ["-V"], ["--version"], ["evaluate", "-h"], ["map", "build", "-h"],
+                     ["-q", "localize", "-h"], ["localize", "-q", "-h"], ["-v", "map", "info", "-h"],
+                     ["map", "info", "-v", "-h"], ["cache", "clean", "-h"]):
+            rc, out, err, _ = _run(args, env)
+            if rc != 0 or not out.strip():
+                bad.append(f"{' '.join(args)}: exit {rc}: {err.strip()[:100]}")
+        rc, out, _, _ = _run(["localize", "-h"], env)
+        if "MAP_FILE INPUTS... --out" not in " ".join(out.split()):
+            bad.append("localize's usage does not show MAP_FILE INPUTS... --out")
+        return "; ".join(bad)
+
+    def not_a_map() -> str:
+        f = work / "c4_eight.tlm"
+        f.write_text("hello!\n")
+        rc, _, err, _ = _run(["map", "info", str(f)], env)
+        return _one_line_error(rc, err, "not a topoloc map", str(f))
+
+    def ros_entry() -> str:
+        import sys
+
+        code = ("import sys, topoloc.ros.__main__; "
+                "print(sorted(m for m in sys.modules if m.startswith('topoloc.cli')))")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+        if r.returncode or r.stdout.strip() != "[]":
+            return f"python -m topoloc.ros imports the command line: {r.stdout.strip() or r.stderr.strip()[-120:]}"
+        r = subprocess.run([sys.executable, "-m", "topoloc", "--version"], capture_output=True, text=True, env=env)
+        return "" if r.returncode == 0 else "python -m topoloc does not run the command line"
+
+    def add_says_it_rebuilds() -> str:
+        m = work / "c4_own.tlm"
+        _run(["map", "build", "--method", "coocmap", "--map", str(noon), "--vocab-words", "100", "--out", str(m),
+              "--quiet"], env)
+        rc, _, err, _ = _run(["map", "add", str(m), str(morning), "--quiet"], env)
+        if rc != 0:
+            return f"exit {rc}: {err.strip()[-160:]}"
+        said = _warnings(err, "building it again")
+        return "" if len(said) == 1 and "trained on its own tours" in said[0] else f"{len(said)} lines said"
+
+    case("conventions", "click's usage errors (a missing option, an unknown flag, a value of the wrong type, a "
+                        "missing argument, an unknown command): one line topoloc: error: ..., exit 2", usage_errors)
+    case("conventions", "-h, -V/--version, -q and -v before and after the command; usage shows what is needed",
+         help_and_flags)
+    case("misleading", "map info on an 8-byte text file: not a topoloc map (not 'truncated')", not_a_map)
+    case("conventions", "python -m topoloc.ros imports nothing of the command line; python -m topoloc runs it",
+         ros_entry)
+    case("misleading", "map add on a map whose vocabulary was trained on its own tours says it builds the map "
+                       "again, in one line", add_says_it_rebuilds)
 
 
 def _kill_cases(work: Path, route: Path, rng: np.random.Generator) -> list[dict[str, Any]]:

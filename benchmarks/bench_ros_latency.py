@@ -61,8 +61,9 @@ def run_one(core: LocalMaster, map_file: Path, rate: float, n_busy: int, seconds
     tag = f"{int(rate)}hz_{n_busy}busy"
     answers = work / f"{tag}.jsonl"
     err = (work / f"{tag}.node.err").open("w")
-    node = subprocess.Popen([sys.executable, "-m", "topoloc.ros", str(map_file), "--image-topic", "/bench/image",
-                             "__name:=topoloc_bench"], env=core.env, stdout=subprocess.DEVNULL, stderr=err, text=True)
+    node = subprocess.Popen([sys.executable, "-m", "topoloc", "ros-node", str(map_file), "--image-topic",
+                             "/bench/image", "__name:=topoloc_bench"], env=core.env, stdout=subprocess.DEVNULL,
+                            stderr=err, text=True)
     try:
         wait_for("the node", lambda: bool(core.subscribers("/bench/image")) or node.poll() is not None)
         count = round(rate * seconds)

@@ -33,8 +33,10 @@ LAYERS: dict[str, int] = {
     "evaluation": 6, "bench": 6, "demo": 6, "maps": 6, "drawing": 6,
     # 7 the command line
     "cli": 7,
-    # 7 the ROS node: an adapter of the saved maps to a running ROS graph, beside the command line
+    # 7 the ROS node: an adapter of the saved maps to a running ROS graph, run by the command line
     "ros": 7,
+    # 8 the entry point above every layer: python -m topoloc (the command line, ros-node among its commands)
+    "__main__": 8,
 }
 ALGORITHMS = {name for name, layer in LAYERS.items() if layer == 2}
 
@@ -270,6 +272,14 @@ def test_no_two_packages_import_each_other() -> None:
         graph.setdefault(me, set()).update(t for _, m in _imports(path) if (t := _unit(m)) and t != me)
     assert not _import_cycles(graph), "packages importing each other: " + "; ".join(
         " <-> ".join(c) for c in _import_cycles(graph))
+
+
+def test_the_ros_package_never_imports_the_command_line() -> None:
+    # The command line runs the node (topoloc ros-node); the node's package runs nothing of the command line,
+    # __main__ included (issue #49: python -m topoloc.ros imported the command line from below it).
+    bad = [f"{p.relative_to(PACKAGE.parent)}:{line} imports {m}" for p in (PACKAGE / "ros").rglob("*.py")
+           for line, m in _imports(p) if _unit(m) == "cli"]
+    assert not bad, "\n".join(bad)
 
 
 def test_the_climb_check_sees_an_import_of_the_package_itself() -> None:

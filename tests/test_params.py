@@ -50,3 +50,29 @@ def test_numpy_scalars_are_numbers_and_frozen_settings_stay_frozen() -> None:
     with pytest.raises(TopolocError, match=r"dataclasses\.replace"):
         cfg.set_params(max_features=10)
     assert dataclasses.replace(cfg, max_features=10).max_features == 10
+
+
+def test_a_parameter_error_names_other_parameters_by_whatever_names_the_reader_uses() -> None:
+    """The library names parameters, the command line their flags (issue #49): one message, refs rendered."""
+    import pickle
+
+    from topoloc.errors import ParameterError
+
+    exc = ParameterError("html", "draws the whole S: leave out {top_k}, or {html}", ("top_k", "html"))
+    assert str(exc) == "html draws the whole S: leave out top_k, or html"
+    assert exc.render(lambda p: "--" + p.replace("_", "-")) == "draws the whole S: leave out --top-k, or --html"
+    owned = ParameterError("ds", "must be an integer >= 0, got -1", owner="seqslam")
+    assert str(owned) == "seqslam: ds must be an integer >= 0, got -1"
+    for e in (exc, owned):  # a Dask task's error travels back pickled, whole
+        back = pickle.loads(pickle.dumps(e))
+        assert (type(back), str(back), back.refs, back.owner) == (type(e), str(e), e.refs, e.owner)
+
+
+def test_a_constraint_error_is_a_parameter_error_with_its_owner() -> None:
+    from topoloc.errors import ParameterError
+    from topoloc.features import FeatureConfig
+
+    with pytest.raises(ParameterError) as info:
+        FeatureConfig(max_features=0)
+    assert (info.value.param, info.value.owner) == ("max_features", "features")
+    assert str(info.value) == "features: max_features must be an integer >= 1, got 0"

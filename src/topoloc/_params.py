@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
-from topoloc.errors import TopolocError
+from topoloc.errors import ParameterError, TopolocError
 
 
 @dataclass(frozen=True)
@@ -138,18 +138,20 @@ def validate_params(owner: str, params: Mapping[str, Any], constraints: Mapping[
         value = params[key]
         if not rule.accepts(value):
             if isinstance(rule, Options) and rule.unknown:
-                raise TopolocError(f"{owner}: unknown {rule.unknown} {value!r} ({key} must be {rule.describe()})")
+                raise ParameterError(key, f"must be {rule.describe()}: unknown {rule.unknown} {value!r}", owner=owner)
             raise param_error(owner, key, rule.describe(), value)
 
 
-def param_error(owner: str, name: str, expected: str, value: Any) -> TopolocError:
-    """The one-line error of a parameter that breaks a rule involving other parameters.
+def param_error(owner: str, name: str, expected: str, value: Any) -> ParameterError:
+    """The one-line error of a parameter: ``"<owner>: <name> must be <expected>, got <value>"``.
 
-    Per-parameter rules belong in ``parameter_constraints``; this is for the
-    few that compare two parameters (``sidewalk_m`` against ``street_width_m``),
-    so that they read like the rest.
+    Also for the few rules that compare two parameters (``sidewalk_m`` against
+    ``street_width_m``), so that they read like the rest.  A
+    :class:`~topoloc.errors.ParameterError` naming ``name``: the command line
+    names the flag a value came from instead (``--max-features``, not
+    ``max_features``, issue #49).
     """
-    return TopolocError(f"{owner}: {name} must be {expected}, got {value!r}")
+    return ParameterError(name, f"must be {expected}, got {value!r}", owner=owner)
 
 
 def unknown_param_error(owner: str, key: str, names: Sequence[str],

@@ -7,7 +7,9 @@ code raises it instead of printing.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 
 class TopolocError(Exception):
@@ -30,12 +32,39 @@ class ParameterError(TopolocError):
         Dotted name of the parameter in the run specification (``topoloc.spec``).
     detail : str
         What is wrong, phrased to follow the name: ``"must be >= 1, got 0"``.
+        Another parameter it mentions is written ``{name}`` and listed in ``refs``,
+        so that the command line can name that one by its flag too (never a
+        field name the user did not type, issue #49).
+    refs : tuple of str
+        The dotted names of the parameters ``detail`` mentions as ``{name}``.
+    owner : str
+        What the parameter belongs to where it is not a setting of a run
+        (``"features"``, ``"seqslam"``): the message then reads
+        ``"<owner>: <param> <detail>"``.
     """
 
-    def __init__(self, param: str, detail: str) -> None:
+    def __init__(self, param: str, detail: str, refs: tuple[str, ...] = (), *, owner: str = "") -> None:
         self.param = param
-        self.detail = " ".join(detail.split())
-        super().__init__(f"{param} {self.detail}")
+        self.refs = tuple(refs)
+        self.owner = owner
+        #: ``detail`` as given, other parameters still ``{name}``.
+        self.template = " ".join(detail.split())
+        super().__init__(f"{owner}: {param} {self.detail}" if owner else f"{param} {self.detail}")
+
+    @property
+    def detail(self) -> str:
+        """What is wrong, other parameters named by their names in the specification."""
+        return self.render(lambda name: name)
+
+    def render(self, name_of: Callable[[str], str]) -> str:
+        """``detail`` with each parameter of ``refs`` named by ``name_of`` (the command line: its flag)."""
+        text = self.template
+        for ref in self.refs:
+            text = text.replace("{" + ref + "}", name_of(ref))
+        return text
+
+    def __reduce__(self) -> tuple[Any, ...]:  # a Dask task's error travels back pickled
+        return (_parameter_error, (type(self), self.param, self.template, self.refs, self.owner))
 
 
 class WriteError(TopolocError, OSError):
@@ -67,6 +96,11 @@ class WriteError(TopolocError, OSError):
 
     def __str__(self) -> str:
         return f"cannot write {self.filename}: {self.strerror}"
+
+
+def _parameter_error(cls: type[ParameterError], param: str, template: str, refs: tuple[str, ...],
+                     owner: str) -> ParameterError:
+    return cls(param, template, refs, owner=owner)
 
 
 def input_error(problem: str, path: str | Path | None = None) -> TopolocError:

@@ -84,7 +84,7 @@ def test_localize_never_writes_over_its_map_or_images(cli: Cli, proj: dict[str, 
     cli.error([*base, str(proj["tlm"])], "is an input of this command")
     cli.error([*base, str(proj["image"])], "is a file of input folder")
     cli.error([*base, str(proj["query"])], "folder, not a file")
-    cli.error([*base, "/dev/null"], "not a regular file")
+    cli.error([*base, "/dev/zero"], "not a regular file")
     # "-" is standard output for the lines (test_cli_campaign3.py), never for the pairs file.
     cli.error([*base, str(proj["root"] / "l.jsonl"), "--top-k", "2", "--pairs-out", "-"], "standard output")
 

@@ -62,7 +62,7 @@ def test_evaluate_top_k_pairs_out(cli: Cli, rf: dict[str, Path], tmp_path: Path)
 
 
 def test_pairs_out_refusals(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
-    cli.error(_evaluate(rf, tmp_path / "a", "--pairs-out", str(tmp_path / "p.txt")), "give top_k")
+    cli.error(_evaluate(rf, tmp_path / "a", "--pairs-out", str(tmp_path / "p.txt")), "give --top-k")
     image = sorted(rf["query"].glob("*.jpg"))[0]
     cli.error(_evaluate(rf, tmp_path / "b", "--top-k", "2", "--pairs-out", str(image)), "pairs file")
     notes = tmp_path / "notes.txt"

@@ -68,7 +68,7 @@ def test_npz_file(tmp_path: Path) -> None:
     assert gt.soft.all() and gt.hard.sum() == 3
     with pytest.raises(TopolocError, match="shape"):
         ground_truth_from_file(f, map_traverse=_trav(3), place_ids=np.arange(3), n_queries=4)
-    with pytest.raises(TopolocError, match="not found"):
+    with pytest.raises(TopolocError, match="does not exist"):
         ground_truth_from_file(tmp_path / "none.npz", map_traverse=_trav(3), place_ids=np.arange(3), n_queries=3)
 
 

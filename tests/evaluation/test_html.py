@@ -427,7 +427,9 @@ def test_rank_view_shows_each_querys_best_place_brightest() -> None:
     assert pngs["lo"] < pngs["hi"]
 
 
-def test_a_calibrated_maps_run_records_its_threshold(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+def test_a_calibrated_maps_run_opens_at_its_threshold_only_when_scored_as_calibrated(
+        runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """The threshold of 10-frame sequences was applied to single-image scores without a word (issue #49)."""
     root, _, _ = runs
     route = root / "route"
     m = tmp_path / "m.tlm"
@@ -435,15 +437,106 @@ def test_a_calibrated_maps_run_records_its_threshold(runs: tuple[Path, Path, Pat
     for args in (["map", "build", "--method", "seqslam-single", "--map", str(route / "noon"), "--out", str(m), "-q",
                   "--cache-dir", str(root / "cache")],
                  ["map", "calibrate", str(m), "--query", str(route / "dusk"), "--precision", "0.5", "-q",
-                  "--cache-dir", str(root / "cache")],
-                 ["evaluate", "--map-file", str(m), "--query", str(route / "dusk"), "--out", str(tmp_path / "ev"),
-                  "-q", "--cache-dir", str(root / "cache"), "--html", str(tmp_path / "ev" / "index.html")]):
+                  "--cache-dir", str(root / "cache")]):
         res = cli.invoke(app, args)
         assert res.exit_code == 0, res.output
     from topoloc.maps import Map
 
     threshold = Map.load(m).threshold
-    assert threshold is not None
-    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
-    assert metrics["run"]["calibration"]["threshold"] == threshold
-    assert _payload((tmp_path / "ev" / "index.html").read_text())["runs"][0]["calibrated"] == threshold
+    assert threshold is not None and Map.load(m).calibrated_sequence.length == 10  # the tour travels the route
+    pages = {}
+    for name, extra in (("single", []), ("seq", ["--sequence", "10"])):
+        out = tmp_path / name
+        res = cli.invoke(app, ["evaluate", "--map-file", str(m), "--query", str(route / "dusk"), "--out", str(out),
+                               "-q", "--cache-dir", str(root / "cache"), "--html", str(out / "index.html"), *extra])
+        assert res.exit_code == 0, res.output
+        assert json.loads((out / "metrics.json").read_text())["run"]["calibration"]["threshold"] == threshold
+        pages[name] = (out / "index.html").read_text()
+    seq = _payload(pages["seq"])["runs"][0]
+    assert seq["calibrated"] == threshold and not seq["calibration_note"]
+    single = _payload(pages["single"])["runs"][0]
+    assert single["calibrated"] is None
+    assert "10-frame sequences" in single["calibration_note"] and "single images" in single["calibration_note"]
+    assert "not applied" in single["calibration_note"]
+
+
+def test_the_calibration_rule_of_the_slider() -> None:
+    from topoloc.evaluation.html import calibrated_threshold
+
+    def run(cal: dict[str, Any], **params: Any) -> dict[str, Any]:
+        return {"params": {"sequence": 0, "verify": False, **params}, "run": {"calibration": cal}}
+
+    single = {"threshold": 0.5}
+    assert calibrated_threshold(run(single)) == (0.5, "")  # calibrated before sequences were recorded: single
+    seq = {"threshold": 0.5, "sequence": {"length": 10, "mode": "constant"}}
+    assert calibrated_threshold(run(seq, sequence=10, sequence_mode="constant")) == (0.5, "")
+    assert calibrated_threshold(run(seq, sequence=10, sequence_mode="acceleration"))[0] is None
+    assert calibrated_threshold(run(seq))[0] is None
+    verified = {"threshold": 1.3, "verify": True}
+    value, note = calibrated_threshold(run(verified))
+    assert value is None and "verified answers" in note and "unverified" in note
+    assert calibrated_threshold(run(verified, verify=True)) == (1.3, "")
+    assert calibrated_threshold(run({"threshold": None})) == (None, "")
+
+
+def test_a_saved_maps_run_shows_the_map_images_and_the_top_answer_in_the_band(
+        runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """"no image" for every map thumbnail of an evaluate --map-file run; a "best" that was not the method's
+    top answer, unsaid (issue #49)."""
+    root, _, _ = runs
+    route = root / "route"
+    tour = tmp_path / "noon"
+    shutil.copytree(route / "noon", tour)
+    m = tmp_path / "m.tlm"
+    cli = CliRunner()
+    common = ["-q", "--cache-dir", str(root / "cache")]
+    for args in (["map", "build", "--method", "seqslam-single", "--map", str(tour), "--out", str(m), *common],
+                 ["evaluate", "--map-file", str(m), "--query", str(route / "dusk"), "--out", str(tmp_path / "file"),
+                  "--tolerance", "0:6", "--html", str(tmp_path / "file.html"), *common],
+                 ["evaluate", "--method", "seqslam-single", "--map", str(tour), "--query", str(route / "dusk"),
+                  "--out", str(tmp_path / "tours"), "--tolerance", "0:6", *common]):
+        res = cli.invoke(app, args)
+        assert res.exit_code == 0, res.output
+    page = (tmp_path / "file.html").read_text()
+    run = _payload(page)["runs"][0]
+    thumbs = _payload(page)["thumbs"]
+    assert all(it["best"]["img"] in thumbs for it in run["items"])  # every place shown with its map image
+    S = np.load(tmp_path / "file" / "S.npy")
+    top = np.argmax(S, axis=0)
+    best = run["best_row"]
+    places = np.load(tmp_path / "file" / "places.npy")
+    for j, it in enumerate(run["items"]):
+        assert ("top" in it) == (top[j] != best[j])
+        if "top" in it:
+            assert it["top"]["place"] == int(places[top[j]]) and it["top"]["img"] in thumbs
+    assert run["n_top_in_band"] == int((top != np.asarray(best)).sum()) > 0
+    assert "ignored band" in page and "top answer" in page
+    # Both runs name their one vocabulary (none here) and their settings alike.
+    a = run_columns(json.loads((tmp_path / "file" / "metrics.json").read_text()))
+    b = run_columns(json.loads((tmp_path / "tours" / "metrics.json").read_text()))
+    assert {k: v for k, v in a.items() if k != "map"} == {k: v for k, v in b.items() if k != "map"}
+    # A tour folder that no longer holds what the map was built from gives no thumbnails, in one warning line.
+    sorted(tour.glob("*.jpg"))[0].write_bytes(b"changed")
+    again = _payload(render_html([tmp_path / "file"]))["runs"][0]
+    assert all(it["best"]["img"] is None for it in again["items"])
+
+
+def test_one_vocabulary_is_named_one_way(runs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """The vocabulary trained on the map's tours was "100 words, trained on the map tours" in a run from the
+    tours and "trained on the map tours" in the run of the map built from them (issue #49)."""
+    root, _, _ = runs
+    route = root / "route"
+    common = ["-q", "--cache-dir", str(root / "cache"), "--features", "sift"]
+    m = tmp_path / "m.tlm"
+    cli = CliRunner()
+    for args in (["map", "build", "--method", "bow", "--map", str(route / "noon"), "--vocab-words", "50", "--out",
+                  str(m), *common],
+                 ["evaluate", "--map-file", str(m), "--query", str(route / "dusk"), "--out", str(tmp_path / "file"),
+                  *common],
+                 ["evaluate", "--method", "bow", "--map", str(route / "noon"), "--vocab-words", "50", "--query",
+                  str(route / "dusk"), "--out", str(tmp_path / "tours"), *common]):
+        res = cli.invoke(app, args)
+        assert res.exit_code == 0, res.output
+    a, b = (run_columns(json.loads((tmp_path / n / "metrics.json").read_text()))["vocabulary"]
+            for n in ("file", "tours"))
+    assert a == b and a.startswith("50 words, trained on the map tours")

@@ -11,6 +11,9 @@ import pytest
 from topoloc.errors import TopolocError
 from topoloc.io.dirs import Output, check_outputs, json_marker
 
+#: An earlier-output test that no file passes (the cases here are about inputs and paths, not earlier outputs).
+ANY = json_marker("never.json", "never")
+
 EARLIER = json_marker("metrics.json", "run")
 
 
@@ -33,20 +36,20 @@ def proj(tmp_path: Path) -> Path:
 def test_an_output_that_is_an_input_is_refused(proj: Path, tmp_path: Path) -> None:
     image = proj / "query" / "0.jpg"
     with pytest.raises(TopolocError, match="is an input of this command"):
-        check_outputs([Output(image)], [image])
+        check_outputs([Output(image, earlier=ANY)], [image])
     link = tmp_path / "link.jpg"
     link.symlink_to(image)
     with pytest.raises(TopolocError, match="is an input of this command"):
-        check_outputs([Output(link)], [image])
+        check_outputs([Output(link, earlier=ANY)], [image])
     hard = tmp_path / "hard.jpg"
     os.link(image, hard)
     with pytest.raises(TopolocError, match="is an input of this command"):
-        check_outputs([Output(hard)], [image])
+        check_outputs([Output(hard, earlier=ANY)], [image])
     # A file of an input folder is that input's too; a new file beside them is not.
     with pytest.raises(TopolocError, match="file of input folder"):
-        check_outputs([Output(image)], [proj / "query"])
-    check_outputs([Output(proj / "query" / "new.jsonl")], [proj / "query"])
-    check_outputs([Output(tmp_path / "out.jsonl")], [image, None, tmp_path / "missing"])
+        check_outputs([Output(image, earlier=ANY)], [proj / "query"])
+    check_outputs([Output(proj / "query" / "new.jsonl", earlier=ANY)], [proj / "query"])
+    check_outputs([Output(tmp_path / "out.jsonl", earlier=ANY)], [image, None, tmp_path / "missing"])
 
 
 def test_a_run_folder_replaces_only_nothing_or_an_earlier_run(proj: Path, tmp_path: Path,
@@ -95,15 +98,18 @@ def test_a_folder_written_into_overwrites_only_its_own_files(proj: Path, tmp_pat
 def test_outputs_that_are_not_regular_files(tmp_path: Path) -> None:
     fifo = tmp_path / "fifo"
     os.mkfifo(fifo)
-    for path in (fifo, Path("/dev/null")):
-        with pytest.raises(TopolocError, match="not a regular file"):
-            check_outputs([Output(path)], [])
+    anything = json_marker("x.json", "x")
+    for path, kind in ((fifo, "named pipe"), (Path("/dev/zero"), "character device")):
+        with pytest.raises(TopolocError, match=f"is a {kind}.*, not a regular file"):
+            check_outputs([Output(path, earlier=anything)], [])
+        with pytest.raises(TopolocError, match=f"is a {kind}.*, not a folder"):
+            check_outputs([Output(path, "run")], [])
     with pytest.raises(TopolocError, match="folder, not a file"):
-        check_outputs([Output(tmp_path)], [])
+        check_outputs([Output(tmp_path, earlier=anything)], [])
     with pytest.raises(TopolocError, match="standard output"):
-        check_outputs([Output(Path("-"))], [])
-    with pytest.raises(TopolocError, match="not a regular file"):
-        check_outputs([Output(Path("/dev/null"), "run")], [])
+        check_outputs([Output(Path("-"), earlier=anything)], [])
+    # The null device is the conventional way to discard an output (issue #49): any kind, twice.
+    check_outputs([Output(Path("/dev/null"), "run"), Output(Path("/dev/null"), earlier=anything)], [])
     (tmp_path / "f").write_text("x")
     with pytest.raises(TopolocError, match="output folder is a file"):
         check_outputs([Output(tmp_path / "f", "folder")], [])
@@ -112,12 +118,12 @@ def test_outputs_that_are_not_regular_files(tmp_path: Path) -> None:
 def test_names_near_the_file_system_limit_and_twice_the_same_output(tmp_path: Path) -> None:
     limit = os.pathconf(tmp_path, "PC_NAME_MAX")
     with pytest.raises(TopolocError, match="name is too long"):
-        check_outputs([Output(tmp_path / ("a" * (limit - 3)))], [])
+        check_outputs([Output(tmp_path / ("a" * (limit - 3)), earlier=ANY)], [])
     with pytest.raises(TopolocError, match="name is too long"):
         check_outputs([Output(tmp_path / ("b" * (limit + 10)) / "run", "run")], [])
-    check_outputs([Output(tmp_path / ("a" * (limit - 40)))], [])
+    check_outputs([Output(tmp_path / ("a" * (limit - 40)), earlier=ANY)], [])
     with pytest.raises(TopolocError, match="also another output"):
-        check_outputs([Output(tmp_path / "x"), Output(tmp_path / "." / "x")], [])
+        check_outputs([Output(tmp_path / "x", earlier=ANY), Output(tmp_path / "." / "x", earlier=ANY)], [])
 
 
 def test_an_output_file_replaces_only_an_earlier_output_of_its_kind(tmp_path: Path) -> None:

@@ -105,7 +105,7 @@ def test_bad_files_are_one_line_errors(tmp_path: Path) -> None:
     (tmp_path / "junk.npy").write_bytes(b"not numpy")
     trav = _traverse(tmp_path, [0, 1])
     cases = [("three.npy", "has 3 rows but the map traverse has 2 images"), ("flat.npy", "2-D numeric array"),
-             ("junk.npy", "cannot read descriptors"), ("missing.npy", "descriptor file not found")]
+             ("junk.npy", "cannot read descriptors"), ("missing.npy", "descriptor file does not exist")]
     for name, needle in cases:
         with pytest.raises(TopolocError, match=needle) as exc:
             GlobalDescriptors(map=str(tmp_path / name)).fit(trav)

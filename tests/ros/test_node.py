@@ -56,7 +56,7 @@ class Ros(LocalMaster):
         return subprocess.Popen([sys.executable, *args], env=self.env, stdout=subprocess.PIPE, stderr=out, text=True)
 
     def node(self, map_file: Path, name: str, *extra: str) -> subprocess.Popen[str]:
-        proc = self.start(["-m", "topoloc.ros", str(map_file), *extra, f"__name:={name}"], name)
+        proc = self.start(["-m", "topoloc", "ros-node", str(map_file), *extra, f"__name:={name}"], name)
         topic = next((extra[k + 1] for k, a in enumerate(extra) if a == "--image-topic"), None)
         if topic is not None:
             wait_for(f"{name} to subscribe to {topic}", lambda: f"/{name}" in self.subscribers(topic) or
@@ -297,13 +297,13 @@ def test_losing_the_master_is_one_line(route: dict[str, Any], tmp_path: Path) ->
 
 def test_no_master_and_bad_settings_are_one_line(ros: Ros, route: dict[str, Any], tmp_path: Path) -> None:
     env = {**ros.env, "ROS_MASTER_URI": f"http://127.0.0.1:{free_port()}"}
-    r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(route["map"])], env=env, capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "topoloc", "ros-node", str(route["map"])], env=env, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "no ROS master at" in r.stderr, r.stderr
-    r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(route["map"]), "--queue", "0"], env=ros.env,
+    r = subprocess.run([sys.executable, "-m", "topoloc", "ros-node", str(route["map"]), "--queue", "0"], env=ros.env,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "queue must be >= 1" in r.stderr and "Traceback" not in r.stderr, r.stderr
-    r = subprocess.run([sys.executable, "-m", "topoloc.ros", str(tmp_path / "none.tlm")], env=ros.env,
+    r = subprocess.run([sys.executable, "-m", "topoloc", "ros-node", str(tmp_path / "none.tlm")], env=ros.env,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "none.tlm" in r.stderr and "Traceback" not in r.stderr, r.stderr
 

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 
 import typer
 
-from topoloc.cli.app import app, bench_app, handle_errors, vocab_app
+from topoloc.cli.app import app, bench_app, handle_errors, needs, vocab_app
 from topoloc.cli.options import (
     CacheDirOption,
     ConfigOption,
@@ -42,6 +42,7 @@ from topoloc.cli.options import (
     VocabTrainOption,
     VocabWordsOption,
     at_least,
+    own_names,
     parse_params,
     spec_from_cli,
 )
@@ -51,7 +52,7 @@ from topoloc.errors import TopolocError
 __all__ = ["app", "main"]
 
 
-@app.command()
+@app.command(cls=needs("(--map <path>... --method <str> | --map-file <path>)", "query", "out"))
 @handle_errors
 def evaluate(
     ctx: typer.Context,
@@ -102,6 +103,7 @@ def evaluate(
     values = dict(locals())  # before any name is imported here
     from topoloc.evaluation.pipeline import evaluate as run
     from topoloc.evaluation.report import TABLE_HEADER, table_row
+    from topoloc.io.paths import is_discard
     from topoloc.spec import EvaluateSpec
 
     single = values["map_file"] is not None and values["sequence"] == 0  # a saved map's "single images, not its own"
@@ -120,8 +122,9 @@ def evaluate(
         metrics = run(spec, progress=progress, executor=executor)
     typer.echo(TABLE_HEADER + table_row(metrics), nl=False)
     s_file = "S_topk.npz" if spec.top_k else "S.npy"
-    typer.echo(f"wrote {spec.out}/{s_file}, metrics.json, pr.png, report.md" + (f"; {spec.html}" if spec.html else "")
-               + (f"; {spec.pairs_out}" if spec.pairs_out else ""))
+    kept = [] if is_discard(spec.out) else [f"{spec.out}/{s_file}, metrics.json, pr.png, report.md"]
+    kept += [str(p) for p in (spec.html, spec.pairs_out) if p is not None and not is_discard(p)]
+    typer.echo(f"wrote {'; '.join(kept)}" if kept else "wrote nothing (the outputs were /dev/null)")
 
 
 def _given(ctx: typer.Context, name: str, config: Path | None) -> bool:
@@ -136,7 +139,7 @@ def _given(ctx: typer.Context, name: str, config: Path | None) -> bool:
     return name in nest(load_config(config))
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def report(
     runs: Annotated[list[Path], typer.Argument(help="Output folders of `topoloc evaluate`.")],
@@ -148,15 +151,18 @@ def report(
 ) -> None:
     """Put several evaluate runs side by side: one table and one PNG of PR curves (and an HTML page)."""
     from topoloc.evaluation.report import build_report
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, html_marker, writing_into
+    from topoloc.spec.parts import distinct_paths
     from topoloc.spec.runs import html_page
 
+    distinct_paths("runs", runs)  # a run given twice would be two rows of one run (issue #49)
     outputs = [Output(out, "folder", names=REPORT_FILES, earlier=_earlier_report, what="report folder")]
     if html is not None:
-        outputs.append(Output(html_page(html, None), what="HTML page"))
+        outputs.append(Output(html_page(html, None), what="HTML page", earlier=html_marker()))
     check_outputs(outputs, runs)
-    path = build_report(list(runs), out, title=title)
-    typer.echo(path.read_text(), nl=False)
+    with writing_into(out) as folder:
+        path = build_report(list(runs), folder, title=title)
+        typer.echo(path.read_text(), nl=False)
     if html is not None:
         from topoloc.evaluation.html import build_html_report
 
@@ -173,7 +179,7 @@ def _earlier_report(folder: Path) -> bool:
     return all((folder / name).is_file() for name in REPORT_FILES)
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def methods(
     name: Annotated[str | None, typer.Argument(help="A method: explain each of its parameters.")] = None,
@@ -211,7 +217,7 @@ def _defaults(cls: type) -> dict[str, Any]:
     return {p.name: p.default for p in sig.parameters.values() if p.kind is p.KEYWORD_ONLY}
 
 
-@vocab_app.command("train")
+@vocab_app.command("train", cls=needs("folders", "out"))
 @handle_errors
 def vocab_train_cmd(
     ctx: typer.Context,
@@ -232,6 +238,7 @@ def vocab_train_cmd(
     """Train a visual vocabulary (k-means) on the images under FOLDERS."""
     values = dict(locals())  # before any name is imported here
     from topoloc.features import FeatureExtractor
+    from topoloc.io.paths import through_link
     from topoloc.spec import VocabTrainSpec
     from topoloc.vocabulary import train_vocabulary
 
@@ -243,7 +250,7 @@ def vocab_train_cmd(
     with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
         voc = train_vocabulary(list(spec.folders), extractor=extractor, n_words=spec.vocabulary.words,
                                seed=spec.vocabulary.seed, progress=progress, executor=executor)
-    voc.save(spec.out)
+    voc.save(through_link(spec.out))  # a link named as the file: its target replaced, the link kept
     typer.echo(json.dumps({"out": str(spec.out), **voc.provenance_}, default=str))
 
 
@@ -251,9 +258,10 @@ def vocab_train_cmd(
 VOCAB_TRAIN_NAMES = {"words": "vocabulary.words", "seed": "vocabulary.seed"}
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def synth(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Argument(help="Folder to write the tours into.")],
     places: Annotated[int, typer.Option(help="Number of places along the route.")] = 60,
     hours: Annotated[str, typer.Option(help="Comma-separated times of day of the tours.")] = "9,13,17,22",
@@ -263,16 +271,23 @@ def synth(
     quiet: QuietOption = False,
 ) -> None:
     """Generate a synthetic route (tours at several times of day) for tests and demos."""
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, writing_into
+    from topoloc.io.paths import is_discard
     from topoloc.synth import RouteConfig, generate_route
 
+    own_names(ctx, ROUTE_NAMES)
     tours = _tours(hours)
     names = tuple(name for name, _ in tours)
     check_outputs([Output(out, "folder", names=names, earlier=_earlier_route(names), what="output folder")], [])
-    dirs = generate_route(out, config=RouteConfig(n_places=places, width=width, height=height,
-                                                  seed=seed), tours=tours)
+    with writing_into(out) as folder:
+        dirs = generate_route(folder, config=RouteConfig(n_places=places, width=width, height=height,
+                                                         seed=seed), tours=tours)
     for d in dirs:
-        typer.echo(str(d))
+        typer.echo(f"{d.name}: discarded (/dev/null)" if is_discard(out) else str(out / d.relative_to(folder)))
+
+
+# ``synth`` and ``demo`` say --places for the route's n_places.
+ROUTE_NAMES = {"places": "n_places"}
 
 
 def _earlier_route(names: tuple[str, ...]) -> Callable[[Path], bool]:
@@ -299,31 +314,33 @@ def _tours(hours: str) -> list[tuple[str, float]]:
         hs = [float(h) for h in hours.split(",") if h.strip()]
     except ValueError:
         raise TopolocError(f"--hours {hours!r} is not a comma-separated list of numbers") from None
-    if not all(math.isfinite(h) for h in hs):
+    if not all(math.isfinite(h) and 0 <= h <= 24 for h in hs):
         raise TopolocError(f"--hours {hours!r} needs finite hours of the day in [0, 24]")
     return [(f"tour_{int(h):02d}{round((h % 1) * 60):02d}", h) for h in hs]
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def demo(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("demo_out"),
     places: Annotated[int, typer.Option(help="Places along the generated route.")] = 60,
     quiet: QuietOption = False,
 ) -> None:
     """Generate a route at several times of day, run the methods, print a table, plot PR curves."""
     from topoloc.demo import DEMO_FILES, run_demo
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, writing_into
 
+    own_names(ctx, ROUTE_NAMES)
     check_outputs([Output(out, "folder", names=DEMO_FILES, what="output folder",
                           earlier=lambda d: _earlier_route(("tour_0900",))(d / "route"))], [])
-    with rich_progress(not quiet) as progress:
-        report_path = run_demo(out, n_places=places, progress=progress)
-    typer.echo(report_path.read_text(), nl=False)
-    typer.echo(f"\nPR curves: {report_path.parent / 'pr_curves.png'}")
+    with rich_progress(not quiet) as progress, writing_into(out) as folder:
+        report_path = run_demo(folder, n_places=places, progress=progress)
+        typer.echo(report_path.read_text(), nl=False)
+    typer.echo(f"\nPR curves: {out / report_path.relative_to(folder).parent / 'pr_curves.png'}")
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def convert(
     format: Annotated[str, typer.Argument(help="vpr-bench, utm-names, dbstruct, msls, kitti or latlon-csv.")],
@@ -345,18 +362,17 @@ def convert(
     """Write a public dataset (VPR-Bench, Pittsburgh/Tokyo .mat, MSLS, KITTI, ...) as traverses."""
     from topoloc.datasets.formats import ConvertOptions
     from topoloc.datasets.formats import convert as run
-    from topoloc.io.dirs import Output, check_outputs, json_marker
+    from topoloc.io.dirs import Output, check_outputs, json_marker, writing_into
 
-    if out.exists() and not out.is_dir():
-        raise TopolocError(f"output is not a folder: {out}")
     # Images are linked into the folder under their own names: any entry of a folder that is not an
     # earlier conversion (its dataset.json) could be replaced.
     check_outputs([Output(out, "folder", names=None, earlier=json_marker("dataset.json", "n_images"),
                           what="output folder")], [src, images, query_images, poses])
-    result = run(format, src, out, ConvertOptions(images=images, query_images=query_images, poses=poses,
-                                                  columns=parse_params(column or []), copy=copy))
-    for key, folder in result.traverses.items():
-        typer.echo(f"{key or 'traverse'}: {folder} ({result.n_images[key]} images)")
+    with writing_into(out) as folder:
+        result = run(format, src, folder, ConvertOptions(images=images, query_images=query_images, poses=poses,
+                                                         columns=parse_params(column or []), copy=copy))
+    for key, where in result.traverses.items():
+        typer.echo(f"{key or 'traverse'}: {where} ({result.n_images[key]} images)")
     if result.projection:
         typer.echo(f"x, y: {result.projection}")
     for note in result.notes:
@@ -364,11 +380,12 @@ def convert(
     typer.echo(f"evaluate with: topoloc evaluate ... {result.evaluate}")
 
 
-@app.command("show-match")
+@app.command("show-match", cls=needs())
 @handle_errors
 def show_match_cmd(
     query_image: Annotated[Path, typer.Argument(help="Query image.")],
-    map: Annotated[list[Path], typer.Option("--map", help="Map traverse folder (repeatable): the tours.")],
+    map: Annotated[list[Path], typer.Option(
+        "--map", metavar="<path>", help="Map traverse folder (repeatable): the tours.")],
     out: Annotated[Path, typer.Option(help="PNG to write.")],
     vocab: VocabOption = None,
     vocab_train: VocabTrainOption = None,
@@ -393,20 +410,23 @@ def show_match_cmd(
     file, time); the footer the score, the rank among all places, the number of consistent
     correspondences (green; inconsistent ones red) and whether the match is right.
     """
-    from topoloc.datasets.traverse import load_traverse
-    from topoloc.drawing.match_figure import labelled_match, write_png
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.datasets.traverse import check_distinct_tours, load_traverse
+    from topoloc.drawing.match_figure import labelled_match
+    from topoloc.drawing.show_match import write_png
+    from topoloc.io.dirs import Output, check_outputs, png_marker
+    from topoloc.io.paths import check_kind
     from topoloc.spec import FeatureSpec, VocabularySpec
     from topoloc.spec.setup import build_method, make_resources
 
-    check_outputs([Output(out, what="PNG")], [query_image, *map, vocab, *(vocab_train or ()), cache_dir])
+    check_outputs([Output(out, what="PNG", earlier=png_marker())], [query_image, *map, vocab, *(vocab_train or ()),
+                                                                    cache_dir])
     at_least("--tolerance", tolerance, 0)
-    if not query_image.is_file():
-        raise TopolocError(f"query image not found: {query_image}")
+    check_kind(query_image, "file", "query image")
     rec = build_method(method, parse_params(param or []))
     voc_spec = VocabularySpec(file=vocab, train=tuple(vocab_train or ()), words=vocab_words)
     feature_spec = FeatureSpec(method=features, max_features=max_features, max_side=max_side, preprocess=preprocess)
     maps = [load_traverse(m) for m in map]
+    check_distinct_tours(maps)
     config_ = feature_spec.config()
     with rich_progress(not quiet) as progress:
         resources, _ = make_resources(
@@ -429,7 +449,7 @@ def slam_verify(verify: bool | None) -> bool:
     return choose_verify(verify).enabled is not False
 
 
-@app.command()
+@app.command(cls=needs())
 @handle_errors
 def slam(
     traverse: Annotated[Path, typer.Argument(
@@ -462,7 +482,8 @@ def slam(
     A ROS bag or a video is read as `localize` reads it (--topic, --every-s, --every-m, --pose-topic).
     """
     from topoloc.evaluation.slam import SLAM_FILES, run_slam
-    from topoloc.io.dirs import Output, check_outputs, json_marker
+    from topoloc.io.dirs import Output, check_outputs, html_marker, json_marker, writing_into
+    from topoloc.io.paths import is_discard
     from topoloc.spec import FeatureSpec, InputSpec, VocabularySpec
     from topoloc.spec.setup import make_resources
 
@@ -477,25 +498,26 @@ def slam(
     outputs = [Output(out, "folder", names=SLAM_FILES, earlier=json_marker("slam.json", "params"),
                       what="output folder")]
     if html is not None:
-        outputs.append(Output(html, what="HTML page"))
+        outputs.append(Output(html, what="HTML page", earlier=html_marker()))
     check_outputs(outputs, [traverse, vocab, *(vocab_train or ()), model, cache_dir])
     trav = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic).load([traverse])[0]
-    with rich_progress(not quiet) as progress:
+    with rich_progress(not quiet) as progress, writing_into(out) as folder:
         resources, _ = make_resources(feature_spec.config(), voc_spec, cache_dir=cache_dir,
                                       needs_vocabulary="slam", progress=progress, tours=[trav])
-        result = run_slam(trav, out_dir=out, model=model, resources=resources, variant=variant,
+        result = run_slam(trav, out_dir=folder, model=model, resources=resources, variant=variant,
                           threshold=threshold, p_new=p_new, min_gap=min_gap, verify=slam_verify(verify))
         if html is not None:
             from topoloc.evaluation.slam_html import build_slam_html
 
-            typer.echo(f"wrote {build_slam_html(out, html, progress=progress)}")
+            typer.echo(f"wrote {build_slam_html(folder, html, progress=progress)}")
     rejected = len(result.params.get("rejected_by_verification", []))
     typer.echo(f"{result.n_images} images, {result.n_places} places, {len(result.loop_closures())} loop closures"
                + (f" ({rejected} rejected by verification)" if result.params.get("verify") else "") + "; "
-               f"wrote {out}/posterior.npy, loop_closures.csv, loop_closures.png")
+               + ("discarded the files (--out /dev/null)" if is_discard(out) else
+                  f"wrote {out}/posterior.npy, loop_closures.csv, loop_closures.png"))
 
 
-@bench_app.command("fabmap2")
+@bench_app.command("fabmap2", cls=needs())
 @handle_errors
 def bench_fabmap2_cmd(
     places: Annotated[int, typer.Option(help="Places in the map.")] = 100000,
@@ -517,7 +539,7 @@ def bench_fabmap2_cmd(
     _print_bench(res, as_json)
 
 
-@bench_app.command("coocmap")
+@bench_app.command("coocmap", cls=needs())
 @handle_errors
 def bench_coocmap_cmd(
     locations: Annotated[int, typer.Option(help="Locations in the map.")] = 2200,

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import sys
+import tempfile
 import time
 from collections import deque
 from pathlib import Path
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from topoloc.cli.app import app, command_group, handle_errors
+from topoloc.cli.app import app, command_group, handle_errors, needs
 from topoloc.cli.options import (
     CacheDirOption,
     CalibrateSequenceOption,
@@ -62,7 +63,7 @@ log = logging.getLogger(__name__)
 map_app = command_group(help="Saved maps: build once from tours, add tours later, inspect, calibrate.")
 app.add_typer(map_app, name="map")
 
-@map_app.command("build")
+@map_app.command("build", cls=needs("method", "map", "out"))
 @handle_errors
 def map_build(
     ctx: typer.Context,
@@ -94,6 +95,7 @@ def map_build(
 ) -> None:
     """Build a map from one or more tours and save it in one file."""
     values = dict(locals())  # before any name is imported here
+    from topoloc.io.paths import is_discard
     from topoloc.maps import Map
     from topoloc.spec import MapBuildSpec, spec_to_dict
     from topoloc.spec.setup import build_method
@@ -105,9 +107,10 @@ def map_build(
     tours = spec.inputs.load(spec.maps)
     params = build_method(spec.method, spec.params).get_params()  # checks names and types first
     t0 = time.perf_counter()
+    discard = is_discard(spec.out)  # --out /dev/null: built (and timed), not kept
     # The map's large intermediates (merged shards, inverted files) as scratch files beside the map,
     # until it is saved: the process then holds chunks of the map, not all of it (io.scratch).
-    with spill_to(spec.out.parent):
+    with spill_to(Path(tempfile.gettempdir()) if discard else spec.out.parent):
         with spec.execution.connect() as executor, rich_progress(not quiet) as progress:
             v = spec.vocabulary
             m = Map.build(executor=executor, method=spec.method, tours=tours, params=params, vocabulary=v.file,
@@ -115,14 +118,15 @@ def map_build(
                           features=spec.features.config(), cache_dir=spec.execution.cache_dir,
                           progress=progress, shards=spec.shards)
         m.spec = spec_to_dict(spec)
-        m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
+        if not discard:
+            m.save(spec.out)  # after any update of the file in progress elsewhere, which it replaces
     info = m.info()
     typer.echo(json.dumps({"out": str(spec.out), "bytes": info["bytes"], "method": info["method"],
                            "places": info["places"], "tours": [t["name"] for t in m.tours],
                            "seconds": round(time.perf_counter() - t0, 2)}))
 
 
-@map_app.command("add")
+@map_app.command("add", cls=needs())
 @handle_errors
 def map_add(
     map_file: Annotated[Path, typer.Argument(help="Map file to extend (rewritten atomically).")],
@@ -140,13 +144,18 @@ def map_add(
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
 ) -> None:
-    """Add a tour to a saved map without rebuilding it from the earlier images.
+    """Add a tour to a saved map: the map is then what `map build` of all its tours gives.
 
-    Another `map add`, `map calibrate` or `map build` of the same file waits for this one (and says so once).
+    Most maps learn the tour alone, without revisiting the earlier images. A map whose vocabulary was trained on
+    its own tours (map build without --vocab/--vocab-train) is built again from all its tours, the vocabulary
+    trained again with the new tour (its words, and the map's checksum, change), and so is a map of a method
+    that cannot add a tour exactly; the earlier tours' features come from the cache. It says so in one line when
+    it does. Another `map add`, `map calibrate` or `map build` of the same file waits for this one (and says so
+    once).
     """
     from dataclasses import replace
 
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, container_marker
     from topoloc.maps import Map
     from topoloc.spec import ExecutionSpec, FeatureSpec, InputSpec
     from topoloc.vocabulary import Vocabulary
@@ -157,7 +166,7 @@ def map_add(
     # `map add` or a `map calibrate` waits, then extends this one's result).
     with Map.update(map_file) as m:
         # The map is rewritten (that is the command); what it reads beside it must not be the map.
-        check_outputs([Output(map_file, what="map file")], [tour, vocab, cache_dir])
+        check_outputs([Output(map_file, what="map file", earlier=container_marker("map"))], [tour, vocab, cache_dir])
         # Options left out take the map's own values, so only those given are compared.
         have = FeatureSpec(method=m.features.method, max_features=m.features.max_features,
                            preprocess=m.features.preprocess)
@@ -166,6 +175,10 @@ def map_add(
         m.check_compatible(features=replace(have, **given),
                            vocabulary=Vocabulary.load(vocab) if vocab is not None else None)
         t = inputs.load([tour])[0]
+        if m.add_rebuilds:  # said before the work: minutes where a vocabulary is trained again (issue #49)
+            n = len(m.tours)
+            log.warning("%s: %s: building it again from its %d tour%s and this one, as map build of them would",
+                        map_file, m.add_rebuilds_why, n, "" if n == 1 else "s")
         with execution.connect() as executor, rich_progress(not quiet) as progress:
             m.add_tour(t, cache_dir=execution.cache_dir, progress=progress, executor=executor)
     out: dict[str, Any] = {"out": str(map_file), "places": len(m.place_ids), "tours": [x["name"] for x in m.tours]}
@@ -177,7 +190,7 @@ def map_add(
     typer.echo(json.dumps(out))
 
 
-@map_app.command("info")
+@map_app.command("info", cls=needs())
 @handle_errors
 def map_info(
     map_file: Annotated[Path, typer.Argument(help="Map file.")],
@@ -201,12 +214,24 @@ def map_info(
                 typer.echo(f"  - {t['name']}: {t['n_images']} images, {t['n_places']} places{when} ({where})")
         else:
             typer.echo(f"{key}: {json.dumps(value, default=str) if isinstance(value, dict | list) else value}")
+        if key == "verification" and isinstance(value, dict) and "default" in value:
+            typer.echo(f"  default {json.dumps(value['default'])}: {VERIFY_DEFAULT_WORDS[value['default']]}")
         if key == "calibration" and isinstance(value, dict) and value.get("stale"):
             typer.echo(f"  stale: tours added since it was made ({', '.join(value.get('tours_added_since', []))}); "
                        "run `topoloc map calibrate` again")
 
 
-@map_app.command("calibrate")
+#: What a map's ``verification.default`` means to localize and evaluate --map-file, said under it by map info.
+VERIFY_DEFAULT_WORDS = {
+    True: "answers are verified (as the map was built or calibrated); --no-verify turns it off",
+    False: "answers are not verified (the map was calibrated without verification, or saved before it existed): "
+           "--verify turns it on",
+    None: "not set: answers are verified wherever the map's images can be read (verification.can_verify); "
+          "--no-verify turns it off",
+}
+
+
+@map_app.command("calibrate", cls=needs())
 @handle_errors
 def map_calibrate(
     map_file: Annotated[Path, typer.Argument(help="Map file (rewritten atomically with the threshold).")],
@@ -234,7 +259,7 @@ def map_calibrate(
     Precision is right accepted frames over accepted frames; recall is right accepted frames over the frames
     that have a right place in the map.  Calibrating again clears a calibration that `map add` marked stale.
     """
-    from topoloc.io.dirs import Output, check_outputs
+    from topoloc.io.dirs import Output, check_outputs, container_marker
     from topoloc.maps import Map
     from topoloc.maps.calibration import check_precision
     from topoloc.spec import GroundTruthSpec, InputSpec, SequenceSpec
@@ -244,7 +269,7 @@ def map_calibrate(
     gt = GroundTruthSpec.for_calibration(tolerance, tolerance_m)
     inputs = InputSpec(topic=topic, every_s=every_s, every_m=every_m, pose_topic=pose_topic)
     with Map.update(map_file) as m:  # no tour another writer adds meanwhile is lost
-        check_outputs([Output(map_file, what="map file")], [query, cache_dir])
+        check_outputs([Output(map_file, what="map file", earlier=container_marker("map"))], [query, cache_dir])
         q = inputs.load([query])[0]
         if seq is None:  # not told: sequences where the tour travels the route, as a stream would
             seq = stream_sequence_for(q.places)
@@ -256,7 +281,7 @@ def map_calibrate(
     typer.echo(json.dumps(cal))
 
 
-@app.command()
+@app.command(cls=needs("map_file", "inputs", "out"))
 @handle_errors
 def localize(
     ctx: typer.Context,
@@ -361,8 +386,11 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
     """``localize`` of a camera or network stream: the newest frame each time, until Ctrl-C or the stream ends.
 
     The lines are those of a recording, ``time`` the wall-clock time the frame
-    was captured (Unix seconds); the last line adds what the stream gave:
-    frames read, skipped (arrived while others were matched) and how it ended.
+    was captured (Unix seconds), ``frame`` its number in the stream (the frames
+    skipped leave gaps); the last line adds what the stream gave: frames read,
+    skipped (arrived while others were matched), refused by the decoding
+    (``frames_bad``: random bytes, a truncated or too large JPEG; each said in a
+    warning line, the first and every 100th) and how it ended.
     Ctrl-C (SIGINT) or SIGTERM stops the reading: the frames already read are
     answered, then the summary; a second one stops at once.
     """
@@ -405,6 +433,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
         log.warning("the stream ended after %d frames: %s", source.frames_read, source.name)
     typer.echo(json.dumps({"out": str(spec.out), "stream": source.name, "ended": stopped_by[0] if stopped_by
                            else "stream", "frames_read": source.frames_read, "frames_skipped": source.buffer.skipped,
+                           "frames_bad": source.frames_bad,
                            **loc.summary()}), err=spec.to_stdout)
 
 
@@ -464,7 +493,7 @@ cache_app = command_group(help="The feature and vocabulary cache (~/.cache/topol
 app.add_typer(cache_app, name="cache")
 
 
-@cache_app.command("info")
+@cache_app.command("info", cls=needs())
 @handle_errors
 def cache_info(
     cache_dir: CacheDirOption = None,
@@ -496,7 +525,7 @@ def cache_info(
         typer.echo(f"  {key}: {agg['traverses']} traverses, {agg['images']} images, {agg['bytes'] / 2**20:.1f} MiB")
 
 
-@cache_app.command("clean")
+@cache_app.command("clean", cls=needs())
 @handle_errors
 def cache_clean(
     cache_dir: CacheDirOption = None,

@@ -115,21 +115,78 @@ _FLAT_TO_FLAG = {"vocabulary": "--vocab/--vocab-train", "maps": "--map", "params
 _NOT_SPEC = {"config", "quiet", "ctx"}
 #: Values a command passes under another name than its parameter's: localize's INPUTS become images or a stream.
 _CLI_PARAMETER = {"images": "inputs", "stream": "inputs"}
+#: A setting that is several of a command's parameters at once.
+_GROUPS = {"vocabulary": ("vocab", "vocab_train")}
+#: Where a command keeps its own flat names (``vocab train``'s ``--words``), for the errors raised after parsing.
+NAMES_KEY = "topoloc.flat_names"
 
 
-def flag_of(param: str, names: Mapping[str, str] | None = None) -> str:
+def own_names(ctx: typer.Context, names: Mapping[str, str]) -> None:
+    """Record that this command's flags ``names`` (``{"places": "n_places"}``) give the parameters named so."""
+    meta = getattr(ctx, "meta", None)
+    if meta is not None:  # a context click made (not a stand-in)
+        meta[NAMES_KEY] = dict(names)
+
+
+def flag_of(param: str, names: Mapping[str, str] | None = None, *, command: Any = None) -> str:
     """The flag a parameter of a run specification comes from: ``features.max_side`` -> ``--max-side``.
 
     ``names`` are the command's own flat names for dotted ones (``vocab train``'s ``words``).
+    ``command`` (a click command) names it as that command takes it: its option's flag or its
+    argument's name (``localize``'s ``MAP_FILE``, not ``evaluate``'s ``--map-file``), so that a
+    message never names a flag of another command (issue #49); a setting the command has no
+    flag for (one only a ``--config`` file gives) keeps its name in that file.
     """
     from topoloc.spec.config import DOTTED_NAMES
 
+    own = {dotted: flat for flat, dotted in (names or {}).items()}
     parts = []
     for one in param.split("/"):
-        own = {dotted: flat for flat, dotted in (names or {}).items()}
         flat = own.get(one) or DOTTED_NAMES.get(one, one)
-        parts.append(_FLAT_TO_FLAG.get(flat) or "--" + flat.replace("_", "-").replace(".", "-"))
-    return "/".join(parts)
+        shown = _command_flag(command, one, flat) if command is not None else None
+        if shown is not None:
+            parts.append(shown)
+        elif command is not None:
+            parts.append(one)  # not a flag of this command: the name a configuration file or a method gives it
+        else:
+            parts.append(_FLAT_TO_FLAG.get(flat) or "--" + flat.replace("_", "-").replace(".", "-"))
+    return "/".join(dict.fromkeys(parts))
+
+
+def _command_flag(command: Any, dotted: str, flat: str) -> str | None:
+    """How ``command`` takes the setting ``flat`` (dotted: ``dotted``): ``--flag``, ``ARGUMENT``, or None."""
+    by_name = {p.name: p for p in command.params}
+    cli = {v: k for k, v in _CLI_TO_FLAT.items()}.get(flat, _CLI_PARAMETER.get(flat, flat))
+    found = [by_name[n] for n in _GROUPS.get(flat, (cli,)) if n in by_name]
+    shown = []
+    for p in found:
+        if p.param_type_name == "argument":
+            shown.append(p.metavar or (p.name or "").upper())
+        else:
+            shown.append(max((o for o in p.opts if o.startswith("--")), key=len, default=p.opts[0]))
+    return "/".join(shown) or None
+
+
+def parameter_message(exc: ParameterError) -> str:
+    """The one line of a :class:`ParameterError` at the command line: the flags of the command typed.
+
+    A parameter the command has no flag for keeps its own name: a setting
+    of a ``--config`` file, or a method's parameter (``--param ds=...``), said
+    with what it belongs to (``seqslam: ds must be ...``).
+    """
+    from typer._click.globals import get_current_context
+
+    ctx = get_current_context(silent=True)
+    command = ctx.command if ctx is not None else None
+    names = ctx.meta.get(NAMES_KEY) if ctx is not None else None
+
+    def name(p: str) -> str:
+        return flag_of(p, names, command=command)
+
+    head = name(exc.param)
+    if exc.owner and head == exc.param:
+        head = f"{exc.owner}: {exc.param}"
+    return f"{head} {exc.render(name)}"
 
 
 def parse_params(items: list[str]) -> dict[str, str]:
@@ -169,6 +226,8 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
     from topoloc.spec import load_config, merge, nest, spec_from_dict
     from topoloc.spec.config import typed_config
 
+    if names:
+        own_names(ctx, names)
     flat: dict[str, Any] = {}
     for key, value in values.items():
         if key in _NOT_SPEC:
@@ -198,7 +257,7 @@ def spec_from_cli(cls: type[S], ctx: typer.Context, values: Mapping[str, Any], *
         if config is None or any(_dotted(given, p) not in (None, (), [], "") for p in exc.param.split("/")):
             raise
         # A value the file set, not a flag: say where it came from.
-        raise ParameterError(exc.param, f"{exc.detail} (set in {config})") from None
+        raise ParameterError(exc.param, f"{exc.template} (set in {config})", exc.refs) from None
 
 
 #: Settings that are alternatives to one another: a flag giving one replaces a file's other (issue #41).

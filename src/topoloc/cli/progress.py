@@ -30,6 +30,9 @@ from topoloc.progress import ProgressFactory
 
 console = Console(stderr=True)
 
+#: ``topoloc -q COMMAND``: no progress, whatever the command's own ``-q`` (set by the app's callback each run).
+QUIET = False
+
 #: When not on a terminal, a step still running writes its count at most this often (seconds).
 PLAIN_EVERY_S = 30.0
 
@@ -42,7 +45,7 @@ def is_terminal() -> bool:
 @contextmanager
 def rich_progress(enabled: bool = True) -> Iterator[ProgressFactory]:
     """Yield a factory ``(description, total) -> advance(n)``: rich bars on a terminal, plain lines elsewhere."""
-    if not enabled:
+    if not enabled or QUIET:
         yield lambda d, t: (lambda n: None)
         return
     if not is_terminal():

@@ -7,11 +7,11 @@ from typing import Annotated
 
 import typer
 
-from topoloc.cli.app import app, handle_errors
+from topoloc.cli.app import app, handle_errors, needs
 from topoloc.cli.options import LocalizeSequenceOption, PrefetchOption, QuietOption, VerifyOption
 
 
-@app.command("ros-node", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+@app.command("ros-node", cls=needs(), context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 @handle_errors
 def ros_node(
     ctx: typer.Context,

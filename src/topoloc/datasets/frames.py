@@ -8,11 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from topoloc.datasets.traverse import image_entry, natural_key, read_image
 from topoloc.errors import input_error
+from topoloc.io.paths import not_an_input
 
 
 def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
@@ -34,7 +36,7 @@ def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
         elif item.is_file():
             files.append(item)
         else:
-            raise input_error("input does not exist", item)
+            raise input_error(not_an_input(item), item)
     from topoloc.datasets.decode import has_image_reader
 
     # Before the first frame: an empty file or one no decoder recognises (its header) stops the run
@@ -47,6 +49,16 @@ def iter_inputs(inputs: Sequence[str | Path]) -> Iterator[Path]:
     yield from files
 
 
+def frame_index(item: tuple[Any, ...]) -> int | None:
+    """A frame's number in its input: the fourth of ``(name, time_s, image, index)``; None where a source gives none.
+
+    What a ``localize`` line calls ``frame`` (issue #49): for one input, its index in that input;
+    the frames of a recording not kept (``--every-s``, ``--every-m``), of a camera skipped to keep
+    up or refused by the decoding leave gaps.
+    """
+    return int(item[3]) if len(item) > 3 and item[3] is not None else None
+
+
 def read_frame(path: Path) -> np.ndarray:
     """A grey frame from a file, decoded as the map's own images were (one-line error if unreadable)."""
     return read_image(path, gray=True)
@@ -56,11 +68,14 @@ def frame_stream(
     inputs: Sequence[Path], *, topic: str | None = None, every_s: float | None = None, every_m: float | None = None,
     pose_topic: str | None = None, on_frame: Callable[[str], None] | None = None,
     check_name: Callable[[str, Path], None] | None = None,
-) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
-    """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
+) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray, int]]]:
+    """``(frames at most, iterator of (name, time_s or None, grey image, index))`` over files, folders, bags, videos.
 
     Every input is opened and checked before the first frame; bags and videos
-    are then streamed (one frame decoded at a time, nothing kept).  ``on_frame``,
+    are then streamed (one frame decoded at a time, nothing kept).  ``index``
+    (:func:`frame_index`) numbers every frame of the inputs in order, a
+    recording's frames not kept (``--every-s``, ``--every-m``) included: for one
+    input, the frame's index in it (the ``#index`` of a recording's frame name).  ``on_frame``,
     when given, is called before each frame is yielded with the frame's name
     under one image root: ``<folder name>/<file name>`` for an image file
     (named or in a folder), ``<recording stem>/<frame name>`` for a bag or video
@@ -84,19 +99,25 @@ def frame_stream(
             else:
                 check_name(Path(part.path).stem, Path(part.path))
 
-    def frames() -> Iterator[tuple[str, float | None, np.ndarray]]:
+    def frames() -> Iterator[tuple[str, float | None, np.ndarray, int]]:
+        base = 0  # the frames of the inputs before this one: a recording's all counted, kept or not
         for part in parts:
             if isinstance(part, list):
                 for path in part:
                     image = read_frame(path)
                     if on_frame is not None:
                         on_frame(f"{path.resolve().parent.name}/{path.name}")
-                    yield path.name, None, image
+                    yield path.name, None, image, base
+                    base += 1
             else:
+                last = -1
                 for f in part.frames():
                     if on_frame is not None:
                         on_frame(f"{Path(part.path).stem}/{f.name}")
-                    yield f.name, f.time_s, f.image
+                    yield f.name, f.time_s, f.image, base + f.number
+                    last = f.number
+                # Every frame of the recording, the ones after its last keyframe too.
+                base += max(last + 1, int(getattr(part, "frames_seen", 0)))
 
     return total, frames()
 

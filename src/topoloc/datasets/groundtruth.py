@@ -24,6 +24,7 @@ from scipy import sparse
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError, input_error
 from topoloc.io.npy import load_npy_safely
+from topoloc.io.paths import check_kind
 
 
 class GroundTruth:
@@ -276,8 +277,7 @@ def ground_truth_from_file(
       ``(n_places, n_queries)`` (VPR_Tutorial).
     """
     path = Path(path)
-    if not path.is_file():
-        raise input_error("ground-truth file not found", path)
+    check_kind(path, "file", "ground-truth file")
     shape = (len(place_ids), n_queries)
     try:
         if path.suffix == ".npz":

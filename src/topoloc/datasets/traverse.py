@@ -38,6 +38,7 @@ from topoloc.datasets.decode import (  # noqa: F401
     to_gray,
 )
 from topoloc.errors import TopolocError, input_error
+from topoloc.io.paths import check_kind
 
 IMAGE_SUFFIXES = frozenset(
     {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp", ".gif"}
@@ -425,10 +426,7 @@ def load_traverse(folder: str | Path) -> Traverse:
         For a missing folder, a folder without images, or a malformed sidecar.
     """
     folder = Path(folder)
-    if not folder.exists():
-        raise input_error("traverse folder does not exist", folder)
-    if not folder.is_dir():
-        raise input_error("traverse is not a folder", folder)
+    check_kind(folder, "folder", "traverse folder")
     sidecar = folder / SIDECAR
     if sidecar.is_file():
         return _read_sidecar(folder, sidecar)
@@ -448,8 +446,7 @@ def find_images(folders: list[Path] | list[str]) -> list[Path]:
     """
     out: list[Path] = []
     for f in map(Path, folders):
-        if not f.is_dir():
-            raise input_error("image folder does not exist", f)
+        check_kind(f, "folder", "image folder")
         found = sorted(
             (p for p in f.rglob("*") if image_entry(p)),
             key=lambda p: natural_key(str(p.relative_to(f))),
@@ -458,3 +455,31 @@ def find_images(folders: list[Path] | list[str]) -> list[Path]:
             raise input_error("no images found under folder", f)
         out.extend(found)
     return out
+
+
+def check_distinct_tours(tours: Sequence[Traverse], *, where: str | Path | None = None) -> None:
+    """Refuse a tour given twice among ``tours`` (the same images and places, whatever its path or name).
+
+    The rule ``map add`` applies to a tour the map already holds, for every command that takes
+    several tours at once (``map build``, ``evaluate``, ``show-match``; issue #49): a tour given
+    twice would count its images twice (twice the weight in a vocabulary and in FAB-MAP's
+    statistics) and make every place of it a tie.
+
+    Raises
+    ------
+    TopolocError
+        One line naming both tours.
+    """
+    if len(tours) < 2:
+        return  # nothing to compare: no fingerprint computed (it reads every image's size)
+    seen: dict[str, Traverse] = {}
+    for t in tours:
+        fp = t.fingerprint()
+        if fp in seen:
+            first = seen[fp]
+            what = f"tour {t.name!r} is given twice" if t.name == first.name else \
+                f"tours {first.name!r} and {t.name!r} are one tour given twice"
+            raise input_error(f"{what} (same images and places): give each tour once",
+                              where if where is not None else (t.root if t.root == first.root else
+                                                               f"{first.root} and {t.root}"))
+        seen[fp] = t

@@ -36,7 +36,6 @@ from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.drawing.show_match import GroupMatcher, frame_pixels, group_correspondences
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.geometry import epipolar_inliers
-from topoloc.io.container import atomic_write_bytes
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.resources import Resources
 
@@ -243,11 +242,3 @@ def labelled_match(
             "map_image": str(t.images[i]), "n_consistent": n_cons, "n_lines": len(pq), "correct": correct}
     return canvas, info
 
-
-def write_png(canvas: np.ndarray, out: Path) -> None:
-    """Write ``canvas`` as a PNG atomically."""
-    ok, buf = cv2.imencode(".png", canvas)
-    if not ok:
-        raise input_error("could not encode the drawing", out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out, buf.tobytes())

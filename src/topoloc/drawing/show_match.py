@@ -25,6 +25,8 @@ import numpy as np
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.errors import input_error
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.dirs import signed_png
+from topoloc.io.paths import through_link
 from topoloc.methods.cooc_map import CoocMap, FeatureGroup
 from topoloc.resources import Resources
 
@@ -227,9 +229,19 @@ def show_match(query_image: str | Path, map_dirs: Sequence[str | Path], out_png:
     query = Traverse(root=path.parent, images=(path,), places=np.zeros(1, np.int64), name=path.name)
     canvas, info = match_drawing(method, query, maps, resources=resources)
     out = Path(out_png)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    write_png(canvas, out)
+    return {**info, "out": str(out)}
+
+
+def write_png(canvas: np.ndarray, out: Path) -> None:
+    """Write ``canvas`` as a PNG atomically, signed ``Software: topoloc`` (so that a later run may replace it).
+
+    ``out`` named through a symbolic link is written where the link points (the link kept).
+    """
     ok, buf = cv2.imencode(".png", canvas)
     if not ok:
         raise input_error("could not encode the drawing", out)
-    atomic_write_bytes(out, buf.tobytes())
-    return {**info, "out": str(out)}
+    out = through_link(Path(out))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out, signed_png(buf.tobytes()))
+

@@ -43,6 +43,8 @@ from topoloc.evaluation.columns import NOT_USED, distinct_labels, run_columns, s
 from topoloc.evaluation.metrics import best_matches, pr_curve
 from topoloc.evaluation.report import load_run, run_title
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.dirs import HTML_GENERATOR
+from topoloc.io.paths import through_link
 from topoloc.progress import ProgressFactory, no_progress
 
 log = logging.getLogger(__name__)
@@ -167,6 +169,27 @@ def _load_traverse_or_none(path: str) -> Traverse | None:
         return None
 
 
+def _map_file_tours(records: list[dict[str, Any]]) -> list[Traverse]:
+    """The tours a saved map was built from (``run.map_tours`` of an ``evaluate --map-file`` run), for thumbnails.
+
+    A tour is read only where its folder still holds what the map recorded of it (the same images,
+    sizes and places: its fingerprint); a map's tours are data it was built from, so a folder that
+    changed, or that a map merely names, gives no thumbnails, said in one warning line.
+    """
+    out = []
+    for rec in records if isinstance(records, list) else []:
+        root = str(rec.get("root", "")) if isinstance(rec, dict) else ""
+        trav = _load_traverse_or_none(root) if root else None
+        if trav is None:
+            continue
+        if trav.fingerprint() != rec.get("fingerprint"):
+            log.warning("no thumbnails of map tour %r: its folder no longer holds the images the map was built from: "
+                        "%s", rec.get("name"), root)
+            continue
+        out.append(trav)
+    return out
+
+
 def _place_images(maps: list[Traverse]) -> dict[int, tuple[Path, str]]:
     """Place id -> (first image showing it, tour name), the first map tour first."""
     out: dict[int, tuple[Path, str]] = {}
@@ -276,6 +299,8 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
     if gt.shape != S.shape:
         raise TopolocError(f"ground truth {gt.shape} does not match S.npy {S.shape}: {run_dir}")
     idx, score, right = best_matches(S, gt)
+    # The method's own top answer, before the metrics skip the places of the tolerance band (soft-only cells).
+    top = np.argmax(np.where(np.isnan(S), -np.inf, S), axis=0) if S.shape[0] else np.zeros(S.shape[1], np.int64)
     # JSON has no infinities: +-inf scores become just above / below every finite one (same order).
     finite = score[np.isfinite(score)]
     lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
@@ -293,6 +318,8 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
 
     run = m.get("run", {})
     maps = [t for t in (_load_traverse_or_none(p) for p in run.get("map", [])) if t is not None]
+    if not maps and run.get("map_tours"):  # a saved map's run: the tours it was built from
+        maps = _map_file_tours(run["map_tours"])
     query_trav = _load_traverse_or_none(str(run.get("query", "")))
     if query_trav is not None and len(query_trav) != S.shape[1]:
         log.warning("query traverse %s has %d images but the run %d queries: no query thumbnails",
@@ -315,6 +342,7 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
     if by_confidence:
         assert checks is not None
         score = np.array([c["confidence"] for c in checks], np.float64)
+    calibrated, calibration_note = calibrated_threshold(m, "confidence" if by_confidence else "score")
     items = []
     for j in range(S.shape[1]):
         q: dict[str, Any] = {"place": int(queries[j]), "file": None, "img": None, "time": None}
@@ -326,6 +354,8 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
         items.append({
             "q": q, "best": place_entry(int(idx[j])), "correct": place_entry(int(correct_row[j])),
             "rank": int(rank[j]), **({"check": checks[j]} if checks is not None else {}),
+            # Where the method's top answer lies in the band the metrics ignore, the card shows it too.
+            **({"top": place_entry(int(top[j]))} if int(top[j]) != int(idx[j]) else {}),
         })
     n_cells = int(hard.sum())
     rows, qcols = np.nonzero(hard)
@@ -352,24 +382,56 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
         "matrix": _matrix_pngs(S),
         "decimals": 3 if by_confidence else score_decimals(score),
         "score_name": "confidence" if by_confidence else "score",
-        # The threshold the page opens at: the map's calibrated one where the run scored a calibrated map (on the
-        # same quantity: a threshold on the confidence for a verified run, on the score otherwise).
-        "calibrated": _calibrated_threshold(m, "confidence" if by_confidence else "score"),
+        # The threshold the page opens at: the map's calibrated one where the run scored a calibrated map as it
+        # was calibrated (the same sequence matching and verification, a threshold on the same quantity: the
+        # confidence for a verified run, the score otherwise), else why not (issue #49).
+        "calibrated": calibrated,
+        "calibration_note": calibration_note,
+        "n_top_in_band": int(sum("top" in it for it in items)),
         "ground_truth": gt.description or str(run.get("ground_truth", "")),
     }
 
 
-def _calibrated_threshold(m: dict[str, Any], on: str) -> float | None:
-    """The acceptance threshold of the calibrated map the run scored (``evaluate --map-file``) where it applies to
-    ``on`` (``"confidence"`` or ``"score"``), or None."""
+def calibrated_threshold(m: dict[str, Any], on: str = "score") -> tuple[float | None, str]:
+    """The acceptance threshold the page may open at, and what the page says of it.
+
+    The threshold of the calibrated map an ``evaluate --map-file`` run scored, where the run
+    scored as the map was calibrated: a threshold chosen on the scores of 10-frame sequences
+    (or of verified answers) means nothing on single-image (or unverified) scores, which are
+    on another scale; and a threshold on the quantity the page thresholds, ``on``: the
+    confidence of a verified run's answers, or the score.  Otherwise None, and the page says
+    why it opens elsewhere.
+    """
     from topoloc.maps.calibration import threshold_kind
 
     cal = m.get("run", {}).get("calibration")
-    if not isinstance(cal, dict) or threshold_kind(cal) != on:
-        return None
+    if not isinstance(cal, dict):
+        return None, ""
+    kind = threshold_kind(cal)
+    if kind != on and isinstance(cal.get("threshold"), int | float):
+        what = {"score": "method's score", "confidence": "confidence"}.get(kind, "verified score of an older topoloc")
+        return None, (f"the map's threshold {cal['threshold']:.4g} applies to the answers' {what} and this page "
+                      f"thresholds their {on}: not applied")
     value = cal.get("threshold")
-    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value) \
-        else None
+    if not (isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)):
+        return None, ""
+    params = m.get("params", {})
+    given = cal.get("sequence")
+    seq: dict[str, Any] = given if isinstance(given, dict) else {}
+    cal_len, run_len = int(seq.get("length", 0) or 0), int(params.get("sequence", 0) or 0)
+
+    def matching(n: int, mode: Any) -> str:
+        return f"{n}-frame sequences ({mode})" if n else "single images"
+
+    cal_mode, run_mode = seq.get("mode", "constant"), params.get("sequence_mode", "constant")
+    if cal_len != run_len or (cal_len and cal_mode != run_mode):
+        return None, (f"the map's threshold {value:.4g} was calibrated on {matching(cal_len, cal_mode)} and this run "
+                      f"scored {matching(run_len, run_mode)}, whose scores are on another scale: not applied")
+    if "verify" in cal and bool(cal["verify"]) != bool(params.get("verify", False)):
+        said = {True: "verified", False: "unverified"}
+        return None, (f"the map's threshold {value:.4g} was calibrated on {said[bool(cal['verify'])]} answers and this "
+                      f"run scored {said[bool(params.get('verify', False))]} ones, on another scale: not applied")
+    return float(value), ""
 
 
 def _fmt(x: Any, spec: str) -> str:
@@ -419,7 +481,7 @@ def render_html(run_dirs: list[Path], title: str = "Results", progress: Progress
     data = json.dumps(payload, separators=(",", ":")).replace("<", "\\u003c")
     generated = datetime.now(UTC).isoformat(timespec="seconds")
     return (
-        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>{HTML_GENERATOR}"
         f"<title>{html.escape(title)}</title>"
         "<meta name='viewport' content='width=device-width, initial-scale=1'>"
         f"<style>{_asset('report.css')}</style></head><body>"
@@ -440,10 +502,13 @@ def render_html(run_dirs: list[Path], title: str = "Results", progress: Progress
 def build_html_report(
     run_dirs: list[Path], out: Path, title: str = "Results", progress: ProgressFactory | None = None
 ) -> Path:
-    """Write :func:`render_html` of ``run_dirs`` to ``out`` (an ``.html`` file) atomically; return ``out``."""
-    out = Path(out)
+    """Write :func:`render_html` of ``run_dirs`` to ``out`` (an ``.html`` file) atomically; return ``out``.
+
+    ``out`` named through a symbolic link is written where the link points (the link kept).
+    """
+    out = through_link(Path(out))
     if out.exists() and out.is_dir():
-        out = out / "index.html"
+        out = through_link(out / "index.html")
     page = render_html([Path(d) for d in run_dirs], title=title, progress=progress)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, page.encode("utf-8", "surrogateescape"))

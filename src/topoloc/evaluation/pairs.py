@@ -25,6 +25,7 @@ import numpy as np
 from topoloc.datasets.image_names import first_images, image_name, image_names, place_names
 from topoloc.errors import TopolocError, input_error
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.paths import through_link
 
 
 def retrieval_pairs(query_names: Sequence[str], rows: np.ndarray, row_names: Sequence[str]) -> list[tuple[str, str]]:
@@ -57,8 +58,8 @@ def format_pairs(pairs: Iterable[tuple[str, str]]) -> bytes:
 
 
 def write_pairs(path: str | Path, pairs: Iterable[tuple[str, str]]) -> None:
-    """Write ``pairs`` to ``path`` in hloc's format, atomically (:func:`format_pairs`)."""
-    atomic_write_bytes(Path(path), format_pairs(pairs))
+    """Write ``pairs`` to ``path`` in hloc's format, atomically (:func:`format_pairs`), through a link to its target."""
+    atomic_write_bytes(through_link(Path(path)), format_pairs(pairs))
 
 
 def read_pairs(path: str | Path) -> list[tuple[str, str]]:

@@ -36,7 +36,7 @@ import numpy as np
 
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.datasets.traverse import Traverse
+from topoloc.datasets.traverse import Traverse, check_distinct_tours
 from topoloc.errors import ParameterError, TopolocError
 from topoloc.evaluation.metrics import Scores, compute_metrics
 from topoloc.evaluation.pairs import first_images, image_names, place_names, retrieval_pairs, write_pairs
@@ -46,6 +46,7 @@ from topoloc.evaluation.timing import apply_sequence, peak_rss_mb, score_queries
 from topoloc.evaluation.topk import TopK, compute_metrics_top_k, score_top_k, top_k_of
 from topoloc.io.container import atomic_write_bytes
 from topoloc.io.dirs import staged_dir
+from topoloc.io.paths import is_discard
 from topoloc.methods.base import PlaceRecognizer, map_place_ids
 from topoloc.progress import ProgressFactory, no_progress
 from topoloc.progress import stage as progress_stage
@@ -115,6 +116,7 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
     # Folders, or bags and videos (their keyframes in memory: topoloc.datasets.sources).
     loaded = spec.inputs.load([*spec.maps, spec.query])
     maps, query = loaded[:-1], loaded[-1]
+    check_distinct_tours(maps)  # as map build and map add refuse a tour given twice (issue #49)
     if seq.length >= len(query):
         raise ParameterError("sequence.length", f"{seq.length} needs more than {seq.length} queries; "
                                                 f"{spec.query} has {len(query)}")
@@ -234,6 +236,11 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
             "vocabulary": vocab_info,
             # The saved map's acceptance threshold, where it has one (the HTML slider opens there).
             **({"calibration": calibration} if calibration is not None else {}),
+            # The saved map's tours, each as its folder and fingerprint: the HTML page shows their images where
+            # the folder still holds exactly what the map was built from (issue #49: "no image" for every place).
+            **({"map_tours": [{k: t.get(k) for k in ("name", "root", "fingerprint")} for t in saved.tours
+                              if not t.get("source") and not str(t.get("root", "")).startswith("<")]}
+               if saved is not None else {}),
             # "local", or the Dask scheduler the features were extracted and quantised on.
             "executor": resources.executor.name if isinstance(resources, CachedResources) else "local",
             "fit_seconds": fit_s,
@@ -249,12 +256,16 @@ def _evaluate(spec: EvaluateSpec, progress: ProgressFactory | None, executor: Ex
         write_outputs(stage, S, place_ids, query.places, metrics, scores, None if top is not None else gt, top=top)
         if ver is not None and verifier is not None:
             atomic_write_bytes(stage / "verification.npz", _npz(**verification_arrays(ver, verifier)))
+        if spec.html is not None and is_discard(out):  # the run is discarded: its page is drawn before
+            from topoloc.evaluation.html import build_html_report
+
+            build_html_report([stage], Path(spec.html), progress=prog)
     if spec.pairs_out is not None:
         assert top is not None  # EvaluateSpec refuses pairs_out without top_k
         if place_images is None:
             place_images = place_names(place_ids, (first_images(m) for m in maps))
         write_pairs(spec.pairs_out, retrieval_pairs(image_names(query), top.rows, place_images))
-    if spec.html is not None:
+    if spec.html is not None and not is_discard(out):
         from topoloc.evaluation.html import build_html_report
 
         build_html_report([out], Path(spec.html), progress=prog)
@@ -389,7 +400,9 @@ def _saved_map(
     res = saved.resources(cache_dir=spec.execution.cache_dir, progress=progress, executor=executor)
     voc: dict[str, Any] = {"used": saved.vocabulary is not None}
     if saved.vocabulary is not None:
-        voc.update({"file": f"embedded in {spec.map_file}", **saved.vocabulary.provenance_})
+        # n_words as a run that trained or loaded the vocabulary records it: one vocabulary, one name (issue #49).
+        voc.update({"file": f"embedded in {spec.map_file}", "n_words": saved.vocabulary.n_words,
+                    **saved.vocabulary.provenance_})
     return saved, res, voc
 
 

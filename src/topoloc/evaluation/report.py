@@ -20,6 +20,7 @@ from topoloc.evaluation.columns import uses_local_features
 from topoloc.evaluation.plots import plot_pr_curves
 from topoloc.features import FeatureConfig
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.paths import check_kind
 from topoloc.methods import get_method
 
 #: Photometric preprocessing of ``evaluate`` when none is asked for (the feature default).
@@ -153,6 +154,7 @@ def render_run_report(m: dict[str, Any]) -> str:
 def load_run(run_dir: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     """Metrics and PR curve (precision, recall) of an ``evaluate`` output folder."""
     mpath = run_dir / "metrics.json"
+    check_kind(run_dir, "folder", "evaluate output folder")
     if not mpath.is_file():
         raise TopolocError(f"not an evaluate output folder (no metrics.json): {run_dir}")
     try:

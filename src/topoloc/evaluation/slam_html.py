@@ -26,6 +26,8 @@ import numpy as np
 from topoloc.errors import TopolocError
 from topoloc.evaluation.html import _asset, _load_traverse_or_none, _Thumbs
 from topoloc.io.container import atomic_write_bytes
+from topoloc.io.dirs import HTML_GENERATOR
+from topoloc.io.paths import through_link
 from topoloc.progress import ProgressFactory, no_progress
 
 
@@ -129,7 +131,7 @@ def render_slam_html(run_dir: Path, title: str = "", progress: ProgressFactory |
     title = title or f"FAB-MAP SLAM: {Path(str(params.get('traverse', run_dir))).name}"
     generated = datetime.now(UTC).isoformat(timespec="seconds")
     return (
-        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>{HTML_GENERATOR}"
         f"<title>{html.escape(title)}</title><style>{_asset('report.css')}</style></head><body>"
         f"<h1>{html.escape(title)}</h1>"
         f"<p class='meta'>topoloc slam run {html.escape(str(run_dir))}, page generated {generated}. "
@@ -146,8 +148,8 @@ def render_slam_html(run_dir: Path, title: str = "", progress: ProgressFactory |
 
 
 def build_slam_html(run_dir: Path, out: Path, title: str = "", progress: ProgressFactory | None = None) -> Path:
-    """Write :func:`render_slam_html` to ``out`` atomically; return ``out``."""
-    out = Path(out)
+    """Write :func:`render_slam_html` to ``out`` atomically (through a link, to its target); return ``out``."""
+    out = through_link(Path(out))
     page = render_slam_html(run_dir, title=title, progress=progress)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, page.encode("utf-8", "surrogateescape"))

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 CACHE_ENV = "TOPOLOC_CACHE_DIR"
 """Environment variable that overrides the default cache folder."""
@@ -55,6 +56,8 @@ def cache_root(root: str | Path | None) -> Path:
         st = os.stat(root)  # the root as named, links followed: the user chose it
     except OSError:
         return root  # made when first written, by this user
+    if not stat.S_ISDIR(st.st_mode):  # a file, a named pipe...: no cache could live there (issue #49)
+        check_kind(root, "folder", "cache folder")
     if _private(st):
         return root
     mine = root / f"user-{os.geteuid()}"

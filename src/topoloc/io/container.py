@@ -47,6 +47,7 @@ import numpy as np
 
 from topoloc.errors import WriteError, input_error
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
+from topoloc.io.paths import is_discard, kind_problem
 from topoloc.io.scratch import chunk_rows, release
 
 MAGIC = b"TOPOLOC\x00"
@@ -100,10 +101,22 @@ def atomic_write_bytes(path: str | Path, chunks: Iterable[bytes | memoryview] | 
         When the folder or the file cannot be written (disk full, quota,
         read-only file system...): one line naming ``path``; any earlier file
         at ``path`` is left as it was.  It is also an :class:`OSError`.
+
+    Notes
+    -----
+    ``path`` itself is replaced: a symbolic link there is replaced by the file,
+    never followed (a cache's planted link must not redirect a write).  An
+    output a user named through a link is written at the link's target by its
+    writer (:func:`topoloc.io.paths.through_link`).  The null device
+    (``/dev/null``) takes the bytes and keeps nothing.
     """
     path = Path(path)
     if isinstance(chunks, bytes):
         chunks = [chunks]
+    if is_discard(path):  # --out /dev/null: discarded (never a temporary file renamed over the device)
+        for _ in chunks:
+            pass
+        return
     tmp: str | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -274,6 +287,9 @@ def container_kind(path: str | Path) -> str | None:
     return kind if isinstance(kind, str) else None
 
 
+#: How messages name what a container holds, where its kind is not already a word (``fabmap_model``).
+_KIND_WORDS = {"fabmap_model": "FAB-MAP model"}
+
 # Headers are small (array names, shapes, metadata); a larger length field means another file.
 _HEADER_PEEK_MAX = 64 * 2**20
 
@@ -307,8 +323,10 @@ def read_container(
         version, truncated, or corrupted.
     """
     path = Path(path)
+    what = _KIND_WORDS.get(kind, kind)
     if not path.is_file():
-        raise input_error(f"{kind} file not found", path)
+        problem = kind_problem(path, "file")
+        raise input_error(f"{what} file {'not found' if problem == 'does not exist' else problem}", path)
     data: bytes | np.ndarray
     try:
         if mmap and path.stat().st_size > 0:
@@ -316,59 +334,67 @@ def read_container(
         else:
             data = path.read_bytes()
     except OSError as exc:
-        raise input_error(f"cannot read {kind} file ({exc.strerror or type(exc).__name__})", path) from None
+        raise input_error(f"cannot read {what} file ({exc.strerror or type(exc).__name__})", path) from None
+    if len(data) == 0:
+        raise input_error(f"{what} file is empty", path)
+    if bytes(data[: len(MAGIC)]) != MAGIC[: min(len(data), len(MAGIC))] or len(data) < len(MAGIC) // 2:
+        # What it starts with is not topoloc's: another file (a text file of 8 bytes is not a truncated map).
+        raise input_error(f"not a topoloc {what} file (it does not start with topoloc's magic bytes)", path)
     if len(data) < _PREFIX_V1.size:
-        raise input_error(f"{kind} file is truncated (only {len(data)} bytes)", path)
-    magic, version, hlen = _PREFIX_V1.unpack_from(bytes(data[: _PREFIX_V1.size]))
-    if magic != MAGIC:
-        raise input_error(f"not a topoloc {kind} file (bad magic bytes)", path)
+        raise input_error(f"{what} file is truncated (only {len(data)} bytes)", path)
+    _, version, hlen = _PREFIX_V1.unpack_from(bytes(data[: _PREFIX_V1.size]))
     if version not in (1, CONTAINER_VERSION):
         raise input_error(f"unsupported topoloc container version {version}", path)
     prefix = _PREFIX_V1.size if version == 1 else _PREFIX.size
     start = prefix + hlen
     if len(data) < start:
-        raise input_error(f"{kind} file is truncated inside its header", path)
+        raise input_error(f"{what} file is truncated inside its header", path)
     raw_header = bytes(data[prefix:start])
     if version >= 2 and zlib.crc32(raw_header) != _PREFIX.unpack_from(bytes(data[:prefix]))[3]:
-        raise input_error(f"{kind} file has a corrupt header (checksum mismatch)", path)
+        raise input_error(f"{what} file has a corrupt header (checksum mismatch)", path)
     try:
         header = json.loads(raw_header)
     except (ValueError, UnicodeDecodeError, RecursionError):
         # RecursionError: JSON nested deeper than Python's parser goes (a crafted header).
-        raise input_error(f"{kind} file has a corrupt header", path) from None
+        raise input_error(f"{what} file has a corrupt header", path) from None
     if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
-        raise input_error(f"{kind} file has a corrupt header", path)
+        raise input_error(f"{what} file has a corrupt header", path)
     if header.get("kind") != kind:
-        raise input_error(f"expected a {kind} file but found a {header.get('kind')!r} file", path)
+        found = header.get("kind")
+        raise input_error(f"expected a {what} file but found a {_KIND_WORDS.get(str(found), found)!r} file", path)
     if kind_version is not None and header.get("kind_version") != kind_version:
         raise input_error(
-            f"{kind} file has schema version {header.get('kind_version')}, "
+            f"{what} file has schema version {header.get('kind_version')}, "
             f"this topoloc reads version {kind_version}",
             path,
         )
     payload = memoryview(data)[start:]  # type: ignore[arg-type]  # a memmap is a buffer
     if not isinstance(header.get("payload_nbytes"), int) or not isinstance(header.get("payload_crc32"), int):
-        raise input_error(f"{kind} file has a corrupt header", path)
+        raise input_error(f"{what} file has a corrupt header", path)
     if len(payload) != header["payload_nbytes"]:
         raise input_error(
-            f"{kind} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",
+            f"{what} file is truncated ({len(payload)} of {header['payload_nbytes']} payload bytes)",
             path,
         )
     # In chunks, each let go of once checked (_crc32): the checksum reads the whole file, and a
     # mapping left resident would make opening a map cost its size in this process's memory.
     if _crc32(np.frombuffer(payload, np.uint8)) != header["payload_crc32"]:
-        raise input_error(f"{kind} file is corrupted (checksum mismatch)", path)
+        raise input_error(f"{what} file is corrupted (checksum mismatch)", path)
     arrays = {}
     try:
         for e in header["arrays"]:
             name, shape, dt, offset = _array_entry(e, len(payload))
             n = math.prod(shape)
             arr = np.frombuffer(payload, dtype=dt, count=n, offset=offset) if n else np.empty(0, dt)
+            if not dt.isnative:
+                # Written on a machine of the other byte order: valid, but compiled code (numba, faiss) takes
+                # native arrays only (issue #49: a traceback), so it is brought to this machine's order here.
+                arr = arr.astype(dt.newbyteorder("="))
             arrays[name] = arr.reshape(shape)
         meta = header["meta"]
         if not isinstance(meta, dict):
             raise ValueError("meta is not an object")
     except (KeyError, TypeError, ValueError) as exc:
         # A header that passed the checksum can still be wrong if it was written wrong: say so.
-        raise input_error(f"{kind} file has an inconsistent header ({exc})", path) from None
+        raise input_error(f"{what} file has an inconsistent header ({exc})", path) from None
     return meta, arrays

@@ -43,6 +43,7 @@ from pathlib import Path
 from topoloc.errors import WriteError, input_error
 from topoloc.io.container import umask
 from topoloc.io.lock import TAG_PATTERN, remove_stale, writer_tag
+from topoloc.io.paths import is_discard, kind_of, through_link
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +114,17 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
     folders of runs killed before they finished, never those of a run still
     writing.  Runs into one ``out`` at the same time each put their own run in
     place whole as they finish, so ``out`` ends as the last one to finish wrote it.
+
+    ``out`` named through a symbolic link is the folder the link points at: the
+    run there is replaced and the link kept (issue #49: the link was replaced by
+    the new run, and a staging link left behind).  ``out`` the null device
+    (``/dev/null``): the run is written into a temporary folder and discarded.
     """
-    out = Path(out)
+    if is_discard(out):
+        with tempfile.TemporaryDirectory(prefix="topoloc-discarded-") as tmp:
+            yield Path(tmp)
+        return
+    out = through_link(Path(out))
     out.parent.mkdir(parents=True, exist_ok=True)
     # Left by runs killed before they finished (never part of a result), and untagged ones
     # of older versions once they are an hour old.
@@ -132,6 +142,16 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
         raise
     os.chmod(stage, _DIR_MODE)
     _put_in_place(stage, out)
+
+
+@contextlib.contextmanager
+def writing_into(folder: str | Path) -> Iterator[Path]:
+    """The folder a command writes its files into: ``folder``, or a temporary one discarded for ``/dev/null``."""
+    if is_discard(folder):
+        with tempfile.TemporaryDirectory(prefix="topoloc-discarded-") as tmp:
+            yield Path(tmp)
+        return
+    yield Path(folder)
 
 
 def _remove_tree(path: Path) -> None:
@@ -205,10 +225,12 @@ class Output:
     names : tuple of str, optional
         For ``"folder"``: the entries the command writes in it; None when any
         entry may be written (e.g. images linked by ``convert``).
-    earlier : callable, optional
+    earlier : callable
         Whether an existing file or folder is an earlier output of the same
         command, which may be replaced (:func:`json_marker`, :func:`container_marker`,
-        :func:`jsonl_marker`); a ``"file"`` without it may replace any file.
+        :func:`jsonl_marker`, :func:`html_marker`, :func:`png_marker`).  Required
+        for a ``"file"``: an output that cannot tell its own earlier file from a
+        user's would replace any file (issue #49: ``--html notes.txt``).
     what : str
         How the refusal names the command's output (``"run folder"``).
     """
@@ -223,6 +245,9 @@ class Output:
         object.__setattr__(self, "path", Path(self.path))
         if self.kind not in ("file", "folder", "run"):
             raise ValueError(f"Output.kind must be file, folder or run, got {self.kind!r}")
+        if self.kind == "file" and self.earlier is None:
+            raise ValueError("an Output file needs earlier: the test that tells its own earlier output from a "
+                             "user's file")
 
 
 def json_marker(name: str, key: str) -> Earlier:
@@ -310,6 +335,65 @@ def pairs_marker() -> Earlier:
     return earlier
 
 
+#: The first bytes of a file that the page markers look into (the style sheet comes before older pages' text).
+_PAGE_HEAD = 256 * 1024
+
+#: What every HTML page topoloc writes says right after its charset (evaluation.html, evaluation.slam_html).
+HTML_GENERATOR = "<meta name='generator' content='topoloc'>"
+#: Pages written before the generator line: the line under their title.
+_OLDER_PAGES = (b"<p class='meta'>topoloc report of ", b"<p class='meta'>topoloc slam run ")
+
+
+def html_marker() -> Earlier:
+    """A test of an earlier HTML page of topoloc (``--html``): its generator line, or an older page's first line.
+
+    A user's page, notes or any other file at the path is not one, and is never replaced.
+    """
+
+    def earlier(file: Path) -> bool:
+        try:
+            with open(file, "rb") as fh:
+                head = fh.read(_PAGE_HEAD)
+        except OSError:
+            return False
+        return HTML_GENERATOR.encode() in head or (head.startswith(b"<!DOCTYPE html>")
+                                                   and any(m in head for m in _OLDER_PAGES))
+
+    return earlier
+
+
+#: The PNG text chunk (``tEXt``, keyword ``Software``) of every drawing topoloc writes (``show-match``).
+PNG_SOFTWARE = b"Software\x00topoloc"
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_marker() -> Earlier:
+    """A test of an earlier drawing of topoloc: a PNG whose first chunks say ``Software: topoloc``."""
+
+    def earlier(file: Path) -> bool:
+        try:
+            with open(file, "rb") as fh:
+                head = fh.read(4096)
+        except OSError:
+            return False
+        return head.startswith(_PNG_SIGNATURE) and PNG_SOFTWARE in head
+
+    return earlier
+
+
+def signed_png(data: bytes) -> bytes:
+    """An encoded PNG with a ``tEXt`` chunk ``Software: topoloc`` after its header (what :func:`png_marker` finds)."""
+    import struct
+    import zlib
+
+    if not data.startswith(_PNG_SIGNATURE):
+        raise ValueError("not a PNG")
+    end_of_header = len(_PNG_SIGNATURE) + 8 + struct.unpack(">I", data[8:12])[0] + 4  # IHDR: length, type, data, CRC
+    chunk = struct.pack(">I", len(PNG_SOFTWARE)) + b"tEXt" + PNG_SOFTWARE
+    chunk += struct.pack(">I", zlib.crc32(b"tEXt" + PNG_SOFTWARE))
+    return data[:end_of_header] + chunk + data[end_of_header:]
+
+
 def _resolved(path: Path) -> Path:
     # strict=False: the part that does not exist yet is kept as written, under the real parents.
     return Path(os.path.realpath(path))
@@ -358,7 +442,10 @@ def _not_special(path: Path, what: str, *, folder: bool) -> None:
         if not folder:
             raise input_error(f"{what} is a folder, not a file", path)
     elif not stat.S_ISREG(mode):
-        raise input_error(f"{what} is not a regular file (a device, fifo or socket would be replaced)", path)
+        kind = kind_of(path)
+        if folder:
+            raise input_error(f"{what} is {kind}, not a folder", path)
+        raise input_error(f"{what} is {kind}, not a regular file (it would be replaced)", path)
     elif folder:
         raise input_error("output folder is a file", path)
 
@@ -392,8 +479,10 @@ def _holds_user_files(folder: Path, names: tuple[str, ...] | None) -> str | None
 def check_outputs(outputs: Iterable[Output], inputs: Iterable[str | Path | None]) -> None:
     """Refuse, before any work, outputs that would destroy an input or a user's file.
 
-    Paths are compared resolved (links followed) and as files (hard links).
-    Refused: an output ``"-"`` (standard output is not a file here); an output
+    Paths are compared resolved (links followed) and as files (hard links): an
+    output named through a link is judged, and later written, where the link
+    points.  The null device (``/dev/null``) is accepted for any output: it is
+    discarded.  Refused: an output ``"-"`` (standard output is not a file here); an output
     that is an input, or an existing file inside an input folder; a file output
     that is a folder, device, fifo or socket; a ``"folder"`` output that is an
     input, or whose entries to write exist and are not an earlier output of the
@@ -424,6 +513,8 @@ def check_outputs(outputs: Iterable[Output], inputs: Iterable[str | Path | None]
         path, what = out.path, out.what
         if str(path) == "-":
             raise input_error(f"{what} cannot be standard output ('-'): name a file or folder", path)
+        if is_discard(path):
+            continue  # /dev/null: the output is discarded, nothing is written (issue #49)
         real = _resolved(path)
         if real in seen:
             raise input_error(f"{what} is also another output of this command ({seen[real]})", path)
@@ -435,7 +526,7 @@ def check_outputs(outputs: Iterable[Output], inputs: Iterable[str | Path | None]
             if out.earlier is not None and path.is_file() and not out.earlier(path):
                 raise input_error(f"{what} exists and is not an earlier output of this command, which would "
                                   "overwrite it: name a new file", path)
-            check_output_file(path)
+            check_output_file(through_link(path))  # written where a link points
             continue
         _not_special(path, what, folder=True)
         if out.kind == "run":
@@ -457,7 +548,8 @@ def check_outputs(outputs: Iterable[Output], inputs: Iterable[str | Path | None]
                 verb = "replaced" if out.kind == "run" else "overwritten"
                 raise input_error(f"{what} holds {entry!r}, not an earlier output of this command, which would be "
                                   f"{verb}: choose a new or empty folder", path)
-        check_output_dir(path)
+        check_output_dir(through_link(path))
 
 
-__all__ = ["Output", "check_output_dir", "check_output_file", "check_outputs", "json_marker", "staged_dir"]
+__all__ = ["HTML_GENERATOR", "Output", "check_output_dir", "check_output_file", "check_outputs", "html_marker",
+           "json_marker", "png_marker", "signed_png", "staged_dir", "writing_into"]

@@ -189,4 +189,6 @@ def load_npy_safely(source: Path | bytes) -> np.ndarray:
     if needed != len(data) - fh.tell():
         raise ValueError(f"header announces {needed} bytes of data, the file holds {len(data) - fh.tell()}")
     arr = np.frombuffer(data, dtype=dtype, count=int(np.prod(shape, dtype=np.int64)), offset=fh.tell())
+    if not dtype.isnative:  # written on a machine of the other byte order: this machine's order (issue #49)
+        arr = arr.astype(dtype.newbyteorder("="))
     return arr.reshape(shape, order="F" if fortran else "C")

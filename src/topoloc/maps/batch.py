@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 import numpy as np
 
 from topoloc.cluster import Executor
+from topoloc.datasets.frames import frame_index
 from topoloc.errors import TopolocError
 from topoloc.maps.frame_resources import FrameResources, describe
 
@@ -68,11 +69,12 @@ class Localizer(Protocol):
     workers: int
     ms_overlap: float
 
-    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]: ...
+    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None,
+             index: int | None = None) -> dict[str, Any]: ...
 
     def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
                     ms_features: float = 0.0, ms_matching: float = 0.0,
-                    features: FeatureSet | None = None) -> dict[str, Any]: ...
+                    features: FeatureSet | None = None, index: int | None = None) -> dict[str, Any]: ...
 
 BATCH_FRAMES = 16
 """Frames per task: SIFT describes 15.5 frames of 640 x 480 per second and thread
@@ -136,7 +138,7 @@ def score_frames(batch: FrameBatch) -> list[tuple[np.ndarray, float, float, Feat
 
 
 def localize_on(executor: Executor, loc: Localizer,
-                frames: Iterator[tuple[str, float | None, np.ndarray]], *,
+                frames: Iterator[tuple[Any, ...]], *,
                 batch_frames: int = BATCH_FRAMES) -> Iterator[tuple[dict[str, Any], float]]:
     """Result lines of ``frames`` in order, scored on ``executor``'s workers; with each, seconds spent decoding.
 
@@ -146,8 +148,9 @@ def localize_on(executor: Executor, loc: Localizer,
         A Dask executor (a local one works too, on threads).
     loc : Localizer
         The localiser of a map loaded from a file (``Map.load``): the workers open that file.
-    frames : iterator of (name, time_s or None, image)
-        As :meth:`topoloc.spec.InputSpec.frames` yields them.
+    frames : iterator of (name, time_s or None, image, index)
+        As :meth:`topoloc.spec.InputSpec.frames` yields them (``index``, the frame's number in its
+        input, is optional: without it a line's ``frame`` counts the lines).
     batch_frames : int
         Frames per task.
 
@@ -165,7 +168,7 @@ def localize_on(executor: Executor, loc: Localizer,
             item = next(frames, None)
             if item is None:
                 return
-            yield loc.step(item[2], name=item[0], time_s=item[1]), time.perf_counter() - t0
+            yield loc.step(item[2], name=item[0], time_s=item[1], index=frame_index(item)), time.perf_counter() - t0
     path = str(Path(m.path).resolve())
     stamp = _stamp(path)
     threads = max(1, executor.n_workers)
@@ -187,8 +190,9 @@ def localize_on(executor: Executor, loc: Localizer,
         # The batches ran side by side: the wall clock saw only 1/parallel of their summed times.
         parallel = min(threads, len(batches))
         loc.ms_overlap += sum(ms_f + ms_m for _, ms_f, ms_m, _ in scored) * (1.0 - 1.0 / parallel)
-        for k, ((name, time_s, _), (col, ms_f, ms_m, feats)) in enumerate(zip(chunk, scored, strict=True)):
-            line = loc.step_scores(col, name=name, time_s=time_s, ms_features=ms_f, ms_matching=ms_m, features=feats)
+        for k, (item, (col, ms_f, ms_m, feats)) in enumerate(zip(chunk, scored, strict=True)):
+            line = loc.step_scores(col, name=item[0], time_s=item[1], ms_features=ms_f, ms_matching=ms_m,
+                                   features=feats, index=frame_index(item))
             yield line, decode_s if k == 0 else 0.0
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from topoloc._parallel import n_workers
 from topoloc.cluster import Executor
+from topoloc.datasets.frames import frame_index
 from topoloc.errors import ParameterError
 from topoloc.features import FeatureConfig, FeatureSet
 from topoloc.maps.frame_resources import Described, FrameResources, describe
@@ -143,9 +144,12 @@ class Localizer:
             res = self._tls.res = FrameResources(self.map.features, self.map.vocabulary)
         return describe(self.map.recognizer, res, image, name, keep_features=self.verifier is not None)
 
-    def stream(self, frames: Iterable[tuple[str, float | None, np.ndarray]], *,
+    def stream(self, frames: Iterable[tuple[Any, ...]], *,
                executor: Executor | None = None) -> Iterator[dict[str, Any]]:
-        """Result lines of ``frames`` (``(name, time_s or None, image)``, as :meth:`InputSpec.frames` gives), in order.
+        """Result lines of ``frames`` (``(name, time_s or None, image[, index])``, as :meth:`InputSpec.frames` gives).
+
+        A frame's ``index`` (its number in its input, frames not answered leaving
+        gaps) is its line's ``frame``; without one, ``frame`` counts the lines.
 
         On this process (``executor`` None or local) frames are read and
         described ``prefetch`` ahead on a thread pool while this thread matches
@@ -178,7 +182,7 @@ class Localizer:
                 return
             first = self.frames
 
-            def work(k: int, item: tuple[str, float | None, np.ndarray]) -> Described:
+            def work(k: int, item: tuple[Any, ...]) -> Described:
                 return self.describe(item[2], name=item[0] or f"frame{first + k}")
 
             done = ahead(it, work, depth=depth)
@@ -186,28 +190,29 @@ class Localizer:
             with single_threaded_libraries():
                 try:
                     for a in done:
-                        (name, time_s, _), (items, ms_f, ms_q, feats) = a.item, a.result
+                        items, ms_f, ms_q, feats = a.result
                         self.ms_wait += a.wait_ms
-                        yield self._match(items, name=name, time_s=time_s, ms_decode=a.decode_ms,
-                                          ms_features=ms_f, ms_quantise=ms_q, features=feats)
+                        yield self._match(items, name=a.item[0], time_s=a.item[1], ms_decode=a.decode_ms,
+                                          ms_features=ms_f, ms_quantise=ms_q, features=feats,
+                                          index=frame_index(a.item))
                 finally:
                     done.close()  # stops the reader and the pool before OpenCV's threads come back
         finally:
             self.wall_s += time.perf_counter() - t_start
             self.cpu_s += time.process_time() - cpu_start
 
-    def _one_at_a_time(self, it: Iterator[tuple[str, float | None, np.ndarray]]) -> Iterator[dict[str, Any]]:
+    def _one_at_a_time(self, it: Iterator[tuple[Any, ...]]) -> Iterator[dict[str, Any]]:
         while True:
             t0 = time.perf_counter()
             item = next(it, None)
             decode_ms = 1e3 * (time.perf_counter() - t0)
             if item is None:
                 return
-            name, time_s, frame = item
+            name, time_s, frame = item[:3]
             items, ms_f, ms_q, feats = self.describe(frame, name=name or f"frame{self.frames}")
             self.ms_wait += 1e3 * (time.perf_counter() - t0)
             yield self._match(items, name=name, time_s=time_s, ms_decode=decode_ms, ms_features=ms_f,
-                              ms_quantise=ms_q, features=feats)
+                              ms_quantise=ms_q, features=feats, index=frame_index(item))
 
     def summary(self) -> dict[str, Any]:
         """Frames, frames per second and mean milliseconds per frame of each stage.
@@ -264,14 +269,15 @@ class Localizer:
             out["ms_cpu_mean"] = round(1e3 * self.cpu_s / n, 2)
         return out
 
-    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None) -> dict[str, Any]:
+    def step(self, image: np.ndarray, *, name: str = "", time_s: float | None = None,
+             index: int | None = None) -> dict[str, Any]:
         """Localise the next frame (a NumPy image) and return its result line (:meth:`topoloc.maps.Map.localize`)."""
         items, ms_f, ms_q, feats = self.describe(image, name=name or f"frame{self.frames}")
         return self._match(items, name=name, time_s=time_s, ms_decode=0.0, ms_features=ms_f, ms_quantise=ms_q,
-                           features=feats)
+                           features=feats, index=index)
 
     def _match(self, items: list[Any], *, name: str, time_s: float | None, ms_decode: float, ms_features: float,
-               ms_quantise: float, features: FeatureSet | None = None) -> dict[str, Any]:
+               ms_quantise: float, features: FeatureSet | None = None, index: int | None = None) -> dict[str, Any]:
         """The result line of the next frame from its described ``items``, in frame order."""
         rec = self.map.recognizer
         t1 = time.perf_counter()
@@ -283,11 +289,11 @@ class Localizer:
         self.ms_decode += ms_decode
         self.ms_quantise += ms_quantise
         return self.step_scores(col, name=name, time_s=time_s, ms_features=ms_features,
-                                ms_matching=1e3 * (time.perf_counter() - t1), features=features)
+                                ms_matching=1e3 * (time.perf_counter() - t1), features=features, index=index)
 
     def step_scores(self, col: np.ndarray, *, name: str = "", time_s: float | None = None,
                     ms_features: float = 0.0, ms_matching: float = 0.0,
-                    features: FeatureSet | None = None) -> dict[str, Any]:
+                    features: FeatureSet | None = None, index: int | None = None) -> dict[str, Any]:
         """The result line of the next frame from its score column, shape (n_places,), computed elsewhere.
 
         What :meth:`step` does after scoring (the sequence search over the last
@@ -319,14 +325,14 @@ class Localizer:
             ok = bool(confirmed(col2, self._previous_best)[0])
             self._previous_best = int(np.argmax(col2[:, 0]))
             col = demote_unconfirmed(col2, np.array([ok]))[:, 0]
-        out = self._result(np.asarray(col, np.float64), own, name, time_s, block)
+        out = self._result(np.asarray(col, np.float64), own, name, time_s, block, index)
         if ok is not None:
             out["confirmed"] = ok
         self.frames += 1
         return out
 
     def _result(self, col: np.ndarray, own: np.ndarray, name: str, time_s: float | None,
-                block: VerifiedBlock | None) -> dict[str, Any]:
+                block: VerifiedBlock | None, index: int | None = None) -> dict[str, Any]:
         """The line: the places in ``col``'s order (the verified ranking), each with the method's own score."""
         m = self.map
         top = top_rows(col[:, None], self.top_k)[0][0]  # best first, ties by row as argmax
@@ -338,7 +344,8 @@ class Localizer:
         else:
             confidence, verified = float(block.confidence[0]), bool(block.verified[0])
         out: dict[str, Any] = {
-            "frame": self.frames, "image": name, "place": int(m.place_ids[best]), "score": score,
+            "frame": self.frames if index is None else int(index), "image": name, "place": int(m.place_ids[best]),
+            "score": score,
             "accepted": m.accepts(score=score, confidence=confidence, is_verified=verified),
             "top": [[int(m.place_ids[i]), float(own[i])] for i in top],
         }

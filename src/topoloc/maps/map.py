@@ -25,7 +25,7 @@ import numpy as np
 
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
-from topoloc.datasets.traverse import Traverse, load_traverse
+from topoloc.datasets.traverse import Traverse, check_distinct_tours, load_traverse
 from topoloc.errors import ParameterError, TopolocError, input_error
 from topoloc.features import FeatureConfig
 from topoloc.features.local import check_method_available
@@ -191,6 +191,7 @@ class Map:
         maps = [t if isinstance(t, Traverse) else load_traverse(t) for t in tours]
         if not maps:
             raise ParameterError("maps", "needs at least one tour")
+        check_distinct_tours(maps)  # as map add refuses a tour the map holds (issue #49)
         if isinstance(shards, bool) or not isinstance(shards, int) or shards < 1:
             raise ParameterError("shards", f"must be a whole number >= 1, got {shards!r}")
         rec = build_method(method, params or {})  # before any feature is extracted
@@ -263,7 +264,7 @@ class Map:
             raise input_error(f"tour {t.name!r} is already in the map (same images and places)",
                               self.path or t.root)
         own_vocabulary = self.vocabulary is not None and self.vocabulary.provenance_.get("source") == "map tours"
-        if own_vocabulary or self.recognizer.add_tour_refits:
+        if self.add_rebuilds:
             # Adding online would make another map than building from all tours: the default
             # vocabulary is trained on the map's own tours (and FAB-MAP's word statistics with it),
             # and some methods cannot add exactly.  Build again from the earlier tours (read
@@ -291,6 +292,25 @@ class Map:
                 self.recognizer, readable, self.resources(cache_dir=cache_dir, progress=progress, executor=executor),
                 progress=progress)
         return self
+
+    @property
+    def add_rebuilds(self) -> bool:
+        """Whether :meth:`add_tour` builds the map again from all its tours (and says why in :attr:`add_rebuilds_why`).
+
+        So it does where the vocabulary was trained on the map's own tours (it is trained
+        again with the new one, and every place's words change) and for methods that cannot
+        add a tour exactly: the map is then what ``map build`` of all the tours gives.
+        """
+        return bool(self.add_rebuilds_why)
+
+    @property
+    def add_rebuilds_why(self) -> str:
+        """Why :meth:`add_tour` builds the map again ("" where it adds the tour alone)."""
+        if self.vocabulary is not None and self.vocabulary.provenance_.get("source") == "map tours":
+            return f"its vocabulary ({self.vocabulary.n_words} words) was trained on its own tours"
+        if self.recognizer.add_tour_refits:
+            return f"{self.recognizer.name} cannot add a tour to what it learned"
+        return ""
 
     def _mark_stale(self, tour_name: str) -> None:
         """Keep the calibration, marked stale (:func:`topoloc.maps.calibration.mark_stale`)."""

@@ -40,6 +40,7 @@ from topoloc._params import Constraint, OfType, Options
 from topoloc.confidence import CONFIDENCE_MODES
 from topoloc.datasets.traverse import Traverse, load_traverse, natural_key
 from topoloc.errors import TopolocError, input_error
+from topoloc.io.paths import check_kind
 from topoloc.io.state import object_state, restore_state
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.methods.shards import ShardPart, merge_order
@@ -60,8 +61,7 @@ def read_descriptor_file(path: str | Path, dataset: str = "global_descriptor") -
         HDF5 without h5py installed.
     """
     path = Path(path)
-    if not path.is_file():
-        raise input_error("descriptor file not found", path)
+    check_kind(path, "file", "descriptor file")
     names: list[str] | None = None
     try:
         if path.suffix.lower() in _H5_SUFFIXES:

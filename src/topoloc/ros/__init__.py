@@ -1,6 +1,6 @@
 """topoloc on a running ROS 1 graph: a node that localises an image topic against a saved map.
 
-``topoloc ros-node MAP`` (or ``python -m topoloc.ros MAP``) subscribes to an
+``topoloc ros-node MAP`` (or ``python -m topoloc ros-node MAP``) subscribes to an
 image topic, localises the newest frame through :meth:`topoloc.maps.Map.localizer`
 and publishes the answers (:mod:`topoloc.ros.node`; topics, messages and
 parameters in ``docs/ros.md``).

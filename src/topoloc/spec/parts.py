@@ -57,6 +57,24 @@ def _paths(value: Any) -> tuple[Path, ...]:
     return tuple(Path(v) for v in value)
 
 
+def distinct_paths(param: str, paths: Sequence[Path]) -> tuple[Path, ...]:
+    """``paths``, refused with one line naming ``param`` where one names the same file or folder twice.
+
+    Compared resolved (links followed), as every command compares what it reads (issue #49: a
+    folder given twice counted its images twice).
+    """
+    import os
+
+    seen: dict[str, Path] = {}
+    for p in paths:
+        real = os.path.realpath(p)
+        if real in seen:
+            shown = str(p) if str(seen[real]) == str(p) else f"{seen[real]} and {p}"
+            raise ParameterError(param, f"names the same folder twice ({shown}): give each once")
+        seen[real] = p
+    return tuple(paths)
+
+
 def _opt_path(value: Any) -> Path | None:
     return None if value is None or value == "" else Path(value)
 
@@ -187,7 +205,7 @@ class FeatureSpec:
             return FeatureConfig(method=self.method, max_features=self.max_features, max_side=side,
                                  preprocess=self.preprocess)
         except ParameterError as exc:
-            raise ParameterError(f"features.{exc.param.rsplit('.', 1)[-1]}", exc.detail) from None
+            raise ParameterError(f"features.{exc.param.rsplit('.', 1)[-1]}", exc.template, exc.refs) from None
 
     def config(self) -> FeatureConfig:
         """The feature settings this spec resolves to: ``"auto"`` is :data:`AUTO_MAX_SIDE`.
@@ -232,7 +250,7 @@ class VocabularySpec:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "file", _opt_path(self.file))
-        object.__setattr__(self, "train", _paths(self.train))
+        object.__setattr__(self, "train", distinct_paths("vocabulary.train", _paths(self.train)))
         if self.file is not None and self.train:
             raise ParameterError("vocabulary", NOT_BOTH)
         if isinstance(self.words, bool) or not isinstance(self.words, int) or self.words < 1:
@@ -297,11 +315,12 @@ class InputSpec:
 
     def frames(self, inputs: Sequence[str | Path], *, on_frame: Callable[[str], None] | None = None,
                check_name: Callable[[str, Path], None] | None = None,
-               ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray]]]:
-        """``(frames at most, iterator of (name, time_s or None, grey image))`` over files, folders, bags, videos.
+               ) -> tuple[int, Iterator[tuple[str, float | None, np.ndarray, int]]]:
+        """``(frames at most, iterator of (name, time_s or None, grey image, index))``: files, folders, recordings.
 
         Every input is opened and checked before the first frame; bags and
-        videos are then streamed (one frame decoded at a time, nothing kept).
+        videos are then streamed (one frame decoded at a time, nothing kept);
+        ``index`` is the frame's number in the inputs (:func:`topoloc.datasets.frames.frame_index`).
         ``on_frame``, ``check_name``: see :func:`topoloc.datasets.frames.frame_stream`.
         """
         from topoloc.datasets.frames import frame_stream
@@ -346,7 +365,9 @@ class GroundTruthSpec:
             except TopolocError as exc:
                 raise ParameterError(f"ground_truth.{name}", str(exc).removeprefix("tolerance ")) from None
         if self.file is not None and not self.file.is_file():
-            raise ParameterError("ground_truth.file", f"names no file: {self.file}")
+            from topoloc.io.paths import kind_problem
+
+            raise ParameterError("ground_truth.file", f"{kind_problem(self.file, 'file')}: {self.file}")
 
     @classmethod
     def for_calibration(cls, tolerance: str = "8", tolerance_m: str | None = None) -> GroundTruthSpec:
@@ -384,7 +405,8 @@ class GroundTruthSpec:
 
         if self.file is not None:
             if not maps:
-                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours, not a saved map")
+                raise ParameterError("ground_truth.file", "indexes the map's images: give map tours ({maps}), not "
+                                                          "a saved map", ("maps",))
             return ground_truth_from_file(self.file, map_traverse=maps[0], place_ids=place_ids,
                                           n_queries=len(query))
         if self.tolerance_m is not None:

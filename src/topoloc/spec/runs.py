@@ -15,7 +15,16 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.errors import ParameterError
-from topoloc.io.dirs import Output, check_outputs, container_marker, json_marker, jsonl_marker, pairs_marker
+from topoloc.io.dirs import (
+    Output,
+    check_outputs,
+    container_marker,
+    html_marker,
+    json_marker,
+    jsonl_marker,
+    pairs_marker,
+)
+from topoloc.io.paths import is_discard
 from topoloc.spec.parts import (
     ExecutionSpec,
     FeatureSpec,
@@ -26,6 +35,7 @@ from topoloc.spec.parts import (
     VocabularySpec,
     _opt_path,
     _paths,
+    distinct_paths,
     parse_recall_at,
 )
 
@@ -73,6 +83,8 @@ def html_page(html: Path, out: Path | None) -> Path:
     """The file an HTML page given as ``html`` is written to: ``html/index.html`` for a folder or ``out``."""
     # The page of a folder is its index.html (evaluation.html.build_html_report), and so is the
     # page of the run folder itself, which exists by the time the page is written.
+    if is_discard(html):
+        return html
     if html.is_dir() or (out is not None and Path(os.path.realpath(html)) == Path(os.path.realpath(out))):
         return html / "index.html"
     return html
@@ -139,9 +151,10 @@ class EvaluateSpec(_ChecksOutputs):
         if self.map_file is not None and self.maps:
             raise ParameterError("maps/map_file", "exclude each other: give map tours or a saved map, not both")
         if not self.maps and self.map_file is None:
-            raise ParameterError("maps", "needs at least one map traverse (or a saved map in map_file)")
+            raise ParameterError("maps", "needs at least one map traverse (or a saved map: {map_file})", ("map_file",))
         if not self.method and self.map_file is None:
-            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map in map_file")
+            raise ParameterError("method", "is needed (see `topoloc methods`), or a saved map: {map_file}",
+                                 ("map_file",))
         if self.query is None:
             raise ParameterError("query", "is needed: the traverse to localise")
         if self.out is None:
@@ -149,9 +162,10 @@ class EvaluateSpec(_ChecksOutputs):
         parse_recall_at(self.recall_at)
         _whole("top_k", self.top_k, 0)
         if self.pairs_out is not None and not self.top_k:
-            raise ParameterError("pairs_out", "writes the K best map images of each query: give top_k too")
+            raise ParameterError("pairs_out", "writes the K best map images of each query: give {top_k} too",
+                                 ("top_k",))
         if self.top_k and self.html is not None:
-            raise ParameterError("html", "draws the whole S: leave out top_k, or html")
+            raise ParameterError("html", "draws the whole S: leave out {top_k}, or {html}", ("top_k", "html"))
         if self.map_file is not None and (self.params or self.vocabulary.given):
             raise ParameterError("map_file", "fixes its parameters and vocabulary: method parameters and a vocabulary "
                                              f"cannot be given with it ({self.map_file})")
@@ -166,7 +180,7 @@ class EvaluateSpec(_ChecksOutputs):
         assert self.out is not None
         outs = [Output(self.out, "run", earlier=EARLIER_RUN, what="run folder")]
         if self.html is not None:
-            outs.append(Output(html_page(self.html, self.out), what="HTML page"))
+            outs.append(Output(html_page(self.html, self.out), what="HTML page", earlier=html_marker()))
         if self.pairs_out is not None:
             outs.append(Output(self.pairs_out, what="pairs file", earlier=pairs_marker()))
         return tuple(outs)
@@ -315,7 +329,7 @@ class VocabTrainSpec(_ChecksOutputs):
     execution: ExecutionSpec = field(default_factory=ExecutionSpec)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "folders", _paths(self.folders))
+        object.__setattr__(self, "folders", distinct_paths("folders", _paths(self.folders)))
         object.__setattr__(self, "out", _opt_path(self.out))
         if not self.folders:
             raise ParameterError("folders", "needs at least one image folder")

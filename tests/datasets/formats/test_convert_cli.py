@@ -78,4 +78,4 @@ def test_output_is_a_file(tmp_path: Path, write_image: Callable[[Path], Path]) -
     (tmp_path / "seq" / "poses.txt").write_text(" ".join(["0"] * 12) + "\n")
     (tmp_path / "taken").write_text("x")
     r = runner.invoke(app, ["convert", "kitti", str(tmp_path / "seq"), "--out", str(tmp_path / "taken")])
-    _one_line_error(r, "output is not a folder", str(tmp_path / "taken"))
+    _one_line_error(r, "output folder is a file", str(tmp_path / "taken"))

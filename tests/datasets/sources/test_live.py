@@ -148,22 +148,24 @@ def test_what_is_a_live_source(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
     assert not is_live_source("route/dusk") and not is_live_source("drive.bag")
 
 
-def test_an_mjpeg_stream_is_read_as_the_same_frames_as_its_file(server: MjpegServer, tmp_path: Path) -> None:
-    """The stream's frames are FFmpeg's decoding of its JPEGs, as a file of them reads: the same grey pixels."""
-    from topoloc.datasets.sources.video import VideoSource
+def test_an_mjpeg_stream_is_read_as_the_same_frames_as_its_jpeg_files(server: MjpegServer, tmp_path: Path) -> None:
+    """A stream's JPEGs are decoded by the one rule image files and ROS messages take: the same grey pixels."""
+    from topoloc.datasets.decode import read_image
 
     jpegs = jpegs_of()
-    file = tmp_path / "frames.mjpeg"
-    file.write_bytes(b"".join(jpegs))
-    reference = [f.image for f in VideoSource(file).frames()]
-    assert len(reference) == len(jpegs)
+    files = []
+    for k, data in enumerate(jpegs):
+        files.append(tmp_path / f"{k}.jpg")
+        files[-1].write_bytes(data)
+    reference = [read_image(f) for f in files]
     source = LiveSource(server.url)
+    assert source.encoded  # FFmpeg hands over the stream's own JPEGs
     got = list(source.frames())
-    assert source.frames_read == len(jpegs)
+    assert source.frames_read == len(jpegs) and source.frames_bad == 0
     assert len(got) + source.buffer.skipped == len(jpegs) and len(got) >= 2
-    for name, t, image in got:
+    for name, t, image, index in got:
         k = int(name.rsplit("#", 1)[1])
-        assert name.startswith(server.url)
+        assert name.startswith(server.url) and index == k
         np.testing.assert_array_equal(image, reference[k])
         assert abs(t - time.time()) < 60  # wall-clock time of capture
 
@@ -193,7 +195,7 @@ def stream_map(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factor
     jpegs = [p.read_bytes() for p in sorted(tiny_route["query"].root.glob("*.jpg"))]
     video = root / "dusk.mjpeg"
     video.write_bytes(b"".join(jpegs))
-    return {"root": root, "map": map_file, "jpegs": jpegs, "video": video}
+    return {"root": root, "map": map_file, "jpegs": jpegs, "video": video, "folder": tiny_route["query"].root}
 
 
 def _ok(args: list[str]) -> str:
@@ -230,15 +232,18 @@ def test_localize_a_stream_answers_as_localize_of_its_frames(stream_map: dict[st
         server.close()
     assert proc.returncode == 0, stderr
     ref_file = stream_map["root"] / "file.jsonl"
-    _ok(["localize", str(stream_map["map"]), str(stream_map["video"]), "--out", str(ref_file), "-q"])
+    # The stream's JPEGs are the folder's images: decoded by one rule, they are answered alike (issue #49).
+    _ok(["localize", str(stream_map["map"]), str(stream_map["folder"]), "--out", str(ref_file), "-q"])
     reference = _lines(ref_file)
     lines = _lines(out)
     summary = json.loads(stdout.strip().splitlines()[-1])
     n = len(stream_map["jpegs"])
     assert summary["frames_read"] == n and summary["ended"] == "stream" and summary["stream"] == server.url
     assert len(lines) + summary["frames_skipped"] == n and summary["frames"] == len(lines) >= 2
+    assert summary["frames_bad"] == 0
     for line in lines:
         k = int(line["image"].rsplit("#", 1)[1])
+        assert line["frame"] == k  # the frame's number in the stream, skipped frames leaving gaps
         assert {key: line.get(key) for key in KEYS} == {key: reference[k].get(key) for key in KEYS}
         assert abs(line["time"] - time.time()) < 120  # the wall-clock time the frame was captured
     said = [x for x in stderr.splitlines() if x.strip() and "not calibrated" not in x]
@@ -277,3 +282,88 @@ def test_localize_a_stream_that_cannot_be_opened_is_one_line(stream_map: dict[st
                     str(stream_map["root"] / "none.jsonl"))
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 2 and stderr.strip().startswith("topoloc: error: a camera or stream is read alone")
+
+
+# -- a bad frame in a live stream (issue #49) --------------------------------------------------------------
+def _bad_parts(good: bytes) -> dict[str, bytes]:
+    """Parts a stream may carry between good frames, each refused by the one decoding rule."""
+    import struct
+
+    rng = np.random.default_rng(5)
+    enormous = bytearray(good)
+    at = enormous.find(b"\xff\xc0")  # the baseline frame header: height and width after length and precision
+    enormous[at + 5:at + 9] = struct.pack(">HH", 60000, 60000)  # 3.6 billion pixels announced
+    return {"random bytes": rng.integers(0, 256, 5000, dtype=np.uint8).tobytes(),
+            "truncated JPEG": good[: len(good) // 2],
+            "enormous JPEG": bytes(enormous)}
+
+
+@pytest.mark.parametrize("kind", ["random bytes", "truncated JPEG", "enormous JPEG"])
+def test_one_rule_refuses_a_bad_frame_from_every_source(kind: str, tmp_path: Path) -> None:
+    """A file, a ROS CompressedImage and a stream's part with the same bytes: all refused, by one rule."""
+    from types import SimpleNamespace
+
+    from topoloc.datasets.decode import read_image
+    from topoloc.datasets.sources.rosbag import decode_image
+
+    good = jpegs_of(1)[0]
+    bad = _bad_parts(good)[kind]
+    f = tmp_path / "bad.jpg"
+    f.write_bytes(bad)
+    with pytest.raises(TopolocError):
+        read_image(f)
+    msg = SimpleNamespace(data=bad, format="jpeg")
+    with pytest.raises(TopolocError):
+        decode_image(msg, "sensor_msgs/msg/CompressedImage", gray=True, where="topic /cam message 0",
+                     path=Path("/cam"))
+    server = MjpegServer([good, bad, good], fps=5.0)
+    try:
+        source = LiveSource(server.url)
+        got = list(source.frames())
+    finally:
+        server.close()
+    assert source.frames_read == 3 and source.frames_bad + source.buffer.skipped >= 1
+    assert {index for _, _, _, index in got} <= {0, 2}  # the bad part (1) is never handed over
+
+
+def test_localize_goes_on_past_a_bad_part_of_a_stream(stream_map: dict[str, Any]) -> None:
+    """One part of random bytes between good frames stopped localize with 'the stream ended' (issue #49)."""
+    jpegs = stream_map["jpegs"]
+    parts = [*jpegs[:3], _bad_parts(jpegs[0])["random bytes"], *jpegs[3:6], _bad_parts(jpegs[0])["truncated JPEG"],
+             *jpegs[6:]]
+    server = MjpegServer(parts, fps=4.0)
+    try:
+        out = stream_map["root"] / "bad_part.jsonl"
+        proc = _topoloc("localize", str(stream_map["map"]), server.url, "--out", str(out), "-q", "--prefetch", "0")
+        stdout, stderr = proc.communicate(timeout=180)
+    finally:
+        server.close()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    lines = _lines(out)
+    assert summary["frames_read"] == len(parts) and summary["ended"] == "stream"
+    assert summary["frames_bad"] + summary["frames_skipped"] + len(lines) == len(parts)
+    assert summary["frames_bad"] >= 1 and [x for x in stderr.splitlines() if "frame skipped (1 so far)" in x]
+    answered = [line["frame"] for line in lines]
+    assert 3 not in answered and 7 not in answered  # the bad parts are never answered
+    assert max(answered) > 7  # the good frames after them are
+    for line in lines:
+        assert line["frame"] == int(line["image"].rsplit("#", 1)[1])
+
+
+def test_frame_is_the_frames_index_in_its_input_for_every_input_kind(stream_map: dict[str, Any],
+                                                                    tmp_path: Path) -> None:
+    """Files: their position; a video read every few frames: the video frame's number; two inputs: in order."""
+    folder, video = stream_map["folder"], stream_map["video"]
+    n = len(stream_map["jpegs"])
+    out = tmp_path / "a.jsonl"
+    _ok(["localize", str(stream_map["map"]), str(folder), "--out", str(out), "-q"])
+    assert [x["frame"] for x in _lines(out)] == list(range(n))
+    _ok(["localize", str(stream_map["map"]), str(video), "--every-s", "0.2", "--out", str(out), "-q"])
+    kept = _lines(out)
+    assert len(kept) < n and [x["frame"] for x in kept] == [int(x["image"].rsplit("#", 1)[1]) for x in kept]
+    _ok(["localize", str(stream_map["map"]), str(video), str(folder), "--every-s", "0.2", "--out", str(out), "-q"])
+    both = _lines(out)
+    frames = [x["frame"] for x in both]
+    assert frames == sorted(frames) and len(set(frames)) == len(frames)
+    assert frames[len(kept):] == list(range(n, 2 * n))  # the folder's images after the video's n frames

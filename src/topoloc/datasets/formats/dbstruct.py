@@ -23,6 +23,7 @@ import numpy as np
 
 from topoloc.datasets.formats.base import ConvertOptions, Dataset, TraverseData
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 QUERY_SUBFOLDERS = ("", "queries_real")
 
@@ -97,8 +98,7 @@ def read(src: Path, options: ConvertOptions) -> Dataset:
     from scipy.io import loadmat
     from scipy.io.matlab import MatReadError
 
-    if not src.is_file():
-        raise input_error("dbStruct .mat file does not exist", src)
+    check_kind(src, "file", "dbStruct .mat file")
     try:
         mat = loadmat(str(src), squeeze_me=True, struct_as_record=False)
     except NotImplementedError:
@@ -115,12 +115,10 @@ def read(src: Path, options: ConvertOptions) -> Dataset:
     utm_db = _utm(_field(db, "utmDb", src), len(db_names), "utmDb", src)
     utm_q = _utm(_field(db, "utmQ", src), len(q_names), "utmQ", src)
     root = Path(options.images) if options.images is not None else src.parent
-    if not root.is_dir():
-        raise input_error("image root folder does not exist", root)
+    check_kind(root, "folder", "image root folder")
     db_images = _resolve(db_names, [root], src, "database")
     if options.query_images is not None:
-        if not Path(options.query_images).is_dir():
-            raise input_error("query image folder does not exist", options.query_images)
+        check_kind(options.query_images, "folder", "query image folder")
         q_roots = [Path(options.query_images)]
     else:
         q_roots = [root / sub for sub in QUERY_SUBFOLDERS]

@@ -18,14 +18,14 @@ import numpy as np
 from topoloc.datasets.formats.base import ConvertOptions, Dataset, TraverseData
 from topoloc.datasets.traverse import IMAGE_SUFFIXES, natural_key
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 IMAGE_FOLDER = "image_2"
 
 
 def poses_file(seq: Path, options: ConvertOptions) -> Path:
     if options.poses is not None:
-        if not Path(options.poses).is_file():
-            raise input_error("KITTI poses file does not exist", options.poses)
+        check_kind(options.poses, "file", "KITTI poses file")
         return Path(options.poses)
     for p in (seq.resolve().parent.parent / "poses" / f"{seq.resolve().name}.txt", seq / "poses.txt"):
         if p.is_file():
@@ -58,8 +58,7 @@ def read_poses(path: Path) -> np.ndarray:
 
 
 def read(src: Path, options: ConvertOptions) -> Dataset:
-    if not src.is_dir():
-        raise input_error("KITTI sequence folder does not exist", src)
+    check_kind(src, "folder", "KITTI sequence folder")
     folder = src / IMAGE_FOLDER
     if not folder.is_dir():
         raise input_error(f"KITTI sequence folder has no {IMAGE_FOLDER}/ folder", src)

@@ -19,6 +19,7 @@ from topoloc.datasets.formats._csv import find_column, parse_float, parse_time, 
 from topoloc.datasets.formats.base import ConvertOptions, Dataset, TraverseData
 from topoloc.datasets.projection import latlon_to_metres
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 IMAGE_COLUMNS = ("image", "filename", "file_name", "file", "image_name", "img", "path", "name")
 LAT_COLUMNS = ("lat", "latitude")
@@ -28,8 +29,7 @@ COLUMN_KEYS = ("image", "lat", "lon", "time")
 
 
 def read(src: Path, options: ConvertOptions) -> Dataset:
-    if not src.is_file():
-        raise input_error("CSV file does not exist", src)
+    check_kind(src, "file", "CSV file")
     unknown = sorted(set(options.columns) - set(COLUMN_KEYS))
     if unknown:
         raise input_error(f"columns key {unknown[0]!r} is not one of {', '.join(COLUMN_KEYS)}", src)
@@ -56,8 +56,7 @@ def read(src: Path, options: ConvertOptions) -> Dataset:
         if not name:
             raise input_error(f"{src}:{line}: empty image name", None)
         p = Path(name) if Path(name).is_absolute() else root / name
-        if not p.is_file():
-            raise input_error(f"{src}:{line}: image {name!r} does not exist", p)
+        check_kind(p, "file", f"{src}:{line}: image {name!r}")
         images.append(p)
         lat[k] = parse_float(row.get(lat_col, ""), src, line, "latitude")
         lon[k] = parse_float(row.get(lon_col, ""), src, line, "longitude")

@@ -21,6 +21,7 @@ from topoloc.datasets.formats._csv import find_column, parse_float, parse_time, 
 from topoloc.datasets.formats.base import ConvertOptions, Dataset, TraverseData
 from topoloc.datasets.projection import UTMProjection
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 DEFAULT_TOLERANCE_M = "25:25"
 CSVS = ("postprocessed.csv", "raw.csv")
@@ -95,8 +96,7 @@ def _sequence_order(keys: list[str], seq_info: Path) -> list[str]:
 
 
 def read(src: Path, options: ConvertOptions) -> Dataset:
-    if not src.is_dir():
-        raise input_error("MSLS city folder does not exist", src)
+    check_kind(src, "folder", "MSLS city folder")
     db_images, db_lat, db_lon, db_times = _side(src / "database", src)
     q_images, q_lat, q_lon, q_times = _side(src / "query", src)
     proj = UTMProjection.fit(db_lat, db_lon, source=src / "database")

@@ -22,6 +22,7 @@ from topoloc.datasets.formats.base import ConvertOptions, Dataset, TraverseData
 from topoloc.datasets.projection import UTMProjection
 from topoloc.datasets.traverse import find_images
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 DEFAULT_TOLERANCE_M = "25:25"
 
@@ -62,8 +63,7 @@ def parse_timestamp(text: str) -> str | None:
 
 
 def read(src: Path, options: ConvertOptions) -> Dataset:
-    if not src.is_dir():
-        raise input_error("utm-names source is not a folder", src)
+    check_kind(src, "folder", "utm-names source folder")
     images = find_images([src])
     parsed = [parse_name(p) for p in images]
     xy = np.array([(e, n) for e, n, *_ in parsed], dtype=np.float64).reshape(-1, 2)

@@ -20,6 +20,7 @@ from topoloc.datasets.formats.base import ConvertOptions, Dataset, TraverseData
 from topoloc.datasets.groundtruth import ground_truth_from_file
 from topoloc.datasets.traverse import IMAGE_SUFFIXES, Traverse, natural_key
 from topoloc.errors import input_error
+from topoloc.io.paths import check_kind
 
 GROUND_TRUTH = "ground_truth_new.npy"
 NO_PLACE = 1_000_000_000  # place ids are >= 0; this one is far from every map place
@@ -36,8 +37,7 @@ def _images(folder: Path, src: Path) -> list[Path]:
 
 
 def read(src: Path, options: ConvertOptions) -> Dataset:
-    if not src.is_dir():
-        raise input_error("VPR-Bench dataset folder does not exist", src)
+    check_kind(src, "folder", "VPR-Bench dataset folder")
     ref = _images(src / "ref", src)
     query = _images(src / "query", src)
     gt_file = src / GROUND_TRUTH

@@ -41,12 +41,16 @@ class Frame(NamedTuple):
         ``<file name>#<index>``, the index counting every message of the topic (every video frame).
     xy : tuple of float or None
         Position in metres from the pose or GPS message nearest in time, when the bag has one.
+    number : int
+        The frame's number in the recording: the ``<index>`` of its name (every message of the
+        topic, every video frame counted, kept or not).
     """
 
     time_s: float
     image: np.ndarray
     name: str
     xy: tuple[float, float] | None = None
+    number: int = 0
 
 
 class FrameSource(Protocol):
@@ -57,7 +61,11 @@ class FrameSource(Protocol):
     has_positions: bool
 
     def frames(self) -> Iterator[Frame]:
-        """The keyframes, in recording order, decoded one at a time."""
+        """The keyframes, in recording order, decoded one at a time.
+
+        Once they are all read, ``frames_seen`` (where a source has it) is the number of
+        frames or messages the recording held, keyframes or not.
+        """
         ...
 
     def __len__(self) -> int:

@@ -14,6 +14,14 @@ matched.  ``topoloc localize`` reads cameras and network streams through it
 :class:`LiveSource` opens a camera device (``/dev/video0``, or its index ``0``)
 or a network stream (``rtsp://``, ``http://`` MJPEG, anything OpenCV's FFmpeg
 opens) with OpenCV and reads it on its own thread while frames are matched.
+
+A stream of JPEGs (MJPEG over HTTP or RTSP, as FFmpeg opens it) is read as its
+JPEGs, each decoded by the one rule of :mod:`topoloc.datasets.decode` that image
+files and ROS ``CompressedImage`` messages go through: a truncated JPEG is
+refused, not filled in by the decoder, and a JPEG whose header announces too
+many pixels is refused before it is decoded (issue #49).  A refused frame is
+skipped and counted (``frames_bad``), as the ROS node counts its own, and the
+stream goes on; before, one part of random bytes ended the stream.
 """
 
 from __future__ import annotations
@@ -26,11 +34,11 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from topoloc.datasets.decode import to_gray
+from topoloc.datasets.decode import decode_bytes, to_gray
 from topoloc.errors import TopolocError
 
 log = logging.getLogger(__name__)
@@ -146,6 +154,27 @@ def is_live_source(text: str) -> bool:
     return False
 
 
+#: FourCC codes of streams whose packets are whole JPEGs (FFmpeg's mjpeg codec).
+_JPEG_CODECS = frozenset({"MJPG", "JPEG", "AVRN", "LJPG", "JPGL", "MJLS"})
+
+
+def _own_jpegs(cap: Any) -> bool:
+    """Ask OpenCV's FFmpeg for the stream's packets undecoded, where each is a JPEG; whether it gives them.
+
+    A camera (V4L2) and a stream of another codec (H.264) keep OpenCV's decoding: their
+    frames are not image files, and no other source gives the same bytes.
+    """
+    import cv2
+
+    try:
+        if cap.getBackendName() != "FFMPEG":
+            return False
+        code = int(cap.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").decode("latin-1").upper()
+    except (cv2.error, OverflowError, ValueError):
+        return False
+    return code in _JPEG_CODECS and bool(cap.set(cv2.CAP_PROP_FORMAT, -1))
+
+
 def _redacted(url: str) -> str:
     """A stream's name as said in messages: a password in the URL is not printed."""
     return re.sub(r"//([^:/@]+):[^@/]*@", r"//\1:***@", url)
@@ -186,6 +215,8 @@ class LiveSource:
         self.name = _redacted(source)
         self.buffer: Newest[tuple[int, float, np.ndarray]] = Newest(keep)
         self.frames_read = 0
+        #: Frames refused by the decoding rule (random bytes, a truncated or too large JPEG): skipped, counted.
+        self.frames_bad = 0
         self.stopped_by: str | None = None
         target: int | str = int(source) if source.isdigit() else source
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(open_timeout_s * 1e3),
@@ -194,6 +225,8 @@ class LiveSource:
         if not cap.isOpened():
             cap.release()
             raise TopolocError(f"cannot open the camera or stream: {self.name}")
+        #: Whether the frames are the stream's own JPEGs (decoded here, by the one rule), not FFmpeg's pixels.
+        self.encoded = _own_jpegs(cap)
         ok, first = cap.read()
         if not ok or first is None or first.size == 0:
             cap.release()
@@ -207,6 +240,11 @@ class LiveSource:
     def _put(self, image: np.ndarray) -> None:
         self.buffer.put((self.frames_read, time.time(), image))
         self.frames_read += 1
+
+    def _skip(self, name: str, exc: TopolocError) -> None:
+        self.frames_bad += 1
+        if self.frames_bad == 1 or self.frames_bad % 100 == 0:  # said, not once a frame
+            log.warning("frame skipped (%d so far): %s", self.frames_bad, exc)
 
     def _read(self) -> None:
         try:
@@ -223,15 +261,27 @@ class LiveSource:
             self.buffer.close()
 
     def frames(self, *, stop: Callable[[], bool] | None = None, rate: float = 0.0,
-               ) -> Iterator[tuple[str, float, np.ndarray]]:
-        """``(name, wall-clock time of capture, grey image)`` of the newest frames, until the stream ends or ``stop()``.
+               ) -> Iterator[tuple[str, float, np.ndarray, int]]:
+        """``(name, wall-clock time of capture, grey image, index)`` of the newest frames, until the end or ``stop()``.
 
-        The conversion to grey runs here, on the consumer's reading thread,
-        so that the capture thread does nothing but keep up with the stream.
+        ``index`` is the frame's number in the stream (``name`` ends ``#index``): frames
+        skipped to keep up, or refused, leave gaps.  Decoding (a stream's JPEGs, by
+        :func:`~topoloc.datasets.decode.decode_bytes`) and the conversion to grey run here,
+        on the consumer's reading thread, so that the capture thread does nothing but
+        keep up with the stream; a frame the decoding refuses is skipped and counted.
         """
         try:
-            for k, t, img in self.buffer.items(stop=stop, rate=rate):
-                yield f"{self.name}#{k}", t, to_gray(img)
+            for k, t, payload in self.buffer.items(stop=stop, rate=rate):
+                name = f"{self.name}#{k}"
+                if self.encoded:
+                    try:
+                        image = decode_bytes(payload, name, gray=True)
+                    except TopolocError as exc:
+                        self._skip(name, exc)
+                        continue
+                else:
+                    image = to_gray(payload)
+                yield name, t, image, k
         finally:
             self.stop()
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from topoloc.datasets.sources.base import FrameSource, Keyframes, is_bag, is_stream_input, stream_traverse
 from topoloc.datasets.traverse import Traverse, load_traverse
-from topoloc.errors import input_error
+from topoloc.errors import ParameterError, input_error
+from topoloc.io.paths import not_an_input
 
 
 def open_source(
@@ -42,8 +43,8 @@ def open_source(
     """
     p = Path(path)
     keyframes = Keyframes(every_s=every_s, every_m=every_m)
-    if not p.exists():
-        raise input_error("input does not exist", p)
+    if not p.is_file() and not p.is_dir():  # a bag is a file (ROS 1) or a folder (ROS 2), a video a file
+        raise input_error(not_an_input(p), p)
     if is_bag(p):
         from topoloc.datasets.sources.rosbag import BagSource
 
@@ -51,7 +52,8 @@ def open_source(
     from topoloc.datasets.sources.video import VideoSource
 
     if every_m is not None:
-        raise input_error("every_m needs positions: a bag with an odometry, pose or GPS topic, not a video", p)
+        raise ParameterError("inputs.every_m", f"needs positions: a bag with an odometry, pose or GPS topic, not a "
+                                               f"video: {p}")
     return VideoSource(p, keyframes=keyframes, gray=gray)
 
 
@@ -65,6 +67,8 @@ def load_input(
     take folders and recordings together).
     """
     p = Path(path)
+    if p.exists() and not p.is_file() and not p.is_dir():  # a named pipe, a device...: said what it is
+        raise input_error(not_an_input(p), p)
     if is_bag(p) or (p.is_file() and is_stream_input(p, images_are_files=False)):
         return stream_traverse(open_source(p, topic=topic, every_s=every_s, every_m=every_m,
                                            pose_topic=pose_topic))

@@ -124,6 +124,7 @@ class BagSource:
                  pose_topic: str | None = None, gray: bool = True) -> None:
         if path.is_file() and path.suffix.lower() in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file():
             path = path.parent  # a storage file of a rosbag2 folder: the folder
+        self.frames_seen = 0  # messages of the image topic, once frames() has read them all
         self.path = path
         self.gray = gray
         self.keyframes = keyframes or Keyframes()
@@ -233,13 +234,15 @@ class BagSource:
         keep = replace(self.keyframes)  # fresh state for each pass
         nearest = _Nearest(self.positions()) if self.has_positions else None
         name = self.path.name
+        self.frames_seen = 0
         for k, t_ns, msg, msgtype in self._messages(self.topic):
+            self.frames_seen = k + 1
             t = _stamp(msg) or t_ns * 1e-9
             xy = nearest.at(t) if nearest is not None else None
             if not keep.keep(t, xy):
                 continue
             img = decode_image(msg, msgtype, gray=self.gray, where=f"topic {self.topic} message {k}", path=self.path)
-            yield Frame(t, img, f"{name}#{k}", xy)
+            yield Frame(t, img, f"{name}#{k}", xy, k)
 
 
 class _Nearest:

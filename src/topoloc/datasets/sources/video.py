@@ -37,6 +37,7 @@ class VideoSource:
         self.path = path
         self.gray = gray
         self.keyframes = keyframes or Keyframes()
+        self.frames_seen = 0  # frames of the video, once frames() has read them all
         if not path.is_file():
             raise input_error("video is not a file", path)
         if path.stat().st_size == 0:
@@ -84,8 +85,9 @@ class VideoSource:
                         raise input_error(f"frame {k} of the video cannot be decoded", self.path)
                     # OpenCV gives video frames as BGR; the conversion is the one image files get.
                     img = to_gray(img) if self.gray else to_bgr(img)
-                    yield Frame(t, img, f"{name}#{k}", None)
+                    yield Frame(t, img, f"{name}#{k}", None, k)
                 k += 1
+            self.frames_seen = k
             if k < self._count and self.path.suffix.lower() in COUNTED_SUFFIXES:
                 raise input_error(f"frame {k} of the video cannot be read (damaged, or the file ends early: "
                                   f"{k} of its {self._count} frames read)", self.path)

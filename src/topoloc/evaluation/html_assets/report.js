@@ -59,7 +59,8 @@
       if (f > bestF) { bestF = f; best = i; }
     });
     return {thresholds: t, index: best, filter: "all", shown: PAGE, view: "rank",
-            opened: "the best F1, " + fmt(Math.max(bestF, 0), 3) + " (the run scored no calibrated map)"};
+            opened: "the best F1, " + fmt(Math.max(bestF, 0), 3) + " (" +
+                    (run.calibration_note || "the run scored no calibrated map") + ")"};
   });
   function thrOf(k) {
     const st = states[k];
@@ -173,6 +174,10 @@
     const figs = [figure(q.img, ["query", (q.file || "#" + j), "place " + q.place])];
     if (b) figs.push(figure(b.img, ["best: place " + b.place, (b.tour ? b.tour + "/" : "") + (b.file || ""),
                                     run.score_name + " " + score(run, run.score[j])]));
+    // The method's own top answer, where it lies in the tolerance band the metrics ignore.
+    if (it.top) figs.push(figure(it.top.img, ["top answer: place " + it.top.place,
+                                             (it.top.tour ? it.top.tour + "/" : "") + (it.top.file || ""),
+                                             "in the ignored band"]));
     if (c) figs.push(figure(c.img, ["correct: place " + c.place, (c.tour ? c.tour + "/" : "") + (c.file || ""),
                                     "rank " + it.rank]));
     return el("div", {cls: "card " + st, "data-query": String(j)},
@@ -268,7 +273,14 @@
             "White cells: ground truth (correct places" +
             (run.gt_drawn_all ? "" : ", a sample") + "). Dots: the best match of each query accepted at the " +
             "threshold, green when correct, red when wrong."})])]),
-      el("h3", {text: "Queries"}), filters, el("div", {cls: "cards", id: "cards" + k}), more]);
+      el("h3", {text: "Queries"}),
+      el("p", {cls: "legend band", text: "Each card's \u201cbest\u201d is the best place the metrics score: places " +
+        "within the ground truth's tolerance band around the query's place (" + run.ground_truth + ") but not " +
+        "within its correct places are neither right nor wrong and are skipped. " + (run.n_top_in_band ?
+        "For " + run.n_top_in_band + " of " + run.n_queries + " queries the method's top answer lies in that band; " +
+        "their cards show it beside the best, as \u201ctop answer\u201d." :
+        "For every query here the method's top answer is the best.")}),
+      filters, el("div", {cls: "cards", id: "cards" + k}), more]);
     container.appendChild(section);
     showScale(k);
     update(k);
