@@ -12,6 +12,8 @@ from tests.cli.conftest import Cli
 from typer.testing import CliRunner
 
 from topoloc.cli.main import app
+from topoloc.cli.options import DEFAULT_MIN_SUPPORT
+from topoloc.verification import MIN_SUPPORT
 
 
 def _evaluate(cli: Cli, rf: dict[str, Path], out: Path, *extra: str) -> dict:
@@ -20,15 +22,19 @@ def _evaluate(cli: Cli, rf: dict[str, Path], out: Path, *extra: str) -> dict:
     return json.loads((out / "metrics.json").read_text())
 
 
+def test_the_command_lines_floor_is_the_libraries() -> None:
+    assert DEFAULT_MIN_SUPPORT == MIN_SUPPORT
+
+
 def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: Cli, rf: dict[str, Path],
                                                                            tmp_path: Path) -> None:
     m = _evaluate(cli, rf, tmp_path / "v", "--verify")
     assert m["params"]["verify"] is True
     assert m["run"]["spec"]["verification"] == {"enabled": True, "candidates": None, "confirm": False,
-                                                "min_support": 20}
+                                                "min_support": MIN_SUPPORT}
     v = m["verification"]
     assert v["candidates"] == 3 and 0.5 <= v["verified_fraction"] <= 1 and v["ms_per_query"] > 0
-    assert v["min_support"] == 20 and v["confusion"] is True and v["confidence_model"]["on"] == "strength"
+    assert v["min_support"] == MIN_SUPPORT and v["confusion"] is True and v["confidence_model"]["on"] == "strength"
     z = np.load(tmp_path / "v" / "verification.npz")
     S = np.load(tmp_path / "v" / "S.npy")
     assert z["verified"].shape == (S.shape[1],) and z["candidates"].shape == (S.shape[1], 3)

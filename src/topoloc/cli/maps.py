@@ -18,6 +18,7 @@ import typer
 
 from topoloc.cli.app import app, command_group, handle_errors, needs
 from topoloc.cli.options import (
+    DEFAULT_MIN_SUPPORT,
     CacheDirOption,
     CalibrateSequenceOption,
     ConfigOption,
@@ -88,7 +89,7 @@ def map_build(
         help="Build the map as this many partial models of place ranges, one task each, merged into the "
              "same map as a one-piece build (docs/map_shards.md).")] = 1,
     verify: VerifyOption = None,
-    min_support: MinSupportOption = 20,
+    min_support: MinSupportOption = DEFAULT_MIN_SUPPORT,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
     config: ConfigOption = None,
@@ -299,7 +300,7 @@ def localize(
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
-    min_support: MinSupportOption = 20,
+    min_support: MinSupportOption = DEFAULT_MIN_SUPPORT,
     confirm: ConfirmOption = False,
     quiet: QuietOption = False,
     topic: TopicOption = None,

@@ -72,6 +72,9 @@ VerifyOption = Annotated[bool | None, typer.Option(
                                  "it by its inliers (docs/protocol.md, Verification). Default: wherever the map's "
                                  "images can be read (a saved map: as it was calibrated or built; maps saved before "
                                  "verification existed are not verified unless asked).")]
+#: ``--min-support``'s default: :data:`topoloc.verification.MIN_SUPPORT` (not imported here, where the command line
+#: starts fast; tests/cli/test_cli_verify.py holds the two equal).
+DEFAULT_MIN_SUPPORT = 25
 MinSupportOption = Annotated[int, typer.Option(
     "--min-support", help="Support (inliers that are distinctive matches) a verified answer needs, at 1000 features "
                           "per image (scaled to --max-features); chosen on the development data (docs/protocol.md, "
