@@ -255,8 +255,10 @@ def map_calibrate(
     sequence_mode: SequenceModeOption = STREAM_SEQUENCE_MODE,
     verify: VerifyOption = None,
 ) -> None:
-    """Choose the score threshold that reaches --precision on a labelled tour and store it in the map.
+    """Choose the threshold that reaches --precision on a labelled tour and store it in the map.
 
+    Where answers are verified (the default), the answers' confidence model is fitted on the tour and the
+    threshold is on the confidence; with --no-verify, on the method's score (docs/protocol.md, Verification).
     Precision is right accepted frames over accepted frames; recall is right accepted frames over the frames
     that have a right place in the map.  Calibrating again clears a calibration that `map add` marked stale.
     """

@@ -310,7 +310,7 @@ class Verifier:
         answer = np.where(rows[:, 0] >= 0, rows[:, 0], 0).astype(np.int64)
         support = np.zeros(m, np.int64)
         is_v = np.zeros(m, bool)
-        conf = np.zeros(m)
+        confusion = np.zeros(m)
         matches: list[np.ndarray] = [NO_CHECK.pairs] * m
         images: list[int | None] = [None] * m
         shapes = np.zeros((m, 4), np.int64)
@@ -332,20 +332,20 @@ class Verifier:
                 n = int(sup[j, w])
                 ok = (self.rule.climb > 0 and n >= self.rule.min_support and n > self.confusion(row))
                 end, is_peak = self._climb(S, j, row, n, seen, xy_q, dq) if ok else (row, True)
-                # The answer is the candidate with most support, verified or not: checking the candidates
-                # reranks them (verification.md, part quality); only a verified one is raised above the rest.
+                # The answer is that candidate (moved to the peak of its support where it climbed), verified or
+                # not: checking the candidates reranks them; only a verified one is raised above every unverified.
                 passes = bool(verified(np.array([seen[end][0].support]), np.array([self.confusion(end)]),
                                        np.array([is_peak]), self.rule.min_support)[0])
                 answer[j], is_v[j] = end, passes
                 # The answer's neighbourhood: as far as its candidate's peak reaches on either side.
                 reach[j] = max(end - lo[j, w], hi[j, w] - 1 - end, 0)
                 check, k = seen[end]
-                support[j], conf[j] = check.support, self.confusion(end)
+                support[j], confusion[j] = check.support, self.confusion(end)
                 matches[j], images[j] = check.pairs, (k if k >= 0 else None)
                 if k >= 0:
                     shapes[j] = (*q.image_shape, *self._images(end)[k][2])
             ms[j] = 1e3 * (time.perf_counter() - t0)
-        x = strength(support, conf, self.rule.min_support)
+        x = strength(support, confusion, self.rule.min_support)
         S_v = verified_scores(S, answer, is_v, x, peak=reach)
         model = self.confidence_model
         conf_v = model(model.inputs(strength=x, score=S[answer, np.arange(m)] if m else np.zeros(0)), is_v)
