@@ -126,3 +126,18 @@ def test_pairs_left_unfitted_never_change_an_answer_or_a_decision() -> None:
         b = FitsAll(lambda r, places=places: [places[r]]).verify(col, [q])
         assert a.answer.tolist() == b.answer.tolist() and a.verified.tolist() == b.verified.tolist(), seed
         assert np.array_equal(a.S, b.S) and a.support[a.verified].tolist() == b.support[b.verified].tolist(), seed
+
+
+def test_places_checked_side_by_side_give_the_same_answers(monkeypatch: pytest.MonkeyPatch) -> None:
+    import topoloc.verification.verifier as verifier_module
+
+    monkeypatch.setattr(verifier_module, "free_cores", lambda: 2)  # as on an idle machine, whatever this one does
+    rng = np.random.default_rng(11)
+    for seed in range(5):
+        support = rng.integers(5, 90, 14).tolist()
+        q, places = route(support, seed=seed)
+        col = column(14, int(rng.integers(14)), int(rng.integers(14)), int(rng.integers(14)))
+        one = verifier(places, threads=1).verify(col, [q])
+        two = verifier(places, threads=2).verify(col, [q])
+        assert np.array_equal(one.S, two.S) and one.answer.tolist() == two.answer.tolist(), seed
+        assert one.candidate_support.tolist() == two.candidate_support.tolist(), seed

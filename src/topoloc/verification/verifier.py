@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
+from topoloc.features.learned import free_cores
 from topoloc.verification.decision import (
     DEFAULT_CONFIDENCE,
     DEFAULT_MAX_ITERS,
@@ -58,6 +60,16 @@ SEQUENCE_CANDIDATES = 1
 # it saves there, and on a busy machine it waits at its barriers for descheduled threads, so the stage runs them
 # on one thread (the ``speed`` part of benchmarks/bench_verification.py times the stage beside busy processes).
 _BLAS: list[Any] = []  # the ThreadpoolController, made at the first verification (it inspects loaded libraries)
+
+
+_POOL: list[ThreadPoolExecutor] = []
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The threads the stage checks a query's places on (made at first use, shared by every verifier)."""
+    if not _POOL or _POOL[0]._max_workers < threads:
+        _POOL[:] = [ThreadPoolExecutor(max_workers=threads, thread_name_prefix="topoloc-verify")]
+    return _POOL[0]
 
 
 def _one_blas_thread() -> Any:
@@ -175,12 +187,16 @@ class Verifier:
     image_names : callable, optional
         ``image_names(row)``: a name (path) of each of those images, in order,
         for reports (:meth:`match_image_name`).
+    threads : int
+        A query's places checked side by side on at most this many threads, as
+        many as cores are free at that moment (one on a busy machine); the
+        result does not depend on it (``tests/verification/test_verifier.py``).
     """
 
     def __init__(self, place_images: Callable[[int], Sequence[HasFeatures]], *,
                  candidates: int = DEFAULT_CANDIDATES, rule: VerificationRule | None = None,
                  confusable: np.ndarray | None = None, confidence: ConfidenceModel = DEFAULT_CONFIDENCE,
-                 image_names: Callable[[int], Sequence[str]] | None = None) -> None:
+                 image_names: Callable[[int], Sequence[str]] | None = None, threads: int = 2) -> None:
         if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
             raise ValueError(f"candidates must be a whole number >= 1, got {candidates!r}")
         self.place_images = place_images
@@ -189,6 +205,7 @@ class Verifier:
         self.confusable = None if confusable is None else np.asarray(confusable, np.float64)
         self.confidence_model = confidence
         self.image_names = image_names
+        self.threads = threads
         self._prepared: dict[int, list[tuple[np.ndarray, np.ndarray, tuple[int, int]]]] = {}
 
     @property
@@ -261,6 +278,14 @@ class Verifier:
         return check_pair(xy_q, dq, xy_c, dc, shape, max_iters=self.rule.max_iters, ratio=self.rule.ratio,
                           matches=found), int(k)
 
+    def _checks(self, xy_q: np.ndarray, dq: np.ndarray, rows: Sequence[int], bar: int = -1) -> list[Check]:
+        """:meth:`_check` of several places, side by side where cores are free (each a pure function of the pair)."""
+        for r in rows:  # the map images are read here, on this thread, never by two threads at once
+            self._images(r)
+        if len(rows) > 1 and self.threads > 1 and free_cores() > 1:
+            return list(_pool(self.threads).map(lambda r: self._check(xy_q, dq, r, bar), rows))
+        return [self._check(xy_q, dq, r, bar) for r in rows]
+
     def verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
         """Verify the candidates of every column of ``S`` (one column per query, in order).
 
@@ -289,12 +314,13 @@ class Verifier:
         steps = 0
         while True:
             best_row, best_n = -1, n
-            for r in (row - 1, row + 1):
-                if 0 <= r < S.shape[0]:
-                    if r not in seen:
-                        seen[r] = self._check(xy_q, dq, r, bar=n)  # only more support than the answer matters
-                    if seen[r][0].support > best_n:
-                        best_row, best_n = r, seen[r][0].support
+            around = [r for r in (row - 1, row + 1) if 0 <= r < S.shape[0]]
+            new = [r for r in around if r not in seen]
+            # Only more support than the answer's matters: a neighbour that cannot have it is not fitted.
+            seen.update(zip(new, self._checks(xy_q, dq, new, bar=n), strict=True))
+            for r in around:
+                if seen[r][0].support > best_n:
+                    best_row, best_n = r, seen[r][0].support
             if best_row < 0:
                 return row, True
             if steps == self.rule.climb or not S[best_row, j] > -np.inf:
@@ -322,9 +348,11 @@ class Verifier:
             # candidate is fitted in full: with 300 iterations for the rivals, R@1 at night fell from 0.99 to 0.97
             # (gardens_point day_left + day_right -> night_right, Cooc-Map), their inliers undercounted.
             inl = np.full(rows.shape[1], -1, np.int64)
+            live = [int(r) for r in rows[j] if r >= 0]
+            seen.update(zip(live, self._checks(xy_q, dq, live), strict=True))
             for c, r in enumerate(rows[j]):
                 if r >= 0:
-                    got, _ = seen[int(r)] = self._check(xy_q, dq, int(r))
+                    got = seen[int(r)][0]
                     sup[j, c], inl[c] = got.support, got.inliers
             w = int(choose_winner(rows[j:j + 1], inl[None, :])[0])
             row = int(rows[j, w])
