@@ -445,15 +445,18 @@ def test_a_calibrated_maps_run_opens_at_its_threshold_only_when_scored_as_calibr
     threshold = Map.load(m).threshold
     assert threshold is not None and Map.load(m).calibrated_sequence.length == 10  # the tour travels the route
     pages = {}
-    for name, extra in (("single", []), ("seq", ["--sequence", "10"])):
+    # evaluate --map-file scores as the map was calibrated unless told otherwise (issue #46): --sequence 0 asks
+    # for single images.
+    for name, extra in (("single", ["--sequence", "0"]), ("seq", []), ("seq10", ["--sequence", "10"])):
         out = tmp_path / name
         res = cli.invoke(app, ["evaluate", "--map-file", str(m), "--query", str(route / "dusk"), "--out", str(out),
                                "-q", "--cache-dir", str(root / "cache"), "--html", str(out / "index.html"), *extra])
         assert res.exit_code == 0, res.output
         assert json.loads((out / "metrics.json").read_text())["run"]["calibration"]["threshold"] == threshold
         pages[name] = (out / "index.html").read_text()
-    seq = _payload(pages["seq"])["runs"][0]
-    assert seq["calibrated"] == threshold and not seq["calibration_note"]
+    for name in ("seq", "seq10"):
+        seq = _payload(pages[name])["runs"][0]
+        assert seq["calibrated"] == threshold and not seq["calibration_note"]
     single = _payload(pages["single"])["runs"][0]
     assert single["calibrated"] is None
     assert "10-frame sequences" in single["calibration_note"] and "single images" in single["calibration_note"]
@@ -472,10 +475,15 @@ def test_the_calibration_rule_of_the_slider() -> None:
     assert calibrated_threshold(run(seq, sequence=10, sequence_mode="constant")) == (0.5, "")
     assert calibrated_threshold(run(seq, sequence=10, sequence_mode="acceleration"))[0] is None
     assert calibrated_threshold(run(seq))[0] is None
-    verified = {"threshold": 1.3, "verify": True}
-    value, note = calibrated_threshold(run(verified))
+    verified = {"threshold": 0.9, "verify": True, "threshold_on": "confidence"}
+    value, note = calibrated_threshold(run(verified))  # an unverified run's page thresholds scores
+    assert value is None and "confidence" in note and "not applied" in note
+    assert calibrated_threshold(run(verified, verify=True), "confidence") == (0.9, "")
+    value, note = calibrated_threshold(run(verified, verify=False), "confidence")
     assert value is None and "verified answers" in note and "unverified" in note
-    assert calibrated_threshold(run(verified, verify=True)) == (1.3, "")
+    stale = {"threshold": 1.3, "verify": True}  # chosen on verified scores before answers had a confidence
+    value, note = calibrated_threshold(run(stale, verify=True), "confidence")
+    assert value is None and "older topoloc" in note
     assert calibrated_threshold(run({"threshold": None})) == (None, "")
 
 
