@@ -327,8 +327,8 @@ def readme_sentences(summary: dict[str, Any]) -> dict[str, str]:
                               f"{'with' if e['torch'] else 'no'} PyTorch, {opencv}; the largest: {largest}; "
                               f"measured on {d['date']}")
         files = e["network_files"]
-        out["weights"] = ", ".join(f"`{name}` {_mb(files.get(name))}" for name in NETWORK_FILES) + \
-            f", measured on {d['date']}"
+        out["weights"] = " and ".join(f"`{name}` ({_mb(files.get(name))})" for name in NETWORK_FILES) + \
+            f", sizes measured on {d['date']}"
     if "tests" in parts:
         t = parts["tests"]
         f, cores = tests_figures(t), t["machine"].split(", ")[1]

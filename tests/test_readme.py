@@ -68,7 +68,7 @@ def test_the_rewrite_replaces_only_what_the_markers_hold(benchmark_module: Calla
     out = bench.rewrite_readme({"parts": {"demo": demo}}, text)
     assert out.startswith("a <!-- fresh-clone:demo -->on a fresh clone, every package downloaded from the registry")
     assert "the install took 38 s and the demo's first run 61 s" in out and "later run in a new process 14 s" in out
-    assert "`xfeat.onnx` 2.7 MB, `xfeat.npz` 2.7 MB, measured on 2026-01-02" in out
+    assert "`xfeat.onnx` (2.7 MB) and `xfeat.npz` (2.7 MB), sizes measured on 2026-01-02" in out
     assert "953 MB, 40 distributions, no PyTorch, one OpenCV (opencv-contrib-python-headless)" in out
     assert "beside other jobs (load up to 3.1)" in out  # a figure measured on a busy machine says so
     assert out.endswith("<!-- fresh-clone:tests -->(not measured yet)<!-- /fresh-clone:tests -->")
