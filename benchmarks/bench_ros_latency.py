@@ -18,12 +18,12 @@ private ``roscore``, ``topoloc.ros.probe2`` on ROS 2 over DDS on a domain of its
 960 x 540 frames as raw ``bgr8`` ``sensor_msgs/Image`` at that rate, stamped with the wall clock when sent; each
 answer's latency is its arrival at the probe less that stamp (both processes on this machine's clock).  The
 frames answered, skipped (and, on ROS 2, lost before the node) are the node's own count (its last line).  ROS 2
-runs with Fast DDS's large-data transports (``FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA`` in both processes), which
-raw frames of 1.5 MB need on one machine; one run with its default transports shows why.  The flood runs publish
-at 10x the camera rate (100 and 300 Hz, quiet; as fast as the probe can where it cannot reach that) and measure
-whether the answers stay current.  The load average before each run is recorded beside it: other processes on
-the machine add to the busy ones.  Writes ``ros_latency.json`` and ``ros_latency.md`` in ``--out`` (default
-``docs/results``).
+runs with Fast DDS kept on this machine (UDP on 127.0.0.1 alone) and shared-memory segments of 16 MB, which raw
+frames of 1.5 MB need with best-effort delivery; one run with Fast DDS's own 512 kB segments shows why.  The
+flood runs publish at 10x the camera rate (100 and 300 Hz, quiet; as fast as the probe can where it cannot reach
+that) and measure whether the answers stay current.  The load average before each run is recorded beside it:
+other processes on the machine add to the busy ones.  Writes ``ros_latency.json`` and ``ros_latency.md`` in
+``--out`` (default ``docs/results``).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ import numpy as np
 
 from benchmarks.bench_load import busy
 from benchmarks.common import GP, REPO, RESULTS, TOPOLOC, VOCAB_FOR_GP, machine_line, require_data
+from topoloc.ros.environment import FASTDDS_DEFAULT_SEGMENT, LOOPBACK_SEGMENT
 from topoloc.ros.probe import LocalMaster, wait_for
 
 RATES = (10.0, 30.0)
@@ -113,12 +114,11 @@ def _latency(records: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run_one_ros2(python: Path, domain: Any, map_file: Path, rate: float, n_busy: int, seconds: float, work: Path,
-                 *, transports: str = "LARGE_DATA", kind: str = "camera") -> dict[str, Any]:
-    """One ROS 2 node and one probe at ``rate`` beside ``n_busy`` busy processes (Fast DDS ``transports``)."""
-    tag = f"ros2_{kind}_{int(rate)}hz_{n_busy}busy_{transports.lower()}"
+                 *, segment: int = LOOPBACK_SEGMENT, kind: str = "camera") -> dict[str, Any]:
+    """One ROS 2 node and one probe at ``rate`` beside ``n_busy`` busy processes (shared-memory ``segment`` bytes)."""
+    tag = f"ros2_{kind}_{int(rate)}hz_{n_busy}busy_{segment}"
     answers = work / f"{tag}.jsonl"
-    env = domain.env(PYTHONPATH=str(REPO / "src"), ROS_LOG_DIR=str(work / "ros_log"),
-                     **({"FASTDDS_BUILTIN_TRANSPORTS": transports} if transports != "DEFAULT" else {}))
+    env = domain.env(segment=segment, PYTHONPATH=str(REPO / "src"), ROS_LOG_DIR=str(work / "ros_log"))
     err = (work / f"{tag}.node.err").open("w")
     node = subprocess.Popen([str(python), "-m", "topoloc.cli.main", "ros2-node", str(map_file), "--image-topic",
                              "/bench/image", "--ros-args", "-r", "__ns:=/bench"], env=env, stdout=subprocess.DEVNULL,
@@ -142,7 +142,7 @@ def run_one_ros2(python: Path, domain: Any, map_file: Path, rate: float, n_busy:
         raise RuntimeError(f"the node did not stop as it should: {last}")
     records = [json.loads(x) for x in answers.read_text().splitlines() if x.strip()]
     summary = next(r for r in records if r["kind"] == "summary")
-    return {"ros": 2, "kind": kind, "transports": transports, "rate_hz": rate, "busy": n_busy,
+    return {"ros": 2, "kind": kind, "segment_bytes": segment, "rate_hz": rate, "busy": n_busy,
             "published": summary["published"], "published_hz": round(summary["published"] / summary["seconds"], 1),
             "frames_in": int(match.group(1)), "answered": int(match.group(2)), "skipped": int(match.group(3)),
             "lost": int(match.group(5)), **_latency(records), "load_average_1min": round(load, 2)}
@@ -197,13 +197,14 @@ def page(data: dict[str, Any]) -> str:
         out.append("\n")
     two = data.get("ros2")
     if two:
-        camera = [r for r in two["rows"] if r["kind"] == "camera" and r["transports"] == "LARGE_DATA"]
-        default = [r for r in two["rows"] if r["kind"] == "camera" and r["transports"] == "DEFAULT"]
+        camera = [r for r in two["rows"] if r["kind"] == "camera" and r["segment_bytes"] == LOOPBACK_SEGMENT]
+        default = [r for r in two["rows"] if r["kind"] == "camera" and r["segment_bytes"] == FASTDDS_DEFAULT_SEGMENT]
         flood = [r for r in two["rows"] if r["kind"] == "flood"]
         out += [f"## ROS 2 (`topoloc ros2-node`, rclpy {two.get('rclpy', '?')}, Fast DDS, over DDS on this "
                 f"machine)\n\n`{two['command']}` on {two['machine']}, {two['date']}. Map: as above "
-                f"({two['places']} places, method {two['method']}, features {two['features']}). Both processes "
-                "with `FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA`; the node's image subscription has the sensor-data "
+                f"({two['places']} places, method {two['method']}, features {two['features']}). Fast DDS kept on "
+                "this machine (UDP on 127.0.0.1 alone, and shared memory with 16 MB segments: "
+                "`topoloc.ros.environment.loopback_profile`); the node's image subscription has the sensor-data "
                 "QoS (best effort, keep last 5), the probe's publisher a camera driver's (reliable, keep last 10). "
                 "*Lost before it*: frames published that never reached the node's buffer (gaps in the publisher's "
                 "numbers), which the sensor-data QoS drops when its 5 places are full.\n\n"]
@@ -217,12 +218,13 @@ def page(data: dict[str, Any]) -> str:
                                    f"with {a['busy']} busy" for a, b in pairs) + " (ROS 2 vs ROS 1).\n")
         if default:
             d = default[0]
-            out.append(f"\nWith Fast DDS's default transports (shared memory and UDP) the same 1.5 MB frames at "
+            out.append(f"\nWith Fast DDS's own segment size (512 kB) the same 1.5 MB frames at "
                        f"{d['rate_hz']:.0f} Hz: {d['frames_in']} of {d['published']} reached the node, {d['lost']} "
                        f"were lost before it, {d['answered']} answered (median {d['latency_ms_median']} ms): a "
                        "best-effort subscription loses raw frames larger than a shared-memory segment on one machine. "
-                       "Set `FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA` for the camera driver and the node, or subscribe "
-                       "to the compressed topic (docs/ros.md).\n")
+                       "Give the camera driver and the node larger segments (a Fast DDS profile, or "
+                       "`FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA`), or subscribe to the compressed topic "
+                       "(docs/ros.md).\n")
         if flood:
             out += ["\n### A flood at 10x the camera rate\n\n",
                     "| asked | published at | reached the node | lost before it | answered | skipped | latency median "
@@ -313,7 +315,7 @@ def main() -> None:
         rows = []
         try:
             runs = [dict(rate=rate, n_busy=n_busy, seconds=seconds) for rate in RATES for n_busy in BUSY]
-            runs.append(dict(rate=RATES[0], n_busy=0, seconds=seconds, transports="DEFAULT"))
+            runs.append(dict(rate=RATES[0], n_busy=0, seconds=seconds, segment=FASTDDS_DEFAULT_SEGMENT))
             runs += [dict(rate=FLOOD_X * rate, n_busy=0, seconds=FLOOD_SECONDS / (2 if args.quick else 1),
                           kind="flood") for rate in RATES]
             for run in runs:

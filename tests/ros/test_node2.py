@@ -374,7 +374,7 @@ def test_ros2_run_finds_the_shipped_executable_and_the_launch_file_names_real_pa
                             stdout=err, stderr=subprocess.STDOUT, text=True)
     ros2.procs.append(proc)
     out = ros2.root / "run.jsonl"
-    recorder = ros2.probe(out, "--answers", "/answer")
+    recorder = ros2.probe(out, "--answers", "/answer", "--late")  # answers made before it matched too
     player = ros2.probe(ros2.root / "run_player.jsonl", "--publish", str(route["query"].root), "--topic", "/cam/run",
                         "--encoding", "jpeg", "--rate", "4", "--count", "3", "--linger", "0")
     assert player.wait(timeout=60) == 0

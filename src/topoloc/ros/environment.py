@@ -85,12 +85,58 @@ def clean_env(env: dict[str, str] | None = None) -> dict[str, str]:
     return out
 
 
+#: Fast DDS's own size of a shared-memory segment: best-effort messages larger than it do not arrive.
+FASTDDS_DEFAULT_SEGMENT = 512 * 1024
+
+#: The segment the tests and the benchmark use: room for a few raw 1080p frames.
+LOOPBACK_SEGMENT = 16 * 1024 * 1024
+
+_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<!-- topoloc: Fast DDS on this machine only. UDP on 127.0.0.1 alone (discovery included: no packet leaves the
+     machine) and shared memory with segments of {segment} bytes (best-effort messages larger than a segment
+     never arrive). Used through FASTDDS_DEFAULT_PROFILES_FILE. -->
+<dds xmlns="http://www.eprosima.com">
+  <profiles>
+    <transport_descriptors>
+      <transport_descriptor>
+        <transport_id>loopback_udp</transport_id>
+        <type>UDPv4</type>
+        <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
+      </transport_descriptor>
+      <transport_descriptor>
+        <transport_id>shared_memory</transport_id>
+        <type>SHM</type>
+        <segment_size>{segment}</segment_size>
+        <maxMessageSize>{segment}</maxMessageSize>
+      </transport_descriptor>
+    </transport_descriptors>
+    <participant profile_name="topoloc_loopback" is_default_profile="true">
+      <rtps>
+        <userTransports>
+          <transport_id>shared_memory</transport_id>
+          <transport_id>loopback_udp</transport_id>
+        </userTransports>
+        <useBuiltinTransports>false</useBuiltinTransports>
+      </rtps>
+    </participant>
+  </profiles>
+</dds>
+"""
+
+
+def loopback_profile(path: Path, segment: int = LOOPBACK_SEGMENT) -> Path:
+    """Write a Fast DDS profile that keeps every participant on this machine (see :data:`_PROFILE`)."""
+    path.write_text(_PROFILE.format(segment=int(segment)))
+    return path
+
+
 class PrivateDomain:
     """A ROS domain id that no other holder on this machine has, held (a lock per id) until :meth:`close`.
 
-    The processes given :meth:`env` talk to each other only: another test run or
-    benchmark on the machine takes another id, and discovery stays on this machine
-    (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: no packet leaves it).
+    The processes given :meth:`env` talk to each other only, and never off this
+    machine: another test run or benchmark takes another id, and Fast DDS is
+    given a profile (:func:`loopback_profile`) with UDP on 127.0.0.1 alone and
+    shared memory, whose segments (``segment`` bytes) hold the messages sent.
     """
 
     def __init__(self, first: int = 11, last: int = 100) -> None:
@@ -104,15 +150,22 @@ class PrivateDomain:
                 fh.close()
                 continue
             self.domain, self._lock = domain, fh
+            self._dir = tempfile.TemporaryDirectory(prefix=f"topoloc-ros2-domain-{domain}-")
             return
         raise TopolocError(f"every ROS domain id from {first} to {last} is held by another run on this machine")
 
-    def env(self, base: dict[str, str] | None = None, **extra: str) -> dict[str, str]:
+    def env(self, base: dict[str, str] | None = None, *, segment: int = LOOPBACK_SEGMENT, **extra: str,
+            ) -> dict[str, str]:
         """An environment for a process of the ROS 2 environment on this domain (:func:`clean_env` of ``base``)."""
-        return {**clean_env(base), "ROS_DOMAIN_ID": str(self.domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-                **extra}
+        profile = loopback_profile(Path(self._dir.name) / f"fastdds_{segment}.xml", segment)
+        out = clean_env(base)
+        for name in ("FASTDDS_BUILTIN_TRANSPORTS", "FASTRTPS_DEFAULT_PROFILES_FILE", "ROS_LOCALHOST_ONLY",
+                     "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "ROS_DISCOVERY_SERVER"):
+            out.pop(name, None)  # nothing of the caller's may widen (or redirect) discovery
+        return {**out, "ROS_DOMAIN_ID": str(self.domain), "FASTDDS_DEFAULT_PROFILES_FILE": str(profile), **extra}
 
     def close(self) -> None:
+        self._dir.cleanup()
         self._lock.close()
 
 

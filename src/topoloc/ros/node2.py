@@ -143,8 +143,9 @@ class Ros2Node:
                 # The executor lets go of the old subscription's handle after its wait: the new one (whose topic
                 # may have the same name and another type) is made on the next tick.
                 self.node.destroy_subscription(self._subscription)
+                log.warning("%s: %s carries %s, not %s: subscribing again", PROGRAM, topic, kind,
+                            (self._subscribed or ("", "?"))[1])
                 self._subscription, self._subscribed = None, None
-                log.warning("%s: %s is %s: subscribing again", PROGRAM, topic, kind)
                 return
             msg_type = Image if kind == IMAGE else CompressedImage
             core, last = self.core, self._last_number
