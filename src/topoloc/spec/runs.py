@@ -485,25 +485,28 @@ class NodeSpec:
 
     @classmethod
     def param_type(cls, name: str) -> type:
-        """The type of a parameter's value (``int``, ``float``, ``bool``, ``str``), from the specification."""
-        return _NODE_PARAM_TYPES[name]
+        """The type of a parameter's value (``int``, ``float``, ``bool``, ``str``), from the specification's fields."""
+        import types
+        import typing
+
+        from topoloc.spec.parts import PARTS
+
+        head, _, tail = cls.PARAMS[name].partition(".")
+        hint = typing.get_type_hints(PARTS[head] if tail else cls)[tail or head]
+        kinds = [a for a in typing.get_args(hint) if a is not type(None)] if isinstance(hint, types.UnionType) \
+            else [hint]
+        kind = kinds[0]
+        return str if kind is Path else kind
 
     def param_values(self) -> dict[str, Any]:
         """Every parameter's value (None where not set: as the map or the environment decides)."""
-        seq, v = self.sequence, self.verification
-        return {"map": str(self.map_file), "image_topic": self.image_topic, "queue": self.queue, "rate": self.rate,
-                "top_k": self.top_k, "prefetch": self.prefetch, "map_frame": self.map_frame,
-                "watch_map": self.watch_map, "device": self.device,
-                "sequence": None if seq is None else seq.length, "sequence_mode": None if seq is None else seq.mode,
-                "verify": v.enabled, "verify_candidates": v.candidates, "min_support": v.min_support,
-                "confirm": v.confirm}
-
-
-_NODE_PARAM_TYPES: dict[str, type] = {
-    "map": str, "image_topic": str, "queue": int, "rate": float, "top_k": int, "prefetch": int, "map_frame": str,
-    "watch_map": bool, "device": str, "sequence": int, "sequence_mode": str, "verify": bool,
-    "verify_candidates": int, "min_support": int, "confirm": bool,
-}
+        out: dict[str, Any] = {}
+        for name, dotted in self.PARAMS.items():
+            head, _, tail = dotted.partition(".")
+            value = getattr(self, head)
+            value = getattr(value, tail) if tail and value is not None else value
+            out[name] = os.fspath(value) if isinstance(value, Path) else value
+        return out
 
 
 def _from_text(name: str, value: Any, kind: type) -> Any:
