@@ -242,3 +242,20 @@ def test_ros2_arguments_are_passed_whole_however_the_command_line_splits_them() 
         None, ["--ros-args", "-r", "image:=/cam", "-p", "x:=1"])
     with pytest.raises(TopolocError, match="ROS 2's arguments follow --ros-args"):
         _ros2_arguments("m.tlm", ["image:=/cam"])
+
+
+def test_a_config_file_gives_the_nodes_settings_nested_as_every_specification(tmp_path: Path) -> None:
+    from topoloc.ros.node import _config_params
+
+    cfg = tmp_path / "node.toml"
+    cfg.write_text('image_topic = "/camera/image_raw"\nqueue = 3\n[sequence]\nlength = 4\n[verification]\n'
+                   'enabled = false\n')
+    spec = spec_from({"queue": 2}, {"map": "m.tlm"}, _config_params(cfg))
+    assert spec.image_topic == "/camera/image_raw" and spec.queue == 2  # the option wins over the file
+    assert spec.sequence == SequenceSpec(length=4) and spec.verification.enabled is False
+    cfg.write_text('[verification]\ncolour = "red"\n')
+    with pytest.raises(TopolocError, match=r"unknown setting verification\.colour"):
+        _config_params(cfg)
+    cfg.write_text('queue = "many"\n')
+    with pytest.raises(TopolocError, match="queue must be a whole number"):
+        _config_params(cfg)
