@@ -159,6 +159,8 @@ def test_the_core_answers_counts_and_reloads_as_both_nodes_do(tiny_route: dict[s
     core = NodeCore(NodeSpec(map_file=map_file, queue=100, top_k=3), MESSAGES, name="/ns/topoloc",
                     program="topoloc ros2-node")
     frames = tiny_route["query_frames"][:3]
+    core.warm_up()  # a frame's first-use costs paid before subscribing: nothing of the localiser's state changes
+    assert core.localizer.frames == 0 and core.localizer.ms_features == 0
     core.put(_image(np.ascontiguousarray(frames[0][..., 0])), IMAGE)
     core.put(_image(frames[0][..., 0].copy(), encoding="32FC7"), IMAGE)  # counted, not answered
     for f in frames[1:]:

@@ -190,6 +190,20 @@ class NodeCore:
         warn_before_localizing(m, spec.map_file, spec.sequence or m.calibrated_sequence, spec.verification.enabled)
         return m, m.localizer_for(spec)
 
+    def warm_up(self) -> None:
+        """One textured frame through the localiser before the topic is subscribed, its answer dropped.
+
+        The first frame of a process pays for loading compiled code, creating
+        detectors and the verifier's first reads (``benchmarks/bench_ros_latency.py``
+        measured the first answers up to seconds late without it); a camera's
+        frames would wait behind it, or be dropped unseen.
+        """
+        import cv2
+
+        noise = np.random.default_rng(0).integers(0, 256, (480, 640), dtype=np.uint8)
+        seconds = self.localizer.warm_up(cv2.GaussianBlur(noise, (0, 0), 2.0))
+        log.info("%s: warmed up in %.2f s", self.program, seconds)
+
     def request_reload(self) -> None:
         """Load the map file again once the frames in flight are answered (any thread, a signal handler)."""
         with self._lock:

@@ -137,6 +137,7 @@ class LocalizerNode:
                 return TriggerResponse(success=True, message=f"reloading {core.spec.map_file}")
 
             rospy.Service("~reload", Trigger, reload)
+        core.warm_up()
         # queue_size None: rospy hands over every message it read (with a bound it drops the older ones of a
         # batch read at once, uncounted); the callback only puts it into the buffer, which drops and counts.
         # buff_size: rospy reads a connection in chunks of it; smaller than a frame, messages queue up in the

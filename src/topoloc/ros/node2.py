@@ -222,6 +222,7 @@ class Ros2Node:
         self._diag_pub = node.create_publisher(msgs.diagnostic_array, "/diagnostics", 10)
         node.create_service(Trigger, "~/reload", self._reload)
         node.add_on_set_parameters_callback(self.on_set_parameters)
+        self.core.warm_up()
         self.subscribe()
         node.create_timer(CHECK_S, self._tick)
         executor = MultiThreadedExecutor(num_threads=2)
