@@ -41,7 +41,7 @@ STAMP = "topoloc-ros2.json"
 #: The extras installed: the ROS 2 node's, and the bags' (the probe replays a ROS 2 bag).
 EXTRAS = "ros2,ros"
 
-#: How long a build may take (the extra is about 260 MB of wheels; pip's cache makes it a minute).
+#: How long a build may take (topoloc's dependencies and 260 MB of ROS 2 wheels: 1 to 2 minutes with pip's cache).
 BUILD_TIMEOUT_S = 900.0
 
 
