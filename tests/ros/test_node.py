@@ -302,7 +302,8 @@ def test_no_master_and_bad_settings_are_one_line(ros: Ros, route: dict[str, Any]
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "no ROS master at" in r.stderr, r.stderr
     r = subprocess.run([sys.executable, "-m", "topoloc", "ros-node", str(route["map"]), "--queue", "0"], env=ros.env,
                        capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "queue must be >= 1" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 2 and "queue must be" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
     r = subprocess.run([sys.executable, "-m", "topoloc", "ros-node", str(tmp_path / "none.tlm")], env=ros.env,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "none.tlm" in r.stderr and "Traceback" not in r.stderr, r.stderr

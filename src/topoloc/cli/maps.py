@@ -349,9 +349,7 @@ def localize(
     spec.check_outputs()
     # After the inputs are checked, so that an input error stays the only line.
     warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
-    loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
-                      prefetch=spec.prefetch, verify=spec.verification.enabled,
-                      candidates=spec.verification.candidates, confirm=spec.verification.confirm)
+    loc = m.localizer_for(spec)
     # Written line by line: a run that is stopped keeps every frame done so far.
     # ``--out -``: the lines on standard output (the Unix convention, for `| jq`), the summary on standard error.
     lines_to = _LineFile(Path("-"), stream=sys.stdout) if spec.to_stdout else _LineFile(spec.out)
@@ -411,9 +409,7 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
     spec.check_outputs()
     source = LiveSource(spec.stream)
     warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
-    loc = m.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
-                      prefetch=spec.prefetch, verify=spec.verification.enabled,
-                      candidates=spec.verification.candidates, confirm=spec.verification.confirm)
+    loc = m.localizer_for(spec)
     stopped_by: list[str] = []
 
     def stop(signum: int, frame: object) -> None:

@@ -144,6 +144,22 @@ class Localizer:
             res = self._tls.res = FrameResources(self.map.features, self.map.vocabulary)
         return describe(self.map.recognizer, res, image, name, keep_features=self.verifier is not None)
 
+    def warm_up(self, image: np.ndarray) -> float:
+        """Pay a frame's first-use costs on ``image`` without answering it; the seconds it took.
+
+        Extraction, quantisation, matching and verification run once (loading
+        compiled code, creating detectors, reading what the verifier reads), so
+        that the first frame of a live source is not late by them; nothing of the
+        localiser's state changes (frames, sequence, timings).
+        """
+        t0 = time.perf_counter()
+        items, _, _, features = self.describe(image)
+        rec = self.map.recognizer
+        col = rec.score(items[:1])[:, -1]
+        if self.verifier is not None and features is not None:
+            self.verifier.verify(np.asarray(col)[:, None], [features])
+        return time.perf_counter() - t0
+
     def stream(self, frames: Iterable[tuple[Any, ...]], *,
                executor: Executor | None = None) -> Iterator[dict[str, Any]]:
         """Result lines of ``frames`` (``(name, time_s or None, image[, index])``, as :meth:`InputSpec.frames` gives).

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from topoloc._parallel import n_workers
 from topoloc.cluster import Executor
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, check_distinct_tours, load_traverse
@@ -57,6 +58,7 @@ from topoloc.spec import (
     GroundTruthSpec,
     LocalizeSpec,
     MapBuildSpec,
+    NodeSpec,
     SequenceSpec,
     VerificationSpec,
     VocabularySpec,
@@ -683,12 +685,19 @@ class Map:
                          if sequence_mode is None else sequence_mode, prefetch=prefetch,
                          verifier=verifier, confirm=confirm)
 
-    def localizer_for(self, spec: LocalizeSpec) -> Localizer:
-        """The localiser of a ``localize`` run's specification (its sequence, prefetch and verification)."""
+    def localizer_for(self, spec: LocalizeSpec | NodeSpec) -> Localizer:
+        """The localiser of a run's specification: its top K, sequence, prefetch and verification.
+
+        ``localize`` (:class:`LocalizeSpec`) and the ROS nodes (:class:`NodeSpec`,
+        whose sequence None is the map's :attr:`calibrated_sequence` and whose
+        prefetch None is one frame per core) come here.
+        """
         v = spec.verification
-        return self.localizer(top_k=spec.top_k, sequence=spec.sequence.length, sequence_mode=spec.sequence.mode,
-                              prefetch=spec.prefetch, verify=v.enabled, candidates=v.candidates, confirm=v.confirm,
-                              verification=v)
+        seq = spec.sequence
+        prefetch = spec.prefetch if spec.prefetch is not None else n_workers(-1)
+        return self.localizer(top_k=spec.top_k, sequence=None if seq is None else seq.length,
+                              sequence_mode=None if seq is None else seq.mode, prefetch=prefetch, verify=v.enabled,
+                              candidates=v.candidates, confirm=v.confirm, verification=v)
 
     def localize(self, image: np.ndarray, *, top_k: int = 5) -> dict[str, Any]:
         """The place one camera frame shows.

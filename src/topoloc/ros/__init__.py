@@ -1,9 +1,14 @@
-"""topoloc on a running ROS 1 graph: a node that localises an image topic against a saved map.
+"""topoloc on a running ROS graph: a node that localises an image topic against a saved map.
 
-``topoloc ros-node MAP`` (or ``python -m topoloc ros-node MAP``) subscribes to an
-image topic, localises the newest frame through :meth:`topoloc.maps.Map.localizer`
-and publishes the answers (:mod:`topoloc.ros.node`; topics, messages and
-parameters in ``docs/ros.md``).
+``topoloc ros-node MAP`` (or ``python -m topoloc ros-node MAP``; ROS 1, :mod:`topoloc.ros.node`) and ``topoloc ros2-node
+MAP`` (ROS 2, :mod:`topoloc.ros.node2`) subscribe to an image topic, localise the
+newest frame through :meth:`topoloc.maps.Map.localizer_for` and publish the
+answers; what they share, with no ROS in it, is :mod:`topoloc.ros.core` (topics,
+messages and parameters in ``docs/ros.md``).
+
+ROS 2's ``rclpy`` and its messages are on PyPI as wheels (``pip install
+'topoloc[ros2]'``: rclpy of ROS 2 Kilted with Fast DDS); :func:`import_rclpy`
+imports them, or says in one line what is missing.
 
 ROS 1 is not on PyPI: ``rospy`` and the message packages come from the
 system's packages (Debian 12: ``apt-get install ros-base python3-rospy
@@ -67,6 +72,7 @@ def import_rospy() -> ModuleType:
     try:
         import diagnostic_msgs.msg  # noqa: F401
         import geometry_msgs.msg  # noqa: F401
+        import rcl_interfaces.msg  # noqa: F401
         import sensor_msgs.msg  # noqa: F401
         import std_msgs.msg  # noqa: F401
     except ImportError as exc:
@@ -74,4 +80,42 @@ def import_rospy() -> ModuleType:
     return rospy
 
 
-__all__ = ["DEBIAN_PACKAGES", "MISSING_ROS", "SYSTEM_DIST_PACKAGES", "import_rospy", "ros_paths"]
+#: The extra that installs ROS 2's rclpy and the messages the ROS 2 node uses.
+ROS2_EXTRA = "pip install 'topoloc[ros2]'"
+
+MISSING_ROS2 = (f"the ROS 2 node needs rclpy and the messages sensor_msgs, std_msgs, geometry_msgs, diagnostic_msgs "
+                f"and std_srvs: {ROS2_EXTRA} (ROS 2 wheels from PyPI), or source a ROS 2 installation")
+
+
+def import_rclpy() -> ModuleType:
+    """``rclpy``, with the message packages the ROS 2 node uses.
+
+    Raises
+    ------
+    TopolocError
+        One line naming what is missing (a package, or ROS 2's libraries where
+        ``rclpy`` is installed but its process was started without them).
+    """
+    try:
+        import rclpy
+    except ImportError as exc:
+        if exc.name == "rclpy":
+            raise TopolocError(f"{MISSING_ROS2} ({exc.name} is missing)") from None
+        # rclpy is there, its C libraries not found: the wheels' .pth hook (ros_wheels_bootstrapper) sets
+        # LD_LIBRARY_PATH by starting the process again, unless a parent already set its guard variable.
+        raise TopolocError(f"rclpy cannot load ROS 2's libraries ({exc}); start the process afresh from the "
+                           "environment rclpy is installed in, without _ROS_WHEELS_BOOTSTRAP_COMPLETE set") from None
+    try:
+        import diagnostic_msgs.msg  # noqa: F401
+        import geometry_msgs.msg  # noqa: F401
+        import rcl_interfaces.msg  # noqa: F401
+        import sensor_msgs.msg  # noqa: F401
+        import std_msgs.msg  # noqa: F401
+        import std_srvs.srv  # noqa: F401
+    except ImportError as exc:
+        raise TopolocError(f"{MISSING_ROS2} ({exc.name} is missing)") from None
+    return rclpy
+
+
+__all__ = ["DEBIAN_PACKAGES", "MISSING_ROS", "MISSING_ROS2", "ROS2_EXTRA", "SYSTEM_DIST_PACKAGES", "import_rclpy",
+           "import_rospy", "ros_paths"]

@@ -20,11 +20,11 @@ from topoloc.spec.parts import (
     parse_max_side,
     parse_recall_at,
 )
-from topoloc.spec.runs import EvaluateSpec, LocalizeSpec, MapBuildSpec, VocabTrainSpec
+from topoloc.spec.runs import EvaluateSpec, LocalizeSpec, MapBuildSpec, NodeSpec, VocabTrainSpec
 
 __all__ = [
     "FLAT_NAMES", "SEQUENCE_MODES", "EvaluateSpec", "ExecutionSpec", "FeatureSpec", "GroundTruthSpec",
-    "InputSpec", "LocalizeSpec", "MapBuildSpec", "SequenceSpec", "VerificationSpec", "VocabTrainSpec", "VocabularySpec",
-    "load_config",
+    "InputSpec", "LocalizeSpec", "MapBuildSpec", "NodeSpec", "SequenceSpec", "VerificationSpec", "VocabTrainSpec",
+    "VocabularySpec", "load_config",
     "merge", "nest", "parse_max_side", "parse_recall_at", "spec_from_dict", "spec_from_flat", "spec_to_dict",
 ]

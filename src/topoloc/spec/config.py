@@ -103,7 +103,9 @@ def spec_from_dict(cls: type[S], data: Mapping[str, Any], *, source: str | Path 
             if extra:
                 raise TopolocError(f"unknown setting {key}.{str(extra[0])[:60]}{where}; known: "
                                    f"{', '.join(f'{key}.{k}' for k in sorted(known))}")
-            default = fields[key].default_factory()  # type: ignore[operator]
+            factory = fields[key].default_factory
+            # A part that may be absent (None: decided later, a node's sequence as the map's) starts from its defaults.
+            default = factory() if factory is not dataclasses.MISSING else part()
             kwargs[key] = dataclasses.replace(default, **value)
         else:
             kwargs[key] = value

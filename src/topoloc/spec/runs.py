@@ -9,12 +9,15 @@ again from its record.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
-from topoloc.errors import ParameterError
+from topoloc.errors import ParameterError, TopolocError
 from topoloc.io.dirs import (
     Output,
     check_outputs,
@@ -346,4 +349,209 @@ class VocabTrainSpec(_ChecksOutputs):
         return (Output(self.out, what="vocabulary file", earlier=container_marker("vocabulary")),)
 
 
-__all__ = ["EARLIER_RUN", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "VocabTrainSpec", "html_page"]
+@dataclass(frozen=True)
+class NodeSpec:
+    """``topoloc ros-node`` (ROS 1) and ``topoloc ros2-node`` (ROS 2): an image topic localised against a map.
+
+    One specification for both nodes and every way of setting them: a field's
+    flat name (:attr:`PARAMS`) is the node's ROS parameter, the command line's
+    flag (``image_topic`` -> ``--image-topic``) and, nested as in every other
+    specification, a configuration file's setting (``--config``:
+    ``image_topic = "/camera/image_raw"``, ``[sequence] length = 5``,
+    ``[verification] enabled = true``).
+
+    Parameters
+    ----------
+    map_file : Path
+        The saved map (parameter ``map``).
+    image_topic : str
+        The image topic subscribed (``image``, under the node's namespace: remap it).
+    queue : int
+        Frames that may wait to be matched (1: the newest only); older ones are skipped and counted.
+    rate : float
+        At most this many frames localised a second (0: as many as the cores allow); the others skipped.
+    top_k : int
+        Places listed per answer.
+    prefetch : int, optional
+        Frames decoded and described ahead while one is matched (as ``localize --prefetch``).  None:
+        one per core, not ``localize``'s two: a frame taken from the topic waits behind the ones
+        already ahead of it, so every extra one adds a frame's time to the latency without adding
+        throughput once each core describes one.
+    map_frame : str
+        ``frame_id`` of the position answers (the map's coordinates).
+    watch_map : bool
+        Reload the map when its file changes.
+    device : str, optional
+        Where learned features are extracted (``cpu``, ``cuda``, ``auto``; as ``--device``); None:
+        ``$TOPOLOC_DEVICE``, else the CPU.  Fixed for the node's life: its runtime is created once.
+    sequence : SequenceSpec, optional
+        Sequence matching over each frame and the ``length`` before it (parameters ``sequence``,
+        ``sequence_mode``); None: as the map was calibrated (``localize``'s default).
+    verification : VerificationSpec
+        Geometric verification of each answer (parameters ``verify``, ``verify_candidates``,
+        ``min_support``, ``confirm``), decided as ``localize`` decides it.
+    """
+
+    map_file: Path | None = None
+    image_topic: str = "image"
+    queue: int = 1
+    rate: float = 0.0
+    top_k: int = 5
+    prefetch: int | None = None
+    map_frame: str = "map"
+    watch_map: bool = True
+    device: str | None = None
+    sequence: SequenceSpec | None = None
+    verification: VerificationSpec = field(default_factory=VerificationSpec)
+
+    #: The node's parameters (flat names, as the command line spells them) -> the specification's dotted names.
+    PARAMS: ClassVar[dict[str, str]] = {
+        "map": "map_file", "image_topic": "image_topic", "queue": "queue", "rate": "rate", "top_k": "top_k",
+        "prefetch": "prefetch", "map_frame": "map_frame", "watch_map": "watch_map", "device": "device",
+        "sequence": "sequence.length", "sequence_mode": "sequence.mode",
+        "verify": "verification.enabled", "verify_candidates": "verification.candidates",
+        "min_support": "verification.min_support", "confirm": "verification.confirm",
+    }
+    #: Parameters fixed for the node's life (a change at run time is refused with this reason).
+    FIXED: ClassVar[dict[str, str]] = {
+        "device": "the features' runtime is created once per process: restart the node on another device",
+    }
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "map_file", _opt_path(self.map_file))
+        if self.map_file is None:
+            raise ParameterError("map_file", "is needed: the map to localise against")
+        for name in ("image_topic", "map_frame"):
+            value = getattr(self, name)
+            if not isinstance(value, str) or not value.strip():
+                raise ParameterError(name, f"must be a non-empty name, got {value!r}")
+        _whole("queue", self.queue, 1)
+        _whole("top_k", self.top_k, 1)
+        if self.prefetch is not None:
+            check_prefetch(self.prefetch)
+        if isinstance(self.rate, bool) or not isinstance(self.rate, int | float) or not (
+                math.isfinite(self.rate) and self.rate >= 0):
+            raise ParameterError("rate", f"must be a finite number of frames a second >= 0, got {self.rate!r}")
+        object.__setattr__(self, "rate", float(self.rate))
+        if not isinstance(self.watch_map, bool):
+            raise ParameterError("watch_map", f"must be true or false, got {self.watch_map!r}")
+        if self.device is not None:
+            from topoloc.features.learned import DEVICES
+
+            if str(self.device).strip().lower() not in DEVICES:
+                raise ParameterError("device", f"must be one of {', '.join(DEVICES)}, got {self.device!r}")
+            object.__setattr__(self, "device", str(self.device).strip().lower())
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any], *, text: bool = False) -> NodeSpec:
+        """The specification from flat parameters (:attr:`PARAMS`); a parameter whose value is None is not given.
+
+        ``sequence`` below 0 is a launch file's "not given" (as the map was
+        calibrated), and so is ``sequence_mode`` without ``sequence``.  ``text``:
+        values may come as text (``"5"``, ``"false"``: ROS 1's parameter server
+        keeps what a launch file wrote), converted by the setting's type.
+        """
+        from topoloc.spec.config import nest, spec_from_dict
+
+        unknown = sorted(set(params) - set(cls.PARAMS))
+        if unknown:
+            raise TopolocError(f"unknown node parameter {unknown[0]!r}; known: {', '.join(cls.PARAMS)}")
+        flat: dict[str, Any] = {}
+        for name, value in params.items():
+            if value is None:
+                continue
+            if text:
+                value = _from_text(name, value, cls.param_type(name))
+            if name == "sequence" and isinstance(value, int) and not isinstance(value, bool) and value < 0:
+                continue
+            flat[name] = value
+        if "sequence" not in flat:
+            flat.pop("sequence_mode", None)  # a mode alone: the sequence is the map's, its length and its mode
+        return spec_from_dict(cls, nest(flat, names=cls.PARAMS))
+
+    @classmethod
+    def params_of(cls, nested: Mapping[str, Any], *, source: str | Path | None = None) -> dict[str, Any]:
+        """A configuration file's nested settings as flat parameters; a setting the node lacks is one line."""
+        dotted_to_flat = {dotted: flat for flat, dotted in cls.PARAMS.items()}
+        where = f" ({source})" if source is not None else ""
+        out: dict[str, Any] = {}
+        for key, value in nested.items():
+            items = ([(f"{key}.{k}", v) for k, v in value.items()] if isinstance(value, Mapping)
+                     else [(key, value)])
+            for dotted, v in items:
+                if dotted not in dotted_to_flat:
+                    raise TopolocError(f"unknown setting {dotted} for the ROS node{where}; known: "
+                                       f"{', '.join(sorted(dotted_to_flat))}")
+                out[dotted_to_flat[dotted]] = v
+        return out
+
+    @classmethod
+    def defaults(cls) -> dict[str, Any]:
+        """Every parameter's default (None: not set, as the map or the environment decides; ``map``: needed)."""
+        out: dict[str, Any] = {}
+        fields_ = {f.name: f for f in dataclasses.fields(cls)}
+        for name, dotted in cls.PARAMS.items():
+            head, _, tail = dotted.partition(".")
+            f = fields_[head]
+            value = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+            out[name] = getattr(value, tail, None) if tail else value
+        return out
+
+    @classmethod
+    def param_type(cls, name: str) -> type:
+        """The type of a parameter's value (``int``, ``float``, ``bool``, ``str``), from the specification's fields."""
+        import types
+        import typing
+
+        from topoloc.spec.parts import PARTS
+
+        head, _, tail = cls.PARAMS[name].partition(".")
+        hint = typing.get_type_hints(PARTS[head] if tail else cls)[tail or head]
+        kinds = [a for a in typing.get_args(hint) if a is not type(None)] if isinstance(hint, types.UnionType) \
+            else [hint]
+        kind = kinds[0]
+        return str if kind is Path else kind
+
+    def param_values(self) -> dict[str, Any]:
+        """Every parameter's value (None where not set: as the map or the environment decides)."""
+        out: dict[str, Any] = {}
+        for name, dotted in self.PARAMS.items():
+            head, _, tail = dotted.partition(".")
+            value = getattr(self, head)
+            value = getattr(value, tail) if tail and value is not None else value
+            out[name] = os.fspath(value) if isinstance(value, Path) else value
+        return out
+
+
+def _from_text(name: str, value: Any, kind: type) -> Any:
+    """A parameter given as text or a number, as ``kind``; anything else is a one-line error naming it."""
+    bad = ParameterError(NodeSpec.PARAMS[name], f"must be {_KIND_WORDS[kind]}, got {value!r}")
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        text = str(value).strip().lower() if isinstance(value, str | int) else ""
+        if text not in ("true", "false", "1", "0"):
+            raise bad
+        return text in ("true", "1")
+    if kind in (int, float):
+        if isinstance(value, bool) or not isinstance(value, int | float | str):
+            raise bad
+        try:
+            number = float(value)
+        except ValueError:
+            raise bad from None
+        if kind is int:
+            if not number.is_integer():
+                raise bad
+            return int(number)
+        return number
+    if not isinstance(value, str | int | float | os.PathLike) or isinstance(value, bool):
+        raise bad
+    return os.fspath(value) if isinstance(value, os.PathLike) else str(value)
+
+
+_KIND_WORDS = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}
+
+
+__all__ = ["EARLIER_RUN", "EvaluateSpec", "LocalizeSpec", "MapBuildSpec", "NodeSpec", "VocabTrainSpec",
+           "html_page"]

@@ -89,6 +89,16 @@ class Newest(Generic[T]):
                 self.skipped += 1
             self._cond.notify()
 
+    def resize(self, keep: int) -> None:
+        """Let ``keep`` items wait from now on (a node's ``queue`` changed); the oldest beyond it are skipped."""
+        if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
+            raise TopolocError(f"queue must be a whole number >= 1, got {keep!r}")
+        with self._cond:
+            self.keep = keep
+            while len(self._items) > keep:
+                self._items.popleft()
+                self.skipped += 1
+
     def close(self, error: BaseException | None = None) -> None:
         """No more items: the consumer gets what waits, then the end (or ``error``, raised in its thread)."""
         with self._cond:
