@@ -82,6 +82,9 @@ def node_command(
               "min_support": min_support, "confirm": confirm,
               "device": None}  # topoloc --device (before the command) sets it for the process, as for every command
     assert set(values) == set(NodeSpec.PARAMS)  # every parameter is an option, under its own name
+    if map_file is not None and map_file.startswith("-") and map_file != "--ros-args":
+        # Unknown options reach here as arguments (ROS's own must pass through): a flag in MAP's place is none.
+        raise TopolocError(f"no such option: {map_file} (see '{ctx.command_path} --help')")
     if ctx.info_name == "ros2-node":
         from topoloc.ros.node2 import serve as serve2
 

@@ -72,7 +72,6 @@ def import_rospy() -> ModuleType:
     try:
         import diagnostic_msgs.msg  # noqa: F401
         import geometry_msgs.msg  # noqa: F401
-        import rcl_interfaces.msg  # noqa: F401
         import sensor_msgs.msg  # noqa: F401
         import std_msgs.msg  # noqa: F401
     except ImportError as exc:
