@@ -336,3 +336,22 @@ def test_broken_runtime_is_one_line_naming_it(monkeypatch: pytest.MonkeyPatch, e
         assert "--features sift" in msg and "reinstall" in msg
     finally:
         learned._provenance.cache_clear()
+
+
+@pytest.mark.parametrize("value", ["onnx", "tflite", "ONNX Runtime"])
+def test_a_bad_runtime_setting_is_refused_not_taken_for_sift(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                             value: str) -> None:
+    """TOPOLOC_XFEAT_RUNTIME=onnx fell back to SIFT saying that XFeat's runtime was not installed."""
+    from typer.testing import CliRunner
+
+    from topoloc.cli.main import app
+
+    monkeypatch.setenv("TOPOLOC_FEATURES", "auto")
+    monkeypatch.setenv("TOPOLOC_XFEAT_RUNTIME", value)
+    with pytest.raises(TopolocError, match="XFeat runtime must be auto or one of onnxruntime, torch"):
+        learned.is_installed()
+    tour = tmp_path / "tour"
+    write_images(tour, 3)
+    r = CliRunner().invoke(app, ["map", "build", "--method", "bow", "--map", str(tour), "--out",
+                                 str(tmp_path / "m.tlm"), "-q", "--cache-dir", str(tmp_path / "cache")])
+    assert r.exit_code == 2 and "TOPOLOC_XFEAT_RUNTIME" in r.output and "sift" not in r.output.lower(), r.output

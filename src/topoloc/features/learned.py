@@ -119,12 +119,15 @@ def resolve_runtime(device: str = "cpu", runtime: str | None = None) -> str:
 
 
 def is_installed() -> bool:
-    """Whether XFeat can run in this install (ONNX Runtime or the chosen runtime and its network file), no import."""
-    try:
-        name = resolve_runtime("cpu")
-    except TopolocError:
-        return False
-    return runtimes.is_present(name)
+    """Whether XFeat can run in this install (ONNX Runtime or the chosen runtime and its network file), no import.
+
+    Raises
+    ------
+    TopolocError
+        ``$TOPOLOC_XFEAT_RUNTIME`` names no runtime: refused, not taken for a missing install (which
+        would fall back to SIFT under a warning that the runtime is not installed).
+    """
+    return runtimes.is_present(resolve_runtime("cpu"))
 
 
 def check_available(device: str | None = None) -> None:
