@@ -685,13 +685,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         if "offmap" in parts:
             res["offmap"] = offmap(tmp, pooled)
         if pooled:
-            # The labelled answers the confidence is fitted on, kept so that ``--parts confidence`` alone refits.
-            res["pooled"] = {k: [{f: np.asarray(a[f]).tolist() for f in ("strength", "verified", "right")}
-                                 for a in v] for k, v in pooled.items()}
+            # The labelled answers the confidence is fitted on, kept so that ``--parts confidence`` alone refits
+            # (a part run alone replaces its own sets' answers, the others' kept).
+            res["pooled"] = {**old.get("pooled", {}),
+                             **{k: [{f: np.asarray(a[f]).tolist() for f in ("strength", "verified", "right")}
+                                    for a in v] for k, v in pooled.items()}}
         if "confidence" in parts:
-            if not pooled:
-                pooled = {k: [{f: np.asarray(a[f], bool if f != "strength" else float) for f in a} for a in v]
-                          for k, v in old.get("pooled", {}).items()}
+            pooled = {k: [{f: np.asarray(a[f], bool if f != "strength" else float) for f in a} for a in v]
+                      for k, v in res.get("pooled", {}).items()}
             res["confidence"] = confidence(pooled)
         if "floor" in parts:
             res["floor"] = floor(rows, tmp)

@@ -144,8 +144,13 @@ def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
         u = prior.inputs(strength=verified.strength)
         model = ConfidenceModel.fit(u[counted], verified.verified[counted], right[counted], on="strength",
                                     source=f"calibration on {what}", prior=prior)
-        threshold, rec, reached = _sweep(model(u, verified.verified), right, counted, int(has_pos.sum()), precision,
-                                         what)
+        # Only verified answers can be accepted (:func:`accepts`): the threshold is chosen among them, recall
+        # still over every query with a right place. On a tour whose answers are all right, the lowest
+        # confidence of every answer would accept unverified ones, and with them frames of no mapped place
+        # (bench_verification, part offmap: 82 of 111 corridor frames accepted by a gardens_point map so).
+        ok = np.asarray(verified.verified, bool)
+        threshold, rec, reached = _sweep(model(u, verified.verified)[ok], right[ok], counted[ok], int(has_pos.sum()),
+                                         precision, what)
         on = "confidence"
     seq = sequence or SequenceSpec()
     return {
@@ -183,9 +188,11 @@ def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: flo
     """Whether an answer is accepted: the one rule ``localize``, the ROS node and reports follow.
 
     Not calibrated: a verified answer where answers are verified, every
-    answer where they are not.  Calibrated: its confidence (or, for a map
-    calibrated without verification, the method's score) at least the
-    threshold; a null threshold accepts nothing.  A threshold chosen on
+    answer where they are not.  Calibrated with verification: a verified
+    answer whose confidence is at least the threshold (calibration can only
+    raise the bar verification sets, never accept what it refused); without
+    verification, the method's score at least the threshold; a null
+    threshold accepts nothing.  A threshold chosen on
     verified scores before answers had a confidence no longer applies: the
     answer is accepted when verified (``localize`` says so before the first frame).
     """
@@ -194,6 +201,8 @@ def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: flo
     kind = threshold_kind(calibration)
     if kind == "stale":
         return bool(is_verified)
+    if kind == "confidence" and not is_verified:
+        return False
     t = threshold_of(calibration)
     value = confidence if kind == "confidence" else score
     return value is not None and t is not None and value >= t
