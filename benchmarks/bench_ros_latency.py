@@ -38,7 +38,7 @@ import sys
 import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -68,6 +68,28 @@ def build_map(work: Path) -> Path:
     return map_file
 
 
+def _stop(node: subprocess.Popen[str], err: IO[str]) -> None:
+    """The node stopped as a user stops it (SIGTERM), its stderr file closed."""
+    if node.poll() is None:
+        node.send_signal(signal.SIGTERM)
+    node.wait(timeout=60)
+    err.close()
+
+
+def _counts(err_file: Path, pattern: str) -> re.Match[str]:
+    """The counts of the node's last line (the one it says when it stops)."""
+    last = err_file.read_text().strip().splitlines()[-1]
+    match = re.search(pattern, last)
+    if match is None:
+        raise RuntimeError(f"the node did not stop as it should: {last}")
+    return match
+
+
+def _records(path: Path) -> list[dict[str, Any]]:
+    """A probe's JSON lines (topoloc.ros.record)."""
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
 def run_one(core: LocalMaster, map_file: Path, rate: float, n_busy: int, seconds: float, work: Path) -> dict[str, Any]:
     """One node and one probe at ``rate`` beside ``n_busy`` busy processes: latency, answered, skipped."""
     tag = f"{int(rate)}hz_{n_busy}busy"
@@ -86,15 +108,9 @@ def run_one(core: LocalMaster, map_file: Path, rate: float, n_busy: int, seconds
                             "--encoding", "bgr8", "--rate", str(rate), "--count", str(count), "--linger", "3"],
                            env=core.env, check=True, timeout=seconds * 4 + 120)
     finally:
-        if node.poll() is None:
-            node.send_signal(signal.SIGTERM)
-        node.wait(timeout=60)
-        err.close()
-    last = (work / f"{tag}.node.err").read_text().strip().splitlines()[-1]
-    match = re.search(r"(\d+) frames in, (\d+) answered, (\d+) skipped", last)
-    if match is None:
-        raise RuntimeError(f"the node did not stop as it should: {last}")
-    records = [json.loads(x) for x in answers.read_text().splitlines() if x.strip()]
+        _stop(node, err)
+    match = _counts(work / f"{tag}.node.err", r"(\d+) frames in, (\d+) answered, (\d+) skipped")
+    records = _records(answers)
     latency = np.array([r["publish_to_answer_ms"] for r in records if r["kind"] == "answer"])
     published = next(r["published"] for r in records if r["kind"] == "summary")
     return {"rate_hz": rate, "busy": n_busy, "published": published, "frames_in": int(match.group(1)),
@@ -133,15 +149,10 @@ def run_one_ros2(python: Path, domain: Any, map_file: Path, rate: float, n_busy:
                             "--encoding", "bgr8", "--rate", str(rate), "--count", str(count), "--linger", "3"],
                            env=env, check=True, timeout=seconds * 10 + 120)
     finally:
-        if node.poll() is None:
-            node.send_signal(signal.SIGTERM)
-        node.wait(timeout=60)
-        err.close()
-    last = (work / f"{tag}.node.err").read_text().strip().splitlines()[-1]
-    match = re.search(r"(\d+) frames in, (\d+) answered, (\d+) skipped, (\d+) unreadable, (\d+) lost", last)
-    if match is None:
-        raise RuntimeError(f"the node did not stop as it should: {last}")
-    records = [json.loads(x) for x in answers.read_text().splitlines() if x.strip()]
+        _stop(node, err)
+    match = _counts(work / f"{tag}.node.err",
+                    r"(\d+) frames in, (\d+) answered, (\d+) skipped, (\d+) unreadable, (\d+) lost")
+    records = _records(answers)
     summary = next(r for r in records if r["kind"] == "summary")
     frames = [int(r["frame_id"].rsplit("_", 1)[1]) for r in records if r["kind"] == "answer"]
     first = next((r["publish_to_answer_ms"] for r in records if r["kind"] == "answer"), None)

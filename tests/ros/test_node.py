@@ -6,7 +6,6 @@ packages, which ``.ci/run`` installs where apt is available) is not installed.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
@@ -19,9 +18,11 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from tests.ros.probes import assert_answers_equal_localize
+from tests.ros.probes import ok as _ok
+from tests.ros.probes import records as _records
+from tests.ros.probes import stop as _stop
 
-from topoloc.cli.main import app
 from topoloc.ros.probe import LocalMaster, free_port, wait_for
 
 SRC = Path(__file__).resolve().parents[2] / "src"
@@ -78,23 +79,11 @@ class Ros(LocalMaster):
         return (self.root / f"{name}.err").read_text()
 
 
-def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM, timeout: float = 30.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-    return proc.wait(timeout=timeout)
-
-
 @pytest.fixture(scope="module")
 def ros(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
     r = Ros(tmp_path_factory.mktemp("ros"))
     yield r
     r.close()
-
-
-def _ok(args: list[str]) -> str:
-    result = CliRunner().invoke(app, args)
-    assert result.exit_code == 0, result.output + repr(result.exception)
-    return result.stdout
 
 
 @pytest.fixture(scope="module")
@@ -145,13 +134,6 @@ def route(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: py
     return {"root": root, "map": map_file, "bag": bag, "fast": fast, "n": len(files), "query": tiny_route["query"]}
 
 
-def _records(path: Path, kind: str) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in lines if r.get("kind") == kind]
-
-
 ANSWER_KEYS = ("place", "score", "accepted", "top", "x", "y", "time")
 
 
@@ -179,19 +161,10 @@ def test_answers_equal_localize_on_each_encoding_of_the_bag(ros: Ros, route: dic
         assert f"stopped (SIGTERM): {n} frames in, {n} answered, 0 skipped, 0 unreadable" in err, err
     _stop(probe)
     answers = _records(out, "answer")
-    for k, topic in TOPICS.items():
-        lines_file = route["root"] / f"localize_{k}.jsonl"
-        _ok(["localize", str(route["map"]), str(route["bag"]), "--topic", topic, "--out", str(lines_file), "-q"])
-        expected = [json.loads(line) for line in lines_file.read_text().splitlines()]
-        got = [a for a in answers if a["topic"] == f"/topoloc_{k}/answer"]
-        assert len(got) == len(expected) == n
-        for a, e in zip(got, expected, strict=True):
-            assert {key: a.get(key) for key in ANSWER_KEYS} == {key: e.get(key) for key in ANSWER_KEYS}
-            assert "x" in a  # the map has positions
-            # The frame's own header: stamp and frame id.
-            assert a["stamp"]["secs"] + 1e-9 * a["stamp"]["nsecs"] == pytest.approx(e["time"], abs=1e-6)
-            assert a["frame_id"] == "camera"
-            assert "verified" not in a or isinstance(a["verified"], bool)
+    # Frame for frame localize's lines, with the frame's own header: stamp and frame id.
+    assert_answers_equal_localize(answers, route, TOPICS, n, ANSWER_KEYS,
+                                  lambda stamp: stamp["secs"] + 1e-9 * stamp["nsecs"])
+    assert all("verified" not in a or isinstance(a["verified"], bool) for a in answers)
     # The diagnostics counted the frames of each node.
     diags = _records(out, "diagnostics")
     for k in TOPICS:

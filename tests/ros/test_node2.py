@@ -9,7 +9,6 @@ run on this machine holds (``PrivateDomain``: a lock per id), and discovery stay
 from __future__ import annotations
 
 import ast
-import json
 import os
 import shutil
 import signal
@@ -21,9 +20,11 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from tests.ros.probes import assert_answers_equal_localize
+from tests.ros.probes import ok as _ok
+from tests.ros.probes import records as _records
+from tests.ros.probes import stop as _stop
 
-from topoloc.cli.main import app
 from topoloc.ros.environment import PrivateDomain
 from topoloc.ros.probe import wait_for
 from topoloc.spec import NodeSpec
@@ -101,25 +102,6 @@ def ros2(ros2_python: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterato
         domain.close()
 
 
-def _records(path: Path, kind: str | None = None) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in lines if kind is None or r.get("kind") == kind]
-
-
-def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM, timeout: float = 30.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-    return proc.wait(timeout=timeout)
-
-
-def _ok(args: list[str]) -> str:
-    result = CliRunner().invoke(app, args)
-    assert result.exit_code == 0, result.output + repr(result.exception)
-    return result.stdout
-
-
 def _last_diag(path: Path, ns: str) -> dict[str, Any] | None:
     diags = [d for d in _records(path, "diagnostics") if d["name"] == f"/{ns}/topoloc: localizer"]
     return diags[-1] if diags else None
@@ -191,17 +173,8 @@ def test_answers_equal_localize_on_each_encoding_of_a_ros2_bag(ros2: Ros2, route
         assert f"stopped (SIGTERM): {n} frames in, {n} answered, 0 skipped, 0 unreadable" in err, err
     _stop(recorder)
     answers = _records(out, "answer")
-    for k, topic in TOPICS.items():
-        lines_file = route["root"] / f"localize_{k}.jsonl"
-        _ok(["localize", str(route["map"]), str(route["bag"]), "--topic", topic, "--out", str(lines_file), "-q"])
-        expected = [json.loads(line) for line in lines_file.read_text().splitlines()]
-        got = [a for a in answers if a["topic"] == f"/topoloc_{k}/answer"]
-        assert len(got) == len(expected) == n
-        for a, e in zip(got, expected, strict=True):
-            assert {key: a.get(key) for key in ANSWER_KEYS} == {key: e.get(key) for key in ANSWER_KEYS}
-            assert "x" in a  # the map has positions
-            assert a["stamp"]["sec"] + 1e-9 * a["stamp"]["nanosec"] == pytest.approx(e["time"], abs=1e-6)
-            assert a["frame_id"] == "camera"
+    assert_answers_equal_localize(answers, route, TOPICS, n, ANSWER_KEYS,
+                                  lambda stamp: stamp["sec"] + 1e-9 * stamp["nanosec"])
     # A position for each accepted answer (the map is not calibrated: every one), stamped as its image.
     positions = _records(out, "position")
     bgr = [a for a in answers if a["topic"] == "/topoloc_bgr8/answer"]

@@ -305,6 +305,19 @@ class NodeCore:
                 self.request_reload()
 
     # -- stopping ---------------------------------------------------------------------------------------------
+    def handle_signals(self) -> None:
+        """SIGINT and SIGTERM stop the node (named in its last line), SIGHUP reloads the map: both nodes alike."""
+        import signal
+
+        def on_signal(signum: int, frame: object) -> None:
+            if signum == signal.SIGHUP:
+                self.request_reload()
+            else:
+                self.stop(signal.Signals(signum).name)
+
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, on_signal)
+
     def stop(self, reason: str, status: int = 0) -> None:
         """Stop after the frames in flight (any thread, a signal handler); the first reason counts."""
         if self.stop_reason is None:

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import signal
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -183,15 +182,7 @@ def serve(given: Mapping[str, Any], argv: list[str], *, config: Path | None = No
     spec = spec_from(given, params, config_params)
     use_device(spec)
     node = LocalizerNode(spec, rospy, name=rospy.get_name())
-
-    def on_signal(signum: int, frame: object) -> None:
-        if signum == signal.SIGHUP:
-            node.core.request_reload()
-        else:
-            node.core.stop(signal.Signals(signum).name)
-
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, on_signal)
+    node.core.handle_signals()
     try:
         status = node.run()
     finally:

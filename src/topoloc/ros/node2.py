@@ -42,7 +42,6 @@ SIGINT and SIGTERM stop it cleanly (one line, exit 0); SIGHUP reloads the map.
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -305,15 +304,7 @@ def serve(given: Mapping[str, Any], ros_args: list[str], *, config: Path | None 
             spec = spec_from_node(node, given, config_params)
             use_device(spec)
             ros2 = Ros2Node(node, spec)
-
-            def on_signal(signum: int, frame: object) -> None:
-                if signum == signal.SIGHUP:
-                    ros2.core.request_reload()
-                else:
-                    ros2.core.stop(signal.Signals(signum).name)
-
-            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-                signal.signal(sig, on_signal)
+            ros2.core.handle_signals()
             status = ros2.run()
         finally:
             node.destroy_node()

@@ -15,12 +15,10 @@ run beside.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import socket
 import subprocess
-import threading
 import time
 import xmlrpc.client
 from collections.abc import Callable
@@ -28,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.ros import import_rospy
+from topoloc.ros.record import ProbeRecord, stop_on_signals
 
 
 def free_port() -> int:
@@ -138,28 +137,14 @@ def main(argv: list[str] | None = None) -> None:
     from std_msgs.msg import String
 
     rospy.init_node("topoloc_probe", argv=["probe", *ros_args], anonymous=True, disable_signals=True)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    lock = threading.Lock()
-    fh = args.out.open("w")
-
-    def write(record: dict[str, Any]) -> None:
-        with lock:
-            fh.write(json.dumps(record) + "\n")
-            fh.flush()
+    stop = stop_on_signals()
+    record = ProbeRecord(args.out)
 
     def on_answer(msg: Any, topic: str) -> None:
-        now = time.time()
-        answer = json.loads(msg.data)
-        stamp = answer["stamp"]["secs"] + 1e-9 * answer["stamp"]["nsecs"]
-        write({"kind": "answer", "topic": topic, "received": now,
-               "publish_to_answer_ms": round(1e3 * (now - stamp), 3), **answer})
+        record.answer(msg.data, topic, lambda stamp: stamp["secs"] + 1e-9 * stamp["nsecs"])
 
     def on_diagnostics(msg: Any) -> None:
-        for status in msg.status:
-            write({"kind": "diagnostics", "received": time.time(), "name": status.name, "level": int(status.level),
-                   "message": status.message, "values": {kv.key: kv.value for kv in status.values}})
+        record.diagnostics(msg.status)
 
     for topic in args.answers:
         rospy.Subscriber(topic, String, on_answer, callback_args=topic, queue_size=1000)
@@ -189,9 +174,9 @@ def main(argv: list[str] | None = None) -> None:
         stop.wait(args.linger)
     else:
         stop.wait()
-    write({"kind": "summary", "published": published})
+    record.write({"kind": "summary", "published": published})
     rospy.signal_shutdown("probe done")
-    fh.close()
+    record.close()
 
 
 if __name__ == "__main__":

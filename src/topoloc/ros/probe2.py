@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from topoloc.ros.record import ProbeRecord, stop_on_signals
 
 
 def _image(img: np.ndarray, encoding: str) -> Any:
@@ -207,34 +208,20 @@ def main(argv: list[str] | None = None) -> None:
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(f"topoloc_probe_{threading.get_native_id()}")
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    lock = threading.Lock()
-    fh = args.out.open("w")
-
-    def write(record: dict[str, Any]) -> None:
-        with lock:
-            fh.write(json.dumps(record) + "\n")
-            fh.flush()
+    stop = stop_on_signals()
+    record = ProbeRecord(args.out)
 
     def on_answer(msg: Any, topic: str) -> None:
-        now = time.time()
-        answer = json.loads(msg.data)
-        stamp = answer["stamp"]["sec"] + 1e-9 * answer["stamp"]["nanosec"]
-        write({"kind": "answer", "topic": topic, "received": now,
-               "publish_to_answer_ms": round(1e3 * (now - stamp), 3), **answer})
+        record.answer(msg.data, topic, lambda stamp: stamp["sec"] + 1e-9 * stamp["nanosec"])
 
     def on_position(msg: Any, topic: str) -> None:
-        write({"kind": "position", "topic": topic, "received": time.time(), "frame_id": msg.header.frame_id,
+        record.write({"kind": "position", "topic": topic, "received": time.time(), "frame_id": msg.header.frame_id,
                "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, "x": msg.point.x, "y": msg.point.y})
 
     def on_diagnostics(msg: Any) -> None:
-        for status in msg.status:
-            write({"kind": "diagnostics", "received": time.time(), "name": status.name,
-                   "level": int.from_bytes(status.level, "little") if isinstance(status.level, bytes)
-                   else int(status.level), "message": status.message,
-                   "values": {kv.key: kv.value for kv in status.values}})
+        # rclpy gives a diagnostics level (a byte) as bytes.
+        record.diagnostics(msg.status, lambda level: int.from_bytes(level, "little") if isinstance(level, bytes)
+                           else int(level))
 
     answers_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL if args.late else DurabilityPolicy.VOLATILE)
@@ -283,12 +270,12 @@ def main(argv: list[str] | None = None) -> None:
         stop.wait(args.linger)
     else:
         stop.wait()
-    write({"kind": "summary", "published": published, "seconds": round(seconds, 3)})
+    record.write({"kind": "summary", "published": published, "seconds": round(seconds, 3)})
     executor.shutdown(timeout_sec=5)
     spinner.join(timeout=5)
     node.destroy_node()
     rclpy.try_shutdown()
-    fh.close()
+    record.close()
 
 
 if __name__ == "__main__":
