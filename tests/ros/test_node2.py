@@ -73,7 +73,12 @@ class Ros2:
                            "-r", f"__ns:=/{ns}", *ros_args], ns)
 
     def probe(self, out: Path, *args: str) -> subprocess.Popen[str]:
-        return self.start(["-m", "topoloc.ros.probe2", "--out", str(out), *args], out.stem)
+        """A probe; one that records answers is returned once it hears the node (else it would miss answers)."""
+        proc = self.start(["-m", "topoloc.ros.probe2", "--out", str(out), *args], out.stem)
+        if "--answers" in args:
+            wait_for(f"{out.stem} to hear the node", lambda: bool(_records(out, "ready")) or proc.poll() is not None,
+                     timeout=90)
+        return proc
 
     def client(self, node: str, *args: str) -> list[dict[str, Any]]:
         out = self.root / f"client_{len(self.procs)}.jsonl"
@@ -201,8 +206,10 @@ def test_bad_messages_are_counted_never_answered_never_fatal(ros2: Ros2, route: 
 
     def done(kind: str) -> bool:
         last = _last_diag(out, f"topoloc_bad_{kind}")
+        # The answer too: it travels apart from the diagnostics that count it, and may arrive after them.
         return last is not None and int(last["values"]["frames_in"]) == expect[kind][0] + 1 and \
-            int(last["values"]["frames_out"]) == 1
+            int(last["values"]["frames_out"]) == 1 and \
+            any(a["topic"] == f"/topoloc_bad_{kind}/answer" for a in _records(out, "answer"))
 
     wait_for("the bad messages counted", lambda: all(done(k) for k in expect), timeout=90)
     for p in players:
@@ -230,8 +237,13 @@ def test_a_flood_leaves_no_backlog(ros2: Ros2, route: dict[str, Any]) -> None:
     player = ros2.probe(route["root"] / "flood_player.jsonl", "--publish", str(route["query"].root), "--topic",
                         "/cam/flood", "--encoding", "mono8", "--rate", "400", "--count", "400", "--linger", "0")
     assert player.wait(timeout=120) == 0
-    wait_for("the node to go quiet", lambda: (_last_diag(out, "topoloc_flood") or {"values": {}})["values"].get(
-        "frames_waiting") == "0", timeout=30)
+    def quiet() -> bool:
+        # Nothing waiting, and every answer the node counted received: a frame being matched when the diagnostics
+        # said "0 waiting" is answered after them, and stopping the node then could lose that answer on the way.
+        values = (_last_diag(out, "topoloc_flood") or {"values": {}})["values"]
+        return values.get("frames_waiting") == "0" and int(values.get("frames_out", -1)) == len(_records(out, "answer"))
+
+    wait_for("the node to go quiet", quiet, timeout=30)
     assert _stop(node) == 0
     _stop(recorder)
     line = next(x for x in ros2.err("topoloc_flood").splitlines() if "stopped (SIGTERM)" in x)

@@ -234,6 +234,16 @@ def main(argv: list[str] | None = None) -> None:
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
+    if args.answers:
+        # Answers published before this probe's subscription matches the node's publisher are never seen (only a
+        # late subscriber gets the latest): wait for the node on every answer topic, then say so ("ready").
+        deadline = time.monotonic() + 60.0
+        while not stop.is_set() and time.monotonic() < deadline and \
+                any(node.count_publishers(topic) < 1 for topic in args.answers):
+            time.sleep(0.05)
+        matched = all(node.count_publishers(topic) >= 1 for topic in args.answers)
+        time.sleep(0.5)  # discovery: the match is made a little after the graph shows the publisher
+        record.write({"kind": "ready", "matched": matched})
 
     published, stamps, seconds = 0, False, 0.0
     messages: list[tuple[str, Any]] = []
