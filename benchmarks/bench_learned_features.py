@@ -71,7 +71,18 @@ from typing import Any
 import numpy as np
 
 from benchmarks.bench_load import busy
-from benchmarks.common import DATA, GP, RESULTS, TOPOLOC, WEBCAM, WEBCAM_TOURS, machine_line, require_data, run
+from benchmarks.common import (
+    DATA,
+    GP,
+    RESULTS,
+    TOPOLOC,
+    WEBCAM,
+    WEBCAM_TOURS,
+    environ,
+    machine_line,
+    require_data,
+    run,
+)
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.evaluation.metrics import compute_metrics
 from topoloc.evaluation.timing import apply_sequence
@@ -339,16 +350,8 @@ def _variants() -> list[tuple[str, str, str | None]]:
 @contextlib.contextmanager
 def xfeat_runtime(runtime: str | None) -> Iterator[None]:
     """``$TOPOLOC_XFEAT_RUNTIME`` set to ``runtime`` for the block (this process and the commands it starts)."""
-    before = os.environ.get("TOPOLOC_XFEAT_RUNTIME")
-    if runtime:
-        os.environ["TOPOLOC_XFEAT_RUNTIME"] = runtime
-    try:
+    with environ(TOPOLOC_XFEAT_RUNTIME=runtime or None):
         yield
-    finally:
-        if before is None:
-            os.environ.pop("TOPOLOC_XFEAT_RUNTIME", None)
-        else:
-            os.environ["TOPOLOC_XFEAT_RUNTIME"] = before
 
 
 def compare_features(a: Any, b: Any) -> dict[str, Any]:

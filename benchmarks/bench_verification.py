@@ -42,7 +42,6 @@ Parts:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import itertools
 import json
 import os
@@ -50,7 +49,7 @@ import shutil
 import subprocess
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -60,7 +59,17 @@ import cv2
 import numpy as np
 
 from benchmarks.bench_load import busy, paced
-from benchmarks.common import DATA, GP, RESULTS, TOPOLOC, WEBCAM, WEBCAM_TOURS, machine_line, require_data
+from benchmarks.common import (
+    DATA,
+    GP,
+    RESULTS,
+    TOPOLOC,
+    WEBCAM,
+    WEBCAM_TOURS,
+    environ,
+    machine_line,
+    require_data,
+)
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.evaluation.metrics import compute_metrics
@@ -273,21 +282,6 @@ def _frames(folder: Path, every: int = 1) -> list[np.ndarray]:
     return [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in files]
 
 
-@contextlib.contextmanager
-def _environ(**values: str) -> Iterator[None]:
-    """``os.environ`` with ``values`` set, restored after."""
-    before = {k: os.environ.get(k) for k in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def foreign_sets(exclude: str) -> dict[str, Traverse]:
     """Frames of no place of a gardens_point (``exclude="gp"``) or webcam (``"webcam"``) map."""
     sets = {"corridor": _frames(DATA / "corridor" / "query"), "rtabmap_loop": _frames(DATA / "rtabmap_loop"),
@@ -353,7 +347,7 @@ def offmap(tmp: Path, pooled: dict[str, list[dict[str, np.ndarray]]]) -> dict[st
     # A calibrated map, then localize as it runs by default (the calibrated sequence and verification): the
     # benchmarks' TOPOLOC_VERIFY=0 (benchmarks.common) lifted, or the map would be calibrated and run unverified.
     acc: dict[str, Any] = {}
-    with _environ(TOPOLOC_VERIFY="auto"):
+    with environ(TOPOLOC_VERIFY="auto"):
         m = Map.build(method="coocmap", tours=[GP / "day_left"], features=FeatureSpec(method=FEATURES))
         cal = m.calibrate_on(GP / "day_right")
         for set_name, t in foreign_sets("gp").items():

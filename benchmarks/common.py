@@ -6,11 +6,13 @@ The prose under a results table (:func:`prose`) is written from the runs' metric
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -343,3 +345,20 @@ def keep_sections(path: Path, text: str) -> str:
             text = text.rstrip("\n") + "\n\n" + old[start:stop]
         old = old[stop:]
     return text
+
+
+@contextlib.contextmanager
+def environ(**values: str | None) -> Iterator[None]:
+    """``os.environ`` with ``values`` set for the block (a value None leaves that one as it is), restored after:
+    this process and the commands it starts see them."""
+    given = {k: v for k, v in values.items() if v is not None}
+    before = {k: os.environ.get(k) for k in given}
+    os.environ.update(given)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v

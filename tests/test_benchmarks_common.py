@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -121,3 +122,15 @@ def test_generated_sections_are_replaced_in_place_and_survive_a_rewrite_of_the_p
     assert "the page's own table" not in rewritten and "a new table" in rewritten
     assert rewritten.count("fps 2") == 1 and rewritten.count("auc 1") == 1
     assert common.keep_sections(page, text) == text
+
+
+def test_environ_sets_for_the_block_and_restores(common: ModuleType, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TOPOLOC_VERIFY", "0")
+    monkeypatch.delenv("TOPOLOC_XFEAT_RUNTIME", raising=False)
+    with common.environ(TOPOLOC_VERIFY="auto", TOPOLOC_XFEAT_RUNTIME="torch"):
+        assert os.environ["TOPOLOC_VERIFY"] == "auto" and os.environ["TOPOLOC_XFEAT_RUNTIME"] == "torch"
+    assert os.environ["TOPOLOC_VERIFY"] == "0" and "TOPOLOC_XFEAT_RUNTIME" not in os.environ
+    with pytest.raises(RuntimeError), common.environ(TOPOLOC_VERIFY="1", TOPOLOC_XFEAT_RUNTIME=None):
+        assert "TOPOLOC_XFEAT_RUNTIME" not in os.environ  # None leaves it as it is
+        raise RuntimeError
+    assert os.environ["TOPOLOC_VERIFY"] == "0"
