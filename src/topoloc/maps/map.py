@@ -709,10 +709,13 @@ class Map:
         Returns
         -------
         dict
-            ``place`` (best place id), ``score``, ``accepted`` (score above the
-            calibrated threshold; always True before calibration), ``top``
-            (``[[place, score], ...]``, best first) and ``x``, ``y`` when the
-            map has positions.
+            ``place`` (best place id), ``score`` (the method's own), ``accepted``
+            (:func:`topoloc.maps.calibration.accepts`: before calibration, whether
+            the answer is verified; after it, verified and at least the calibrated
+            confidence, or the score for a map calibrated without verification),
+            ``verified``, ``inliers`` and ``confidence`` where answers are
+            verified, ``top`` (``[[place, score], ...]``, best first) and ``x``,
+            ``y`` when the map has positions.
         """
         return self.localizer(top_k=top_k, sequence=0).step(image)
 
