@@ -16,9 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import numpy as np
 import pytest
-from tests.ros.probes import assert_answers_equal_localize
+from tests.ros.probes import BagFrames, assert_answers_equal_localize
 from tests.ros.probes import ok as _ok
 from tests.ros.probes import records as _records
 from tests.ros.probes import stop as _stop
@@ -97,31 +96,10 @@ def route(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: py
     map_file = tiny_route_map
     files = sorted(tiny_route["query"].root.glob("*.jpg"))
     ts = get_typestore(Stores.ROS1_NOETIC)
-    t = ts.types
-
-    def header(sec: float) -> Any:
-        stamp = t["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=round((sec % 1) * 1e9))
-        return t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="camera")
-
-    def raw(sec: float, img: np.ndarray, encoding: str) -> bytes:
-        data = np.ascontiguousarray(img).reshape(-1)
-        msg = t["sensor_msgs/msg/Image"](header=header(sec), height=img.shape[0], width=img.shape[1],
-                                         encoding=encoding, is_bigendian=0, step=data.size // img.shape[0], data=data)
-        return bytes(ts.serialize_ros1(msg, "sensor_msgs/msg/Image"))
-
+    frames = BagFrames(ts, ts.serialize_ros1, seq=0)
     bag = root / "dusk.bag"
     with Writer(bag) as w:
-        conns = {k: w.add_connection(topic, "sensor_msgs/msg/CompressedImage" if k == "compressed"
-                                     else "sensor_msgs/msg/Image", typestore=ts) for k, topic in TOPICS.items()}
-        for k, f in enumerate(files):
-            sec = T0 + 0.25 * k
-            bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
-            w.write(conns["bgr8"], round(sec * 1e9), raw(sec, bgr, "bgr8"))
-            w.write(conns["mono8"], round(sec * 1e9), raw(sec, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), "mono8"))
-            msg = t["sensor_msgs/msg/CompressedImage"](header=header(sec), format="jpeg",
-                                                      data=np.frombuffer(f.read_bytes(), np.uint8).copy())
-            w.write(conns["compressed"], round(sec * 1e9),
-                    bytes(ts.serialize_ros1(msg, "sensor_msgs/msg/CompressedImage")))
+        frames.write_tour(w, TOPICS, files, T0)
     # A camera far faster than the node matches: the frames of the mono8 topic, 400 of them at 200 Hz (played
     # faster still).
     fast = root / "fast.bag"
@@ -130,7 +108,7 @@ def route(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: py
         greys = [cv2.cvtColor(cv2.imread(str(f), cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY) for f in files]
         for k in range(400):
             sec = T0 + 0.005 * k
-            w.write(conn, round(sec * 1e9), raw(sec, greys[k % len(greys)], "mono8"))
+            w.write(conn, round(sec * 1e9), frames.raw(sec, greys[k % len(greys)], "mono8"))
     return {"root": root, "map": map_file, "bag": bag, "fast": fast, "n": len(files), "query": tiny_route["query"]}
 
 

@@ -17,10 +17,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
 import pytest
-from tests.ros.probes import assert_answers_equal_localize
+from tests.ros.probes import BagFrames, assert_answers_equal_localize
 from tests.ros.probes import ok as _ok
 from tests.ros.probes import records as _records
 from tests.ros.probes import stop as _stop
@@ -122,31 +120,10 @@ def route(tiny_route: dict[str, Any], tiny_route_map: Path, tmp_path_factory: py
     root = tmp_path_factory.mktemp("ros2_route")
     files = sorted(tiny_route["query"].root.glob("*.jpg"))
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    t = ts.types
-
-    def header(sec: float) -> Any:
-        stamp = t["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=round((sec % 1) * 1e9))
-        return t["std_msgs/msg/Header"](stamp=stamp, frame_id="camera")
-
-    def raw(sec: float, img: np.ndarray, encoding: str) -> bytes:
-        data = np.ascontiguousarray(img).reshape(-1)
-        msg = t["sensor_msgs/msg/Image"](header=header(sec), height=img.shape[0], width=img.shape[1],
-                                         encoding=encoding, is_bigendian=0, step=data.size // img.shape[0], data=data)
-        return bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/Image"))
-
+    frames = BagFrames(ts, ts.serialize_cdr)
     bag = root / "dusk"
     with Writer(bag, version=9) as w:
-        conns = {k: w.add_connection(topic, "sensor_msgs/msg/CompressedImage" if k == "compressed"
-                                     else "sensor_msgs/msg/Image", typestore=ts) for k, topic in TOPICS.items()}
-        for k, f in enumerate(files):
-            sec = T0 + 0.25 * k
-            bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
-            w.write(conns["bgr8"], round(sec * 1e9), raw(sec, bgr, "bgr8"))
-            w.write(conns["mono8"], round(sec * 1e9), raw(sec, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), "mono8"))
-            msg = t["sensor_msgs/msg/CompressedImage"](header=header(sec), format="jpeg",
-                                                      data=np.frombuffer(f.read_bytes(), np.uint8).copy())
-            w.write(conns["compressed"], round(sec * 1e9),
-                    bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage")))
+        frames.write_tour(w, TOPICS, files, T0)
     return {"root": root, "map": tiny_route_map, "bag": bag, "n": len(files), "query": tiny_route["query"]}
 
 
