@@ -886,40 +886,6 @@ def campaign3_cases(work: Path, route: Path, env: dict[str, str], case: Callable
 
 
 # -- the cases of issue #49: outputs, live streams, classes of campaign 3, conventions ------------------------
-class _Mjpeg:
-    """An HTTP MJPEG stream (multipart/x-mixed-replace) of ``parts`` at ``fps`` on 127.0.0.1, served once."""
-
-    def __init__(self, parts: list[bytes], fps: float) -> None:
-        import http.server
-        import socketserver
-        import threading
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def do_GET(self) -> None:
-                self.send_response(200)
-                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
-                self.end_headers()
-                try:
-                    for data in parts:
-                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
-                                         % len(data) + data + b"\r\n")
-                        time.sleep(1.0 / fps)
-                except (BrokenPipeError, ConnectionResetError):
-                    return
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        self.server = socketserver.ThreadingTCPServer(("127.0.0.1", 0), Handler)
-        self.server.daemon_threads = True
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/stream.mjpg"
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-
-
 def _other_byte_order(src: Path, dst: Path) -> Path:
     """A topoloc container written again with its arrays in the other byte order (a big-endian machine's file)."""
     import struct
@@ -1062,8 +1028,10 @@ def campaign4_cases(work: Path, route: Path, env: dict[str, str], case: Callable
 
     def stream_with(kind: str) -> Callable[[], str]:
         def check() -> str:
+            from topoloc.synth.stream import MjpegServer
+
             parts = [*jpegs[:3], bad_parts[kind], *jpegs[3:]]
-            server = _Mjpeg(parts, fps=4.0)
+            server = MjpegServer(parts, fps=4.0)
             out = work / f"c4_live_{kind.replace(' ', '_')}.jsonl"
             try:
                 rc, stdout, err, _ = _run(["localize", str(tlm), server.url, "--out", str(out), "--quiet",

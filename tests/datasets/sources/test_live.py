@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import http.server
 import json
 import os
 import signal
 import socket
-import socketserver
 import subprocess
 import sys
 import threading
@@ -22,47 +20,9 @@ import pytest
 
 from topoloc.datasets.sources.live import LiveSource, Newest, is_live_source
 from topoloc.errors import TopolocError
+from topoloc.synth.stream import MjpegServer
 
 SRC = Path(__file__).resolve().parents[3] / "src"
-
-
-class MjpegServer:
-    """An HTTP MJPEG stream (multipart/x-mixed-replace) of ``frames`` at ``fps``, looped ``loops`` times."""
-
-    def __init__(self, jpegs: list[bytes], *, fps: float = 20.0, loops: int = 1) -> None:
-        served = self
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def do_GET(self) -> None:
-                self.send_response(200)
-                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
-                self.end_headers()
-                try:
-                    for _ in range(served.loops):
-                        for data in jpegs:
-                            if served.closed.is_set():
-                                return
-                            self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
-                                             % len(data) + data + b"\r\n")
-                            time.sleep(1.0 / served.fps)
-                except (BrokenPipeError, ConnectionResetError):  # the client stopped reading
-                    return
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        self.fps, self.loops = fps, loops
-        self.closed = threading.Event()
-        self.server = socketserver.ThreadingTCPServer(("127.0.0.1", 0), Handler)
-        self.server.daemon_threads = True
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-        self.thread.start()
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/stream.mjpg"
-
-    def close(self) -> None:
-        self.closed.set()
-        self.server.shutdown()
-        self.server.server_close()
 
 
 def jpegs_of(n: int = 8) -> list[bytes]:
