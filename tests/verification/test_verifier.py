@@ -72,6 +72,21 @@ def test_the_answer_climbs_to_the_peak_of_the_support() -> None:
     assert b1.verified.tolist() == [False] and b1.answer.tolist() == [6]  # still rising after one step
 
 
+def test_an_answer_below_the_floor_climbs_from_half_of_it() -> None:
+    """The method's place has less than the floor, its neighbour more: the answer moves there and is verified."""
+    below = MIN_SUPPORT - 5
+    assert VerificationRule().climb_from <= below < MIN_SUPPORT
+    support = [8, 8, 8, below, 60, 8, 8]
+    q, places = route(support, seed=8)
+    b = verifier(places).verify(column(7, 3), [q])
+    assert b.answer.tolist() == [4] and b.verified.tolist() == [True] and b.support[0] >= 50
+    # Below half the floor an answer stays where the method put it, unverified.
+    support = [8, 8, 8, VerificationRule().climb_from - 3, 60, 8, 8]
+    q, places = route(support, seed=8)
+    b = verifier(places).verify(column(7, 3), [q])
+    assert b.answer.tolist() == [3] and b.verified.tolist() == [False]
+
+
 def test_a_neighbour_the_query_may_not_be_leaves_it_unverified() -> None:
     support = [8, 8, 60, 35, 8, 8]
     q, places = route(support, seed=1)

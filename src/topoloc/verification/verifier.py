@@ -358,7 +358,7 @@ class Verifier:
             row = int(rows[j, w])
             if row >= 0:
                 n = int(sup[j, w])
-                ok = (self.rule.climb > 0 and n >= self.rule.min_support and n > self.confusion(row))
+                ok = (self.rule.climb > 0 and n >= self.rule.climb_from and n > self.confusion(row))
                 end, is_peak = self._climb(S, j, row, n, seen, xy_q, dq) if ok else (row, True)
                 # The answer is that candidate (moved to the peak of its support where it climbed), verified or
                 # not: checking the candidates reranks them; only a verified one is raised above every unverified.
