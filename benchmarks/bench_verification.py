@@ -25,7 +25,7 @@ Parts:
   gardens_point map and a webcam map, and half-frame glitches (half a mapped frame torn, grey or noise):
   answers verified, and answers a calibrated map accepts (``map calibrate`` with its defaults, then
   ``localize`` as it runs by default).
-- ``floor``: the support floor (``--min-support``; the default 20 was chosen here) swept, Cooc-Map:
+- ``floor``: the support floor (``--min-support``; the default 25 was chosen here) swept, Cooc-Map:
   verified-right, wrong and hard negatives verified per set, off-map frames verified.
 - ``confidence``: the confidence model fitted on every set's answers pooled, the frames of no mapped
   place among them (all wrong; the defaults in ``topoloc.verification.decision``), its reliability

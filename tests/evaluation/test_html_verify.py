@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ def test_the_page_carries_each_querys_check_and_matches(verified_run: Path) -> N
     items = _payload(render_html([verified_run]))["runs"][0]["items"]
     assert [it["check"]["verified"] for it in items] == z["verified"].tolist()
     assert [it["check"]["inliers"] for it in items] == z["inliers"].tolist()
+    assert _payload(render_html([verified_run]))["runs"][0]["verified"] == z["verified"].tolist()
     # Every answer's supporting matches are drawn, an unverified one's too (they show why it fell short).
     stored = np.diff(z["match_offsets"]) > 0
     assert ["match" in it["check"] for it in items] == stored.tolist()
@@ -41,8 +43,6 @@ def test_the_page_carries_each_querys_check_and_matches(verified_run: Path) -> N
 
 def test_a_run_without_verification_shows_none_and_a_bad_file_is_one_error(verified_run: Path,
                                                                              tmp_path: Path) -> None:
-    import shutil
-
     from topoloc.errors import TopolocError
 
     plain = tmp_path / "plain"
@@ -56,7 +56,14 @@ def test_a_run_without_verification_shows_none_and_a_bad_file_is_one_error(verif
 
 @pytest.mark.skipif(_find_browser() is None, reason="no chromium installed (apt-get install chromium)")
 def test_matches_are_drawn_on_demand_in_headless_chromium(verified_run: Path, tmp_path: Path) -> None:
-    page = build_html_report([verified_run], tmp_path / "index.html", title="verified")
+    # Beside the run, a copy with every other answer unverified (their confidence kept).
+    half = tmp_path / "half"
+    shutil.copytree(verified_run, half)
+    z = dict(np.load(half / "verification.npz"))
+    half_verified = z["verified"] & (np.arange(len(z["verified"])) % 2 == 0)
+    np.savez(half / "verification.npz", **{**z, "verified": half_verified})
+    assert 0 < int(half_verified.sum()) < len(half_verified)
+    page = build_html_report([verified_run, half], tmp_path / "index.html", title="verified")
     browser = _find_browser()
     assert browser is not None
     cdp = _Pipe(browser, tmp_path / "profile")
@@ -80,5 +87,9 @@ def test_matches_are_drawn_on_demand_in_headless_chromium(verified_run: Path, tm
         assert js("document.querySelectorAll('#cards0 svg.matches image').length") == 2
         js("document.querySelector('#cards0 .check button').click()")  # and hidden again
         assert js("document.querySelectorAll('#cards0 svg.matches').length") == 0
+        # The slider accepts as localize does: at its lowest threshold every verified answer and no other.
+        js("(() => { const s = document.querySelector('#run1 input.thr'); s.value = 0;"
+           " s.dispatchEvent(new Event('input')); })()")
+        assert js("Number(document.querySelector('#run1 .v-acc').textContent)") == int(half_verified.sum())
     finally:
         cdp.close()

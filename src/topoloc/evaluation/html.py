@@ -382,6 +382,8 @@ def _run_data(run_dir: Path, m: dict[str, Any], thumbs: _Thumbs, label: str) -> 
         "matrix": _matrix_pngs(S),
         "decimals": 3 if by_confidence else score_decimals(score),
         "score_name": "confidence" if by_confidence else "score",
+        # A verified run's answers are accepted only where verified, as localize accepts them (the slider's rule).
+        "verified": [bool(c["verified"]) for c in checks] if by_confidence and checks is not None else None,
         # The threshold the page opens at: the map's calibrated one where the run scored a calibrated map as it
         # was calibrated (the same sequence matching and verification, a threshold on the same quantity: the
         # confidence for a verified run, the score otherwise), else why not (issue #49).

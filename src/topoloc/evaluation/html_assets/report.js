@@ -27,16 +27,19 @@
   function score(run, x) { return fmt(x, run.decimals); }
 
   // ---- per-run statistics at a threshold (the metrics of docs/protocol.md) ----
+  // A verified run accepts as localize accepts on a calibrated map (maps.calibration.accepts): a verified answer
+  // whose confidence reaches the threshold; an unverified one at no threshold.
+  function accepted(run, j, thr) { return run.score[j] >= thr && (!run.verified || run.verified[j]); }
   function stats(run, thr) {
     let tp = 0, fp = 0, rej = 0;
     for (let j = 0; j < run.score.length; j++) {
-      if (run.score[j] >= thr) { if (run.right[j]) tp++; else fp++; } else rej++;
+      if (accepted(run, j, thr)) { if (run.right[j]) tp++; else fp++; } else rej++;
     }
     return {tp: tp, fp: fp, rejected: rej, accepted: tp + fp,
             precision: tp + fp > 0 ? tp / (tp + fp) : 1, recall: tp / Math.max(run.n_pos, 1)};
   }
   function status(run, j, thr) {
-    if (run.score[j] < thr) return "rejected";
+    if (!accepted(run, j, thr)) return "rejected";
     return run.right[j] ? "correct" : "wrong";
   }
 
