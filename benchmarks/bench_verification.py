@@ -79,7 +79,7 @@ from topoloc.methods.base import PlaceRecognizer
 from topoloc.resources import Resources
 from topoloc.spec import FeatureSpec, GroundTruthSpec, VerificationSpec, VocabularySpec
 from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import ConfidenceModel, VerifiedBlock, Verifier, decision
+from topoloc.verification import DEFAULT_CANDIDATES, ConfidenceModel, VerifiedBlock, Verifier, decision
 
 FEATURES = "xfeat"
 SEQUENCE = 10
@@ -546,8 +546,10 @@ def render(res: dict[str, Any]) -> str:
         "reaches the floor, exceeds what look-alike places of the same map reach there (learned at build), "
         "and no route neighbour has more (`docs/protocol.md`, \"Verification\"). Every setting is a default "
         "and the features are XFeat; the data are the development split (`../shared/data`), on which every "
-        "default was chosen: the floor of 20 (part `floor`), the distinctive-match ratio 0.9, three "
-        "candidates, and the confidence model (part `confidence`). *Right* means within the tolerance.",
+        f"default was chosen: the floor of {decision.MIN_SUPPORT} (part `floor`), the distinctive-match "
+        f"ratio {decision.RATIO}, {DEFAULT_CANDIDATES} candidates, the climb from half the floor (on part "
+        "`quality`'s verified-right, against this page as of commit 857fafc3, which climbed from the "
+        "floor), and the confidence model (part `confidence`). *Right* means within the tolerance.",
         "",
     ]
     q = res.get("quality")
