@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.bench_verification import GP, fit_run, foreign_sets, runs_of
-from benchmarks.common import RESULTS, machine_line, require_data
+from benchmarks.common import RESULTS, machine_line, require_data, write_results
 from topoloc.verification.pairs import check_pair, fundamental_mask, inlier_threshold, prepare_descriptors
 
 OUT_MD = RESULTS / "matcher_probe.md"
@@ -280,9 +280,7 @@ def main(argv: list[str] | None = None) -> None:
     if "timing" in parts:
         res["timing"] = timing(tmp)
     shutil.rmtree(tmp, ignore_errors=True)
-    OUT_JSON.write_text(json.dumps(res, indent=1) + "\n")
-    OUT_MD.write_text(render(res) + "\n")
-    print(f"wrote {OUT_MD}, {OUT_JSON}")
+    write_results(OUT_MD, OUT_JSON, res, render(res))
 
 
 if __name__ == "__main__":

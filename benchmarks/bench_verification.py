@@ -69,6 +69,7 @@ from benchmarks.common import (
     environ,
     machine_line,
     require_data,
+    write_results,
 )
 from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
@@ -719,9 +720,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         res["seconds"] = round(time.perf_counter() - t0, 1)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    OUT_JSON.write_text(json.dumps(res, indent=1) + "\n")
-    OUT_MD.write_text(render(res) + "\n")
-    print(f"wrote {OUT_MD}, {OUT_JSON}")
+    write_results(OUT_MD, OUT_JSON, res, render(res))
 
 
 if __name__ == "__main__":

@@ -58,6 +58,13 @@ def machine_line() -> str:
     return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
+def write_results(md: Path, js: Path, res: dict[str, Any], text: str) -> None:
+    """A benchmark's page ``md`` (its rendered ``text``) and the measurements behind it, ``js``."""
+    js.write_text(json.dumps(res, indent=1) + "\n")
+    md.write_text(text + "\n")
+    print(f"wrote {md}, {js}")
+
+
 def _markers(name: str) -> tuple[str, str]:
     return f"<!-- begin {name}: generated -->\n", f"<!-- end {name} -->\n"
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -134,3 +135,12 @@ def test_environ_sets_for_the_block_and_restores(common: ModuleType, monkeypatch
         assert "TOPOLOC_XFEAT_RUNTIME" not in os.environ  # None leaves it as it is
         raise RuntimeError
     assert os.environ["TOPOLOC_VERIFY"] == "0"
+
+
+def test_write_results_writes_the_page_and_its_measurements(common: ModuleType, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    res = {"rows": {"a": [1, 2.5]}, "date": "today"}
+    common.write_results(tmp_path / "page.md", tmp_path / "page.json", res, "# page\n\nbody")
+    assert json.loads((tmp_path / "page.json").read_text()) == res
+    assert (tmp_path / "page.md").read_text() == "# page\n\nbody\n"
+    assert "page.md" in capsys.readouterr().out
