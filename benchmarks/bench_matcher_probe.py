@@ -1,6 +1,6 @@
 """Regenerate docs/results/matcher_probe.md (+ .json): would a learned matcher verify what support cannot?
 
-    .venv/bin/python -m benchmarks.bench_matcher_probe [--parts pairs,timing]
+    .venv/bin/python -m benchmarks.bench_matcher_probe [--parts pairs,peak,timing]
 
 A feasibility probe for issue 46's next lever, not a part of topoloc: where verification leaves right
 answers unverified (night, the crowded map), their support (distinctive MAGSAC++ inliers of mutual nearest
@@ -14,6 +14,11 @@ image of the place, and a fundamental matrix is fitted to its matches exactly as
 Frames of no mapped place (``bench_verification.foreign_sets``) are matched against their answer on a
 gardens_point map.  The thresholds below are on these inlier counts alone: no peak along the route and no
 map confusion in LighterGlue's units, which a rule built on it would need.
+
+Part ``peak``: the second opinion LighterGlue could give where verification falls short by less than half
+(unverified answers whose support reaches half the floor), with a peak test in its own units: an answer
+whose route neighbour that the query may not be has more LighterGlue inliers stays unverified.  Run on the
+answers and on the hard negatives.
 
 Part ``timing`` (run it on a quiet machine): on the same real pairs (night queries and their right place's
 image, 1000 keypoints each), the milliseconds per pair of LighterGlue in PyTorch as shipped (adaptive width
@@ -48,6 +53,7 @@ OUT_MD = RESULTS / "matcher_probe.md"
 OUT_JSON = RESULTS / "matcher_probe.json"
 ROWS = ("gp_night", "crowded")
 THRESHOLDS = (30, 40, 50, 60, 80, 100)
+PARTS = ("pairs", "peak", "timing")
 
 
 def _matcher(**conf: Any) -> Any:
@@ -190,6 +196,33 @@ def probe_row(lg: Any, row: str, tmp: Path) -> dict[str, Any]:
             "ms": [a[2] for a in ans] + [n[2] for n in neg]}
 
 
+def probe_peak(lg: Any, row: str, tmp: Path, at_least: int = 50) -> dict[str, Any]:
+    """The second opinion with a peak test in LighterGlue's units, on answers and on hard negatives.
+
+    For each unverified answer whose support reaches half the floor and whose LighterGlue inliers reach
+    ``at_least``: whether a route neighbour the query may not be (a score of ``-inf``) has more LighterGlue
+    inliers, which leaves it unverified as the decision's own peak test does.
+    """
+    run = runs_of(row, "coocmap", tmp)[0]
+    v, S, qf = run.verifier, run.S, run.features
+    grey_from = v.rule.climb_from
+    out: dict[str, Any] = {"at_least": at_least}
+    for name, SS in (("answers", S), ("hard", np.where(run.gt.soft, -np.inf, S))):
+        b = v.verify(SS, qf)
+        rows = []
+        for j in np.flatnonzero(~b.verified & (b.support >= grey_from)):
+            a = int(b.answer[j])
+            n_a = _inliers(lg, qf[j], list(v.place_images(a)))[0]
+            if n_a < at_least:
+                continue
+            beaten = [nb for nb in (a - 1, a + 1) if 0 <= nb < S.shape[0] and not SS[nb, j] > -np.inf
+                      and _inliers(lg, qf[j], list(v.place_images(nb)))[0] > n_a]
+            rows.append({"query": int(j), "support": int(b.support[j]), "lg_inliers": n_a,
+                         "right": bool(run.gt.soft[a, j]) and name == "answers", "peak": not beaten})
+        out[name] = rows
+    return out
+
+
 def probe_offmap(lg: Any) -> dict[str, Any]:
     run = fit_run("coocmap", [GP / "day_left"], GP / "night_right", "0:8")
     out: dict[str, Any] = {}
@@ -268,6 +301,19 @@ def render(res: dict[str, Any]) -> str:
             lines.append(f"| {t} | {np.mean((ver | extra) & right):.2f} | {int(np.sum(extra & ~right))} | "
                          f"{int(np.sum((hs >= grey_from) & (hard >= t)))} |")
         lines.append("")
+    for row, pk in res.get("peak", {}).items():
+        t = pk["at_least"]
+        lines += [f"## {row}: the second opinion with a peak test (part `peak`, LG inliers >= {t})", "",
+                  "| answers | in the band with LG inliers >= threshold | peaks | right peaks | wrong peaks |",
+                  "| --- | --- | --- | --- | --- |"]
+        for name in ("answers", "hard"):
+            rs = pk[name]
+            lines.append(f"| {'the answers' if name == 'answers' else 'hard negatives'} | {len(rs)} | "
+                         f"{sum(x['peak'] for x in rs)} | {sum(x['peak'] and x['right'] for x in rs)} | "
+                         f"{sum(x['peak'] and not x['right'] for x in rs)} |")
+        lines += ["", "Hard negatives left as peaks (query, support, LG inliers): " + (", ".join(
+            f"({x['query']}, {x['support']}, {x['lg_inliers']})" for x in pk["hard"] if x["peak"]) or "none") + ".",
+            ""]
     lines += ["## Frames of no mapped place against a gardens_point map", "",
               "| set | frames | support, highest | LG inliers, highest |", "| --- | --- | --- | --- |"]
     for name, c in res["offmap"].items():
@@ -278,10 +324,10 @@ def render(res: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--parts", default="pairs,timing")
+    ap.add_argument("--parts", default=",".join(PARTS))
     parts = [p for p in ap.parse_args(argv).parts.split(",") if p]  # --parts "": the page again from the JSON
-    if set(parts) - {"pairs", "timing"}:
-        raise SystemExit(f"unknown part: {', '.join(sorted(set(parts) - {'pairs', 'timing'}))}")
+    if set(parts) - set(PARTS):
+        raise SystemExit(f"unknown part: {', '.join(sorted(set(parts) - set(PARTS)))}")
     require_data()
     os.environ["TOPOLOC_FEATURES"] = "xfeat"
     tmp = Path(tempfile.mkdtemp(prefix="bench_matcher_probe_"))
@@ -294,6 +340,9 @@ def main(argv: list[str] | None = None) -> None:
         lg = _matcher()
         res["rows"] = {row: probe_row(lg, row, tmp) for row in ROWS}
         res["offmap"] = probe_offmap(lg)
+    if "peak" in parts:
+        lg = _matcher()
+        res["peak"] = {row: probe_peak(lg, row, tmp) for row in ROWS}
     if "timing" in parts:
         res["timing"] = timing(tmp)
     shutil.rmtree(tmp, ignore_errors=True)
