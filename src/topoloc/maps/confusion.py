@@ -37,8 +37,12 @@ from topoloc.verification import Verifier, candidate_rows
 
 log = logging.getLogger(__name__)
 
-#: Map images checked at most: with 3 candidates each, about 900 pair checks (a few seconds).
-SAMPLE: Final = 300
+#: Map images checked at most: every image of a map of up to this many, an even spread of a larger one (3 pair
+#: checks of about 5 ms each per image: 45 s at most).  With 300, a map of 931 places (the crowded map) learned
+#: no confusion at a quarter of its places, never a source and never a look-alike of one; with every image, at
+#: all of them, at the cost of two of its 100 verified right answers and none elsewhere
+#: (``docs/results/verification.md``, set ``crowded``, against this page as of commit 22671b2c).
+SAMPLE: Final = 3000
 #: Places within this many ids of an image's own place are its place (the default calibration tolerance).
 BAND: Final = 8
 #: The method's best distinct peaks outside the band checked per image.
