@@ -174,3 +174,26 @@ def test_the_confusion_raises_the_bar_at_look_alike_places(tiny_route: dict[str,
     S = m.similarity(tiny_route["query"], resources=res)
     assert not v.verify(S, res.features(tiny_route["query"])).verified.any()
     assert len(frames) == S.shape[1]
+
+
+def test_a_large_maps_confusion_is_scored_in_blocks_with_the_same_values(tiny_route: dict[str, Any], tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """``S`` of the sampled images is bounded by BLOCK_CELLS (a 100,000-place map), the confusion unchanged."""
+    from topoloc.maps import confusion
+
+    m = _saved(tiny_route, tmp_path)
+    res = m.resources(cache_dir=tmp_path / "cache")
+    whole = confusion.learn_confusion(m.recognizer, [tiny_route["map"]], res, m.verifier(resources=res), band=0)
+    widths: list[int] = []
+    similarity = type(m.recognizer).similarity
+
+    def counted(self: Any, query: Any, **kw: Any) -> np.ndarray:
+        widths.append(len(query))
+        return similarity(self, query, **kw)
+
+    monkeypatch.setattr(type(m.recognizer), "similarity", counted)
+    monkeypatch.setattr(confusion, "BLOCK_CELLS", 2 * len(m.place_ids))  # two images per block
+    blocks = confusion.learn_confusion(m.recognizer, [tiny_route["map"]], res, m.verifier(resources=res), band=0)
+    assert max(widths) == 2 and sum(widths) == whole.images == blocks.images
+    np.testing.assert_array_equal(blocks.values, whole.values)
+    assert (whole.values > 0).any()

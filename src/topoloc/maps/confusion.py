@@ -23,7 +23,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -47,6 +47,9 @@ SAMPLE: Final = 3000
 BAND: Final = 8
 #: The method's best distinct peaks outside the band checked per image.
 CANDIDATES: Final = 3
+#: Cells of ``S`` scored at once (256 MB of float64): a map of 100,000 places scores its sampled images in
+#: blocks of 320 rather than all 3,000 at once (2.4 GB); every map of the development data in one block.
+BLOCK_CELLS: Final = 32_000_000
 
 
 @dataclass(frozen=True)
@@ -118,30 +121,37 @@ def learn_confusion(recognizer: PlaceRecognizer, tours: Sequence[Traverse], reso
     picks = sample_images([len(t) for t in tours], sample)
     n_images = int(sum(len(p) for p in picks))
     advance = progress("map confusion", n_images) if progress is not None and n_images else None
-    for tour, idx in zip(tours, picks, strict=True):
-        if not len(idx):
-            continue
-        sub = tour.take(idx)
-        S = np.array(recognizer.similarity(sub, resources=resources), dtype=np.float64)
-        feats = resources.features(sub, timed=False)
-        same = np.abs(place_ids[:, None] - np.asarray(sub.places)[None, :]) <= band
-        S[same] = -np.inf
-        rows, _, _ = candidate_rows(S, candidates)
-        own = np.searchsorted(place_ids, sub.places)
-        for j, f in enumerate(feats):
-            for r in rows[j]:
-                if r < 0:
-                    continue
-                n = verifier.check(f, int(r))[0].support
-                values[r] = max(values[r], n)
-                if own[j] < len(values) and place_ids[own[j]] == sub.places[j]:
-                    values[own[j]] = max(values[own[j]], n)
-            if advance is not None:
-                advance(1)
+    block = max(1, BLOCK_CELLS // max(len(place_ids), 1))
+    for tour, tour_idx in zip(tours, picks, strict=True):
+        for start in range(0, len(tour_idx), block):
+            _check_block(recognizer, tour.take(tour_idx[start:start + block]), resources, verifier, place_ids,
+                         values, band, candidates, advance)
     c = Confusion(values, n_images, band, candidates, time.perf_counter() - t0)
     log.info("map confusion: %d images checked in %.1f s, %d places confusable", n_images, c.seconds,
              int((values > 0).sum()))
     return c
 
 
-__all__ = ["BAND", "CANDIDATES", "SAMPLE", "Confusion", "learn_confusion", "sample_images"]
+def _check_block(recognizer: PlaceRecognizer, sub: Traverse, resources: Resources, verifier: Verifier,
+                 place_ids: np.ndarray, values: np.ndarray, band: int, candidates: int,
+                 advance: Callable[[int], object] | None) -> None:
+    """Raise ``values`` (in place) by the checks of the map images of ``sub`` against their hard negatives."""
+    S = np.array(recognizer.similarity(sub, resources=resources), dtype=np.float64)
+    feats = resources.features(sub, timed=False)
+    same = np.abs(place_ids[:, None] - np.asarray(sub.places)[None, :]) <= band
+    S[same] = -np.inf
+    rows, _, _ = candidate_rows(S, candidates)
+    own = np.searchsorted(place_ids, sub.places)
+    for j, f in enumerate(feats):
+        for r in rows[j]:
+            if r < 0:
+                continue
+            n = verifier.check(f, int(r))[0].support
+            values[r] = max(values[r], n)
+            if own[j] < len(values) and place_ids[own[j]] == sub.places[j]:
+                values[own[j]] = max(values[own[j]], n)
+        if advance is not None:
+            advance(1)
+
+
+__all__ = ["BAND", "BLOCK_CELLS", "CANDIDATES", "SAMPLE", "Confusion", "learn_confusion", "sample_images"]
