@@ -216,7 +216,8 @@ def main(argv: list[str] | None = None) -> None:
 
     def on_position(msg: Any, topic: str) -> None:
         record.write({"kind": "position", "topic": topic, "received": time.time(), "frame_id": msg.header.frame_id,
-               "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, "x": msg.point.x, "y": msg.point.y})
+                      "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, "x": msg.point.x,
+                      "y": msg.point.y})
 
     def on_diagnostics(msg: Any) -> None:
         # rclpy gives a diagnostics level (a byte) as bytes.
