@@ -355,3 +355,39 @@ def test_a_bad_runtime_setting_is_refused_not_taken_for_sift(monkeypatch: pytest
     r = CliRunner().invoke(app, ["map", "build", "--method", "bow", "--map", str(tour), "--out",
                                  str(tmp_path / "m.tlm"), "-q", "--cache-dir", str(tmp_path / "cache")])
     assert r.exit_code == 2 and "TOPOLOC_XFEAT_RUNTIME" in r.output and "sift" not in r.output.lower(), r.output
+
+
+def test_busy_beside_counts_other_processes_and_running_python_threads_not_idle_library_workers() -> None:
+    me, python, native, sleeper = 10, 11, 12, 13
+    states = {me: b"R", python: b"R", native: b"R", sleeper: b"S"}
+    # Three of this process's threads run (the caller, one Python thread, one library worker) and two other tasks.
+    assert learned.busy_beside(5.0, states, {me, python, sleeper}, me) == 2 + 1
+    # A library's worker spinning after its work is not busy; nothing else runs.
+    assert learned.busy_beside(2.0, {me: b"R", native: b"R"}, {me}, me) == 0
+    # The Python thread that runs counts whatever the library threads do.
+    assert learned.busy_beside(2.0, {me: b"R", python: b"R"}, {me, python}, me) == 1
+    # A thread that stopped between the two reads never counts as another process's (never below zero).
+    assert learned.busy_beside(1.0, {me: b"R", native: b"R"}, {me}, me) == 0
+
+
+def test_free_cores_reads_this_process_threads_and_counts_its_running_python_threads() -> None:
+    import threading
+    import zlib
+
+    states = learned._thread_states()
+    assert states is not None and states.get(threading.get_native_id()) == b"R", "the asking thread runs"
+    data = np.random.default_rng(0).bytes(8 << 20)
+    stop = threading.Event()
+
+    def work() -> None:  # zlib releases the GIL: this Python thread runs beside the caller
+        while not stop.is_set():
+            zlib.compress(data, 6)
+
+    t = threading.Thread(target=work)
+    t.start()
+    try:
+        seen = [learned._runnable_others() for _ in range(20) if not stop.wait(0.01)]
+    finally:
+        stop.set()
+        t.join()
+    assert max(seen) >= 1, "a Python thread of this process that runs is busy beside the caller"

@@ -146,7 +146,7 @@ def test_pairs_left_unfitted_never_change_an_answer_or_a_decision() -> None:
 def test_places_checked_side_by_side_give_the_same_answers(monkeypatch: pytest.MonkeyPatch) -> None:
     import topoloc.verification.verifier as verifier_module
 
-    monkeypatch.setattr(verifier_module, "free_cores", lambda: 2)  # as on an idle machine, whatever this one does
+    monkeypatch.setattr(verifier_module, "free_cores", lambda **_: 2)  # as on an idle machine, whatever this one does
     rng = np.random.default_rng(11)
     for seed in range(5):
         support = rng.integers(5, 90, 14).tolist()

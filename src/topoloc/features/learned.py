@@ -77,8 +77,8 @@ from topoloc.features.xfeat.runtimes import RUNTIMES, MissingExtraError, Network
 log = logging.getLogger(__name__)
 
 __all__ = ["CELL", "DEVICES", "EXTRA_HINT", "NMS_WINDOW", "RUNTIMES", "STRIDE", "THREADS", "MissingExtraError",
-           "check_available", "detect_xfeat", "extraction_workers", "free_cores", "is_installed", "parse_device",
-           "provenance", "resolve_device", "resolve_runtime"]
+           "busy_beside", "check_available", "detect_xfeat", "extraction_workers", "free_cores", "is_installed",
+           "parse_device", "provenance", "resolve_device", "resolve_runtime"]
 
 #: The way out named by errors about the PyTorch runtime (GPU without onnxruntime-gpu, exporting).
 EXTRA_HINT = "pip install 'topoloc[learned]'"
@@ -229,33 +229,91 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def _runnable_others() -> float:
-    """Runnable tasks on the machine now, less the one asking: ``/proc/loadavg``'s instantaneous count.
+def _thread_states() -> dict[int, bytes] | None:
+    """State letter (``R`` runnable, ``S`` sleeping, ...) of every thread of this process, by its id; None off Linux."""
+    try:
+        tasks = list(os.scandir("/proc/self/task"))
+    except OSError:  # pragma: no cover - not Linux
+        return None
+    out = {}
+    for task in tasks:
+        try:
+            with open(f"/proc/self/task/{task.name}/stat", "rb") as fh:
+                stat = fh.read()
+        except OSError:  # the thread ended between the listing and the read
+            continue
+        end = stat.rfind(b")")  # the state follows the command name, which may hold spaces and parentheses
+        out[int(task.name)] = stat[end + 2:end + 3]
+    return out
 
-    The load averages lag by a minute (a pool sized just after busy processes
-    ended would use one core of two); elsewhere than Linux the 1-minute average
-    is the fallback.
+
+def busy_beside(runnable: float, states: dict[int, bytes], python_threads: set[int], caller: int) -> float:
+    """Tasks busy beside the caller: other processes' runnable tasks, and this process's running Python threads.
+
+    A library's worker threads (OpenCV's pool, OpenBLAS, ONNX Runtime: native
+    threads, not Python ones) spin for a while after their work ends and read
+    as runnable then.  Counted as busy, they made an idle 2-core machine look
+    half busy right after this process's own resize or RANSAC, so XFeat ran on
+    one thread (31.4 ms a frame against 20 on two; ``docs/results/learned_features.md``,
+    "Extraction speed") and the verifier checked candidates one after another.
+    A library's threads work for some Python thread of this process, which is
+    itself running while they do, so that thread counts them once.
+
+    Parameters
+    ----------
+    runnable : float
+        Runnable tasks on the machine now, this process's threads included (``/proc/loadavg``).
+    states : dict of int to bytes
+        This process's threads and their states (:func:`_thread_states`).
+    python_threads : set of int
+        Native ids of this process's Python threads.
+    caller : int
+        Native id of the asking thread (never counted).
     """
+    own = {tid for tid, state in states.items() if state == b"R"}
+    others = max(0.0, runnable - len(own | {caller}))
+    return others + len((own & python_threads) - {caller})
+
+
+def _runnable_others(helpers: str = "") -> float:
+    """Tasks busy beside the caller (:func:`busy_beside`), from ``/proc/self/task`` and ``/proc/loadavg``.
+
+    ``/proc/loadavg``'s count of runnable tasks is instantaneous; its load
+    averages lag by a minute (a pool sized just after busy processes ended
+    would use one core of two), and are the fallback elsewhere than Linux.  This process's threads are read first:
+    a thread that stops running between the two reads (a pool's worker done
+    with its task) then counts as this process's, not as another's.  Python
+    threads whose names start with ``helpers`` (the caller's own pool, idle
+    while it asks) do not count.
+    """
+    states = _thread_states()
     try:
         with open("/proc/loadavg") as fh:
-            return max(0.0, float(fh.read().split()[3].split("/")[0]) - 1.0)
+            runnable = float(fh.read().split()[3].split("/")[0])
     except (OSError, IndexError, ValueError):  # pragma: no cover - not Linux
         try:
             return max(0.0, os.getloadavg()[0] - 1.0)
         except OSError:
             return 0.0
+    if states is None:  # pragma: no cover - /proc without task folders
+        return max(0.0, runnable - 1.0)
+    python_threads = {t.native_id for t in threading.enumerate()
+                      if t.native_id is not None and not (helpers and t.name.startswith(helpers))}
+    return busy_beside(runnable, states, python_threads, threading.get_native_id())
 
 
-def free_cores() -> int:
+def free_cores(helpers: str = "") -> int:
     """Cores this process may use that are not busy with other work, at least 1.
 
     The usable cores (CPU affinity) less the tasks running or waiting to run at
-    this moment beside the caller (:func:`_runnable_others`), which count this
-    process's own busy threads too (``localize`` matching one frame while the
-    next is described).
+    this moment beside the caller (:func:`_runnable_others`): other processes',
+    and this process's own Python threads that run (``localize`` matching one
+    frame while the next is described), but not a library's idle worker
+    threads, nor the threads of the caller's own pool (their names starting
+    with ``helpers``).
     """
     cores = _cores()
-    return max(1, min(cores, round(cores - _runnable_others())))
+    return max(1, min(cores, round(cores - _runnable_others(helpers))))
 
 
 def extraction_workers(n_jobs: int = -1) -> int:

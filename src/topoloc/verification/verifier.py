@@ -65,10 +65,14 @@ _BLAS: list[Any] = []  # the ThreadpoolController, made at the first verificatio
 _POOL: list[ThreadPoolExecutor] = []
 
 
+#: Name prefix of the stage's threads: idle whenever a verifier asks for free cores (:func:`_pool`).
+POOL_NAME = "topoloc-verify"
+
+
 def _pool(threads: int) -> ThreadPoolExecutor:
     """The threads the stage checks a query's places on (made at first use, shared by every verifier)."""
     if not _POOL or _POOL[0]._max_workers < threads:
-        _POOL[:] = [ThreadPoolExecutor(max_workers=threads, thread_name_prefix="topoloc-verify")]
+        _POOL[:] = [ThreadPoolExecutor(max_workers=threads, thread_name_prefix=POOL_NAME)]
     return _POOL[0]
 
 
@@ -282,7 +286,7 @@ class Verifier:
         """:meth:`_check` of several places, side by side where cores are free (each a pure function of the pair)."""
         for r in rows:  # the map images are read here, on this thread, never by two threads at once
             self._images(r)
-        if len(rows) > 1 and self.threads > 1 and free_cores() > 1:
+        if len(rows) > 1 and self.threads > 1 and free_cores(helpers=POOL_NAME) > 1:
             return list(_pool(self.threads).map(lambda r: self._check(xy_q, dq, r, bar), rows))
         return [self._check(xy_q, dq, r, bar) for r in rows]
 
