@@ -90,6 +90,8 @@ from topoloc.evaluation.timing import apply_sequence
 FEATURES = ("sift", "xfeat")
 #: What the speed and localize parts compare: (label, features, XFeat runtime).
 VARIANTS = (("sift", "sift", None), ("xfeat", "xfeat", "onnxruntime"), ("xfeat (torch)", "xfeat", "torch"))
+#: The speed part's extra row: ONNX Runtime's helper threads woken for each layer (``runtimes.SPIN_WITHIN_FRAME`` off).
+SLEEPING = ("xfeat (helpers sleep)", "xfeat", "onnxruntime")
 METHODS = ("coocmap", "bow", "fabmap2", "fabmap", "landmarks", "voting")
 WEBCAM_METHODS = ("coocmap", "bow", "fabmap2")
 ROWS: dict[str, tuple[list[Path], Path, str, str]] = {
@@ -354,6 +356,25 @@ def xfeat_runtime(runtime: str | None) -> Iterator[None]:
         yield
 
 
+@contextlib.contextmanager
+def helpers_sleep(on: bool) -> Iterator[None]:
+    """ONNX Runtime's helpers sleeping between the network's layers for the block (new sessions, this process)."""
+    from topoloc.features import learned
+    from topoloc.features.xfeat import runtimes
+
+    if not on:
+        yield
+        return
+    before = runtimes.SPIN_WITHIN_FRAME
+    runtimes.SPIN_WITHIN_FRAME = False
+    learned._networks.clear()
+    try:
+        yield
+    finally:
+        runtimes.SPIN_WITHIN_FRAME = before
+        learned._networks.clear()
+
+
 def compare_features(a: Any, b: Any) -> dict[str, Any]:
     """Two FeatureSets of one image: keypoints of ``a`` at a position of ``b``, descriptor cosines there."""
     xa, xb = np.asarray(a.keypoints[:, :2]), np.asarray(b.keypoints[:, :2])
@@ -437,8 +458,8 @@ def speed(cache: Path) -> dict[str, Any]:
     frames = [read_image(p, gray=False) for p in paths]
     out: dict[str, Any] = {"frames": len(frames), "frame_shape": list(frames[0].shape[:2]), "max_side": SPEED_SIDE,
                            "versions": {"onnxruntime": _version("onnxruntime"), "torch": _version("torch")}}
-    for label, features, runtime in _variants():
-        with xfeat_runtime(runtime):
+    for label, features, runtime in [*_variants(), SLEEPING]:
+        with xfeat_runtime(runtime), helpers_sleep(label == SLEEPING[0]):
             cfg = FeatureConfig(method=features, max_side=SPEED_SIDE)
             extract_features(frames[0], cfg)  # warm: weights loaded, kernels chosen
             row: dict[str, Any] = {"features": features, "runtime": runtime}
@@ -668,10 +689,12 @@ def render(o: dict[str, Any]) -> str:
                      "(`benchmarks.bench_load.busy`); then the same files through `FeatureExtractor.extract_paths` "
                      "(decode included, every core), and the cache entry per image. XFeat on ONNX Runtime "
                      f"{ver.get('onnxruntime', '?')} (the default: a frame on the cores that are free) and on PyTorch "
-                     f"{ver.get('torch', '?')} (one thread a frame), side by side in one run.\n\n| features | ms/frame "
+                     f"{ver.get('torch', '?')} (one thread a frame), side by side in one run; "
+                     "`xfeat (helpers sleep)` is ONNX Runtime with its helper threads woken for each layer rather "
+                     "than spinning within a frame (`runtimes.SPIN_WITHIN_FRAME` off).\n\n| features | ms/frame "
                      "median / p95 quiet | beside 3 busy | ratio (median) | files: ms/image, all cores | "
                      "features/image | cache KiB/image |\n| --- | --- | --- | --- | --- | --- | --- |\n")
-        for label, _, _ in VARIANTS:
+        for label, _, _ in (*VARIANTS, SLEEPING):
             r = sp.get(label)
             if r:
                 quiet, loaded = r["busy0"], r["busy3"]

@@ -391,3 +391,15 @@ def test_free_cores_reads_this_process_threads_and_counts_its_running_python_thr
         stop.set()
         t.join()
     assert max(seen) >= 1, "a Python thread of this process that runs is busy beside the caller"
+
+
+def test_onnx_helpers_spin_within_a_frame_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    net = learned.network("cpu", "onnxruntime")
+    monkeypatch.setattr(net, "_sessions", {})
+    for spin in (True, False):
+        monkeypatch.setattr(runtimes, "SPIN_WITHIN_FRAME", spin)
+        net._sessions.clear()
+        opts = net._session(2).get_session_options()
+        assert opts.get_session_config_entry("session.intra_op.allow_spinning") == ("1" if spin else "0")
+        assert opts.get_session_config_entry("session.force_spinning_stop") == "1"
+    net._sessions.clear()

@@ -253,9 +253,10 @@ def busy_beside(runnable: float, states: dict[int, bytes], python_threads: set[i
     A library's worker threads (OpenCV's pool, OpenBLAS, ONNX Runtime: native
     threads, not Python ones) spin for a while after their work ends and read
     as runnable then.  Counted as busy, they made an idle 2-core machine look
-    half busy right after this process's own resize or RANSAC, so XFeat ran on
-    one thread (31.4 ms a frame against 20 on two; ``docs/results/learned_features.md``,
-    "Extraction speed") and the verifier checked candidates one after another.
+    half busy right after this process's own resize or RANSAC: XFeat ran every
+    frame on one thread (``docs/results/learned_features.md``, "Extraction
+    speed", quiet median 31.4 ms as of commit 528c1d00, 24.6 ms since) and the
+    verifier checked a third of its candidate sets one after another.
     A library's threads work for some Python thread of this process, which is
     itself running while they do, so that thread counts them once.
 

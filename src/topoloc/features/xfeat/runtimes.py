@@ -50,6 +50,14 @@ INSTALL = {"onnxruntime": "pip install onnxruntime (a dependency of topoloc)",
 THREADS = 1
 
 
+#: Whether ONNX Runtime's helper threads spin between the network's layers (they stop when a frame ends either way):
+#: woken for each layer instead, a frame paced at 10 Hz on 2 idle cores took longer
+#: (``docs/results/learned_features.md``, "Extraction speed", rows ``xfeat`` and ``xfeat (helpers sleep)``).
+#: Spinning past the frame's end would take the core that matches the frame before (``localize`` describes one frame
+#: while it matches another).
+SPIN_WITHIN_FRAME = True
+
+
 class MissingExtraError(TopolocError):
     """A learned feature was asked for but what runs it is not installed, does not load, or its file is damaged."""
 
@@ -196,9 +204,8 @@ class OnnxNetwork:
             opts.intra_op_num_threads = threads
             opts.inter_op_num_threads = 1
             opts.log_severity_level = 3
-            # Helper threads sleep between frames rather than spin: they would take the core that matches the frame
-            # before (localize describes one frame while it matches another).
-            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if SPIN_WITHIN_FRAME else "0")
+            opts.add_session_config_entry("session.force_spinning_stop", "1")
             providers = (["CUDAExecutionProvider", "CPUExecutionProvider"] if self.device == "cuda"
                          else ["CPUExecutionProvider"])
             try:
