@@ -287,7 +287,13 @@ class Verifier:
         for r in rows:  # the map images are read here, on this thread, never by two threads at once
             self._images(r)
         if len(rows) > 1 and self.threads > 1 and free_cores(helpers=POOL_NAME) > 1:
-            return list(_pool(self.threads).map(lambda r: self._check(xy_q, dq, r, bar), rows))
+            # Dealt out to ``threads`` lanes; the calling thread runs the first itself rather than wait for the pool
+            # (one hand-over fewer), and the pool runs each other lane on one of its threads.
+            lanes = [list(rows[k::self.threads]) for k in range(self.threads)]
+            later = [_pool(self.threads - 1).submit(lambda lane: [self._check(xy_q, dq, r, bar) for r in lane], lane)
+                     for lane in lanes[1:] if lane]
+            done = [[self._check(xy_q, dq, r, bar) for r in lanes[0]], *(f.result() for f in later)]
+            return [done[i % self.threads][i // self.threads] for i in range(len(rows))]
         return [self._check(xy_q, dq, r, bar) for r in rows]
 
     def verify(self, S: np.ndarray, queries: Sequence[HasFeatures]) -> VerifiedBlock:
