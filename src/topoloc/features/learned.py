@@ -281,11 +281,11 @@ def _runnable_others(helpers: str = "") -> float:
 
     ``/proc/loadavg``'s count of runnable tasks is instantaneous; its load
     averages lag by a minute (a pool sized just after busy processes ended
-    would use one core of two), and are the fallback elsewhere than Linux.  This process's threads are read first:
-    a thread that stops running between the two reads (a pool's worker done
-    with its task) then counts as this process's, not as another's.  Python
-    threads whose names start with ``helpers`` (the caller's own pool, idle
-    while it asks) do not count.
+    would use one core of two), and are the fallback elsewhere than Linux.
+    This process's threads are read first: a thread that stops running
+    between the two reads (a pool's worker done with its task) then counts as
+    this process's, not as another's.  Python threads whose names start with
+    ``helpers`` (the caller's own pool, idle while it asks) do not count.
     """
     states = _thread_states()
     try:
