@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from topoloc.evaluation.report import build_report, run_title
+from topoloc.io.container import atomic_write_bytes
 
 # The results pages written before XFeat (issue #39) measure SIFT, the default features then; their benchmarks keep
 # measuring SIFT unless TOPOLOC_FEATURES says otherwise (e.g. TOPOLOC_FEATURES=xfeat to redo a page with XFeat).
@@ -59,9 +60,10 @@ def machine_line() -> str:
 
 
 def write_results(md: Path, js: Path, res: dict[str, Any], text: str) -> None:
-    """A benchmark's page ``md`` (its rendered ``text``) and the measurements behind it, ``js``."""
-    js.write_text(json.dumps(res, indent=1) + "\n")
-    md.write_text(text + "\n")
+    """A benchmark's page ``md`` (its rendered ``text``) and the measurements behind it, ``js``, each written whole
+    (:func:`topoloc.io.container.atomic_write_bytes`: a run killed while writing leaves the last page as it was)."""
+    atomic_write_bytes(js, (json.dumps(res, indent=1) + "\n").encode())
+    atomic_write_bytes(md, (text + "\n").encode())
     print(f"wrote {md}, {js}")
 
 
@@ -83,7 +85,7 @@ def write_section(path: Path, name: str, body: str) -> None:
         text = head + block + rest.split(end, 1)[1]
     else:
         text = text.rstrip("\n") + ("\n\n" if text else "") + block
-    path.write_text(text)
+    atomic_write_bytes(path, text.encode())
 
 
 def marked_sections(path: Path) -> str:
