@@ -122,13 +122,19 @@ def main(argv: list[str] | None = None) -> None:
     # pages written before issue #39: issue #47's camera-rate targets are the defaults'.
     ap.add_argument("--features", default="auto", help="Features of the maps (default: the product's, auto).")
     args = ap.parse_args(argv)
-    require_data()
     os.environ["TOPOLOC_FEATURES"] = args.features
+    from topoloc.errors import TopolocError
     from topoloc.spec.parts import default_feature_method
+
+    try:
+        features = default_feature_method()
+    except TopolocError as exc:  # an unknown --features: one line, before any map is built
+        raise SystemExit(f"bench_camera_rate: {exc}") from None
+    require_data()
     result: dict[str, Any] = {
         "machine": machine_line(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"), "cores": os.cpu_count() or 1, "rows": [],
-        "features": default_feature_method(),
+        "features": features,
         "xfeat_runtime": os.environ.get("TOPOLOC_XFEAT_RUNTIME") or "auto (onnxruntime)",
     }
     with tempfile.TemporaryDirectory() as tmp:
