@@ -141,7 +141,8 @@ def fit_run(method_name: str, maps: Sequence[Path | Traverse], query: Path | Tra
         S = apply_sequence(S, sequence)[0].astype(np.float32)
     gt = GroundTruthSpec(tolerance=tolerance).make(method.place_ids_, q, maps=tours)
     v = build_verifier(spec or VerificationSpec(), method.place_ids_, tours, res, sequence=sequence)
-    v.confusable = learn_confusion(method, tours, res, v).values
+    confusion = learn_confusion(method, tours, res, v)
+    v.confusable, v.look_alikes = confusion.values, confusion.look_alikes
     return Run(method, res, v, S, gt, res.features(q, timed=False), q)
 
 
@@ -544,13 +545,16 @@ def render(res: dict[str, Any]) -> str:
         f"Measured {res['date']} on {res['machine']}.",
         "",
         "An answer is *verified* when its support (fundamental-matrix inliers that are distinctive matches) "
-        "reaches the floor, exceeds what look-alike places of the same map reach there (learned at build), "
+        "reaches the floor, exceeds what look-alike places of the same map reach there (learned at build; a "
+        "look-alike the query itself has clearly less support at does not count), "
         "and no route neighbour has more (`docs/protocol.md`, \"Verification\"). Every setting is a default "
         "and the features are XFeat; the data are the development split (`../shared/data`), on which every "
         f"default was chosen: the floor of {decision.MIN_SUPPORT} (part `floor`), the distinctive-match "
         f"ratio {decision.RATIO}, {DEFAULT_CANDIDATES} candidates, the climb from half the floor (on part "
         "`quality`'s verified-right, against this page as of commit 857fafc3, which climbed from the "
-        "floor), and the confidence model (part `confidence`). *Right* means within the tolerance.",
+        "floor), the look-alikes the query is checked against (on part `quality`'s verified-right, against "
+        "this page as of commit 351f9dc0, which took the map's confusion as it was), and the confidence model "
+        "(part `confidence`). *Right* means within the tolerance.",
         "",
     ]
     q = res.get("quality")

@@ -140,6 +140,15 @@ def test_a_map_records_its_images_and_confusion_and_a_crafted_image_name_is_refu
     assert images.sha1.shape == (len(images.names), 20) and len(np.unique(images.sha1, axis=0)) > 1
     assert m.confusion is not None and m.confusion.values.shape == m.place_ids.shape
     assert m.confusion.images == len(tiny_route["map"])
+    # Which places reached each value is kept with it, and read back as it was written.
+    alikes = m.confusion.look_alikes
+    assert alikes is not None and alikes.rows.shape == (len(m.place_ids), 3)
+    has = alikes.rows[:, 0] >= 0
+    assert np.array_equal(alikes.support[has, 0], m.confusion.values[has])
+    built = Map.build(method="bow", tours=[tiny_route["map"]], vocabulary=tiny_route["vocabulary"],
+                      cache_dir=tmp_path / "cache")
+    assert built.confusion is not None and built.confusion.look_alikes is not None
+    assert np.array_equal(built.confusion.look_alikes.rows, alikes.rows)
     info = m.info()["verification"]
     assert info["content_recorded"] is True and info["confusion"]["images"] == len(tiny_route["map"])
     # A map file naming an image outside its tour's folder is refused when opened, not read.
@@ -151,6 +160,25 @@ def test_a_map_records_its_images_and_confusion_and_a_crafted_image_name_is_refu
         write_container(path, MAP_KIND, MAP_VERSION, crafted, meta)
         with pytest.raises(TopolocError, match=r"outside its folder"):
             Map.load(path)
+    # Look-alikes that are not places of the map: refused when opened.
+    crafted = dict(arrays)
+    crafted["verification/look_alikes"] = np.full_like(np.asarray(arrays["verification/look_alikes"]), len(m.place_ids))
+    write_container(tmp_path / "crafted.tlm", MAP_KIND, MAP_VERSION, crafted, meta)
+    with pytest.raises(TopolocError, match=r"look-alike places.*crafted.tlm"):
+        Map.load(tmp_path / "crafted.tlm")
+    crafted = dict(arrays)
+    crafted["verification/look_alike_support"] = np.full_like(
+        np.asarray(arrays["verification/look_alike_support"]), np.nan)
+    write_container(tmp_path / "crafted.tlm", MAP_KIND, MAP_VERSION, crafted, meta)
+    with pytest.raises(TopolocError, match=r"malformed.*finite.*crafted.tlm"):
+        Map.load(tmp_path / "crafted.tlm")
+    # A map saved with its confusion but before look-alikes were kept: the confusion counts as it is.
+    older = {k: v for k, v in arrays.items() if "look_alike" not in k}
+    write_container(tmp_path / "older.tlm", MAP_KIND, MAP_VERSION, older, meta)
+    m_older = Map.load(tmp_path / "older.tlm")
+    assert m_older.confusion is not None and m_older.confusion.look_alikes is None
+    assert m_older.localizer(verify=True).verifier.look_alikes is None  # type: ignore[union-attr]
+    assert m.localizer(verify=True).verifier.look_alikes is not None  # type: ignore[union-attr]
     # A map saved without confusion or image digests (an older map) loads, and verifies by fingerprint.
     old = {k: v for k, v in arrays.items() if "/images/" not in k and not k.startswith("verification/")}
     write_container(tmp_path / "old.tlm", MAP_KIND, MAP_VERSION, old, {**meta, "confusion": None})

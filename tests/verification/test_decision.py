@@ -9,9 +9,12 @@ from topoloc.verification import (
     DEFAULT_CONFIDENCE,
     MIN_SUPPORT,
     ConfidenceModel,
+    LookAlikes,
     VerificationRule,
+    query_confusion,
     strength,
     support_floor,
+    tells_apart,
     verified,
 )
 
@@ -23,6 +26,39 @@ def test_each_condition_of_the_decision_is_needed() -> None:
     assert verified(n, confusable, peak, MIN_SUPPORT).tolist() == [False, True, False, True, False]
     x = strength(n, confusable, MIN_SUPPORT)
     assert x[1] == x[3] == pytest.approx(1.0) and x[2] < 1 and x[0] < 1  # >= 1 exactly where steps 1-2 pass
+
+
+def test_counts_are_told_apart_by_one_standard_deviation_of_their_difference() -> None:
+    assert tells_apart(50, 12).tolist() is True and tells_apart(50, 45).tolist() is False  # 38 > 7.9; 5 < 9.7
+    assert tells_apart(np.array([7, 8]), 4).tolist() == [False, True]  # 3 < sqrt(11) = 3.3; 4 > sqrt(12) = 3.5
+    assert tells_apart(0, 0).tolist() is False and tells_apart(10, 10).tolist() is False
+
+
+def test_the_querys_confusion_sets_aside_only_the_look_alikes_it_tells_apart() -> None:
+    s = np.array([48.0, 19.0, 0.0])  # two look-alikes recorded, one slot empty
+    # The query reaches 47 at the answer and 13 at the look-alike that reached 48: told apart; the other, of 19,
+    # was not checked (it cannot refuse 47) and still counts.
+    assert query_confusion(48.0, s, np.array([13.0, -1.0, -1.0]), 47) == 19.0
+    assert query_confusion(48.0, s, np.array([40.0, -1.0, -1.0]), 47) == 48.0  # 47 against 40: as good as equal
+    assert query_confusion(48.0, s, np.array([-1.0, -1.0, -1.0]), 47) == 48.0  # not checked: it counts
+    # Every slot taken: look-alikes beyond them reach up to the last one's support, which still counts.
+    full = np.array([70.0, 60.0, 55.0])
+    assert query_confusion(70.0, full, np.array([5.0, 5.0, 5.0]), 50) == 55.0
+    # A confusion no recorded look-alike reached (its source was not a place of the map) is kept as it is.
+    assert query_confusion(70.0, np.array([40.0, 0.0, 0.0]), np.array([1.0, -1.0, -1.0]), 50) == 70.0
+    assert query_confusion(30.0, np.zeros(0), np.zeros(0), 50) == 30.0
+    with pytest.raises(ValueError):
+        query_confusion(30.0, np.zeros(3), np.zeros(2), 50)
+
+
+def test_look_alikes_are_checked_for_shape_and_slots() -> None:
+    LookAlikes(np.array([[1, -1]]), np.array([[5.0, 0.0]], np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        LookAlikes(np.array([1, -1]), np.array([5.0, 0.0]))
+    with pytest.raises(ValueError, match="slot"):
+        LookAlikes(np.array([[1, -1]]), np.array([[0.0, 3.0]], np.float32))
+    with pytest.raises(ValueError, match="finite"):
+        LookAlikes(np.array([[1, -1]]), np.array([[np.nan, 0.0]], np.float32))
 
 
 def test_the_floor_follows_the_feature_cap() -> None:

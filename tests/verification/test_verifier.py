@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from topoloc.features import FeatureSet
-from topoloc.verification import MIN_SUPPORT, VerificationRule, Verifier
+from topoloc.verification import MIN_SUPPORT, LookAlikes, VerificationRule, Verifier
 
 SHAPE = (480, 640)
 
@@ -107,6 +107,40 @@ def test_the_floor_and_the_maps_confusion_are_needed() -> None:
     assert b.verified.tolist() == [False] and b.strength[0] < 1
     with pytest.raises(ValueError, match="confusion"):
         verifier(places, confusable=np.zeros(3)).verify(column(5, 2), [q])
+
+
+def alikes(n: int, row: int, rows: list[int], support: list[float]) -> LookAlikes:
+    r = np.full((n, 3), -1, np.int64)
+    v = np.zeros((n, 3), np.float32)
+    r[row, :len(rows)], v[row, :len(rows)] = rows, support
+    return LookAlikes(r, v)
+
+
+def test_a_look_alike_the_query_tells_apart_does_not_refuse_it() -> None:
+    """Place 2's look-alike (place 4) reached 70 there at build; the query has 50 at place 2."""
+    confusable = np.array([0, 0, 70, 0, 70], np.float32)
+    q, places = route([8, 8, 50, 8, 12], seed=3)  # the query barely sees place 4: it tells them apart
+    b = verifier(places, confusable=confusable, look_alikes=alikes(5, 2, [4], [70])).verify(column(5, 2), [q])
+    assert b.verified.tolist() == [True] and b.strength[0] == pytest.approx(b.support[0] / MIN_SUPPORT)
+    assert verifier(places, confusable=confusable).verify(column(5, 2), [q]).verified.tolist() == [False]
+    # The query sees the look-alike as well as its answer: which of the two it is, the images cannot say.
+    q, places = route([8, 8, 50, 8, 46], seed=3)
+    b = verifier(places, confusable=confusable, look_alikes=alikes(5, 2, [4], [70])).verify(column(5, 2), [q])
+    assert b.answer.tolist() == [2] and b.verified.tolist() == [False]
+    # Every slot taken by a look-alike above the support: unknown ones may be too, however these are told apart.
+    q, places = route([8, 8, 50, 8, 12], seed=3)
+    full = alikes(5, 2, [4, 0, 1], [70, 60, 55])
+    assert verifier(places, confusable=confusable, look_alikes=full).verify(column(5, 2), [q]).verified.tolist() == [
+        False]
+    # Its route neighbours are checked as for any answer that may be verified: one with more support that the
+    # query may not be leaves it unverified.
+    q, places = route([8, 8, 50, 70, 12], seed=3)
+    col = column(5, 2)
+    col[3] = -np.inf
+    b = verifier(places, confusable=confusable, look_alikes=alikes(5, 2, [4], [70])).verify(col, [q])
+    assert b.answer.tolist() == [2] and b.verified.tolist() == [False]
+    with pytest.raises(ValueError, match="look-alikes"):
+        verifier(places, look_alikes=alikes(3, 0, [1], [9])).verify(column(5, 2), [q])
 
 
 def test_a_distinct_peak_with_clearly_more_support_wins() -> None:

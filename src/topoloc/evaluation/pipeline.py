@@ -298,6 +298,7 @@ def verification_record(ver: VerifiedBlock, verifier: Verifier) -> dict[str, Any
     r = verifier.rule
     return {"candidates": verifier.candidates, "max_iters": r.max_iters, "min_support": r.min_support,
             "ratio": r.ratio, "climb": r.climb, "confusion": verifier.confusable is not None,
+            "look_alikes": verifier.look_alikes is not None,
             "confidence_model": verifier.confidence_model.to_dict(),
             "verified_fraction": float(ver.verified.mean()) if len(ver.verified) else 0.0,
             "ms_per_query": float(np.median(ver.ms)) if len(ver.ms) else 0.0,
@@ -327,7 +328,8 @@ def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traver
 
     verifier = build_verifier(spec.verification, method.place_ids_, maps, resources, sequence=spec.sequence.length)
     with progress_stage(progress, "learn the map's look-alike places"):
-        verifier.confusable = learn_confusion(method, maps, resources, verifier, progress=progress).values
+        confusion = learn_confusion(method, maps, resources, verifier, progress=progress)
+        verifier.confusable, verifier.look_alikes = confusion.values, confusion.look_alikes
     return verifier
 
 

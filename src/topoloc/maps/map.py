@@ -66,7 +66,7 @@ from topoloc.spec import (
 )
 from topoloc.spec.parts import NOT_BOTH, VerifyChoice
 from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, Verifier
+from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, LookAlikes, Verifier
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import vocabulary_fingerprint
 
@@ -74,6 +74,8 @@ log = logging.getLogger(__name__)
 
 #: The array of a map file holding its confusion (:mod:`topoloc.maps.confusion`).
 CONFUSION_ARRAY = "verification/confusion"
+#: ... and the arrays of its look-alike places (:class:`topoloc.verification.LookAlikes`): rows, then support.
+LOOK_ALIKE_ARRAYS = ("verification/look_alikes", "verification/look_alike_support")
 
 
 class Map:
@@ -361,6 +363,9 @@ class Map:
                 out.update(tour["images"].arrays(k))
         if self.confusion is not None:
             out[CONFUSION_ARRAY] = self.confusion.values
+            if self.confusion.look_alikes is not None:
+                out.update(zip(LOOK_ALIKE_ARRAYS, (self.confusion.look_alikes.rows, self.confusion.look_alikes.support),
+                               strict=True))
         header = {
             "method": self.recognizer.name, "params": self.recognizer.get_params(),
             "features": asdict(self.features), "vocabulary": voc_meta,
@@ -455,7 +460,13 @@ class Map:
                     tour["images"] = images
             confusion = None
             if meta.get("confusion") is not None and CONFUSION_ARRAY in arrays:
-                confusion = Confusion.from_record(np.array(arrays[CONFUSION_ARRAY]), meta["confusion"])
+                alikes = None
+                if all(k in arrays for k in LOOK_ALIKE_ARRAYS):  # maps written before they were kept have none
+                    rows, sup = (np.array(arrays[k]) for k in LOOK_ALIKE_ARRAYS)
+                    if rows.ndim != 2 or len(rows) != len(place_ids) or ((rows < -1) | (rows >= len(place_ids))).any():
+                        raise input_error("map file is inconsistent (its look-alike places are not places of it)", path)
+                    alikes = LookAlikes(rows.astype(np.int64), sup.astype(np.float32))
+                confusion = Confusion.from_record(np.array(arrays[CONFUSION_ARRAY]), meta["confusion"], alikes)
                 if len(confusion.values) != len(place_ids):
                     raise input_error("map file is inconsistent (its confusion does not have one value per place)",
                                       path)
@@ -613,6 +624,7 @@ class Map:
         return _policy.map_verifier(self.tours, self.place_ids, res, where=self.where, spec=vspec,
                                     sequence=sequence,
                                     confusable=None if self.confusion is None else self.confusion.values,
+                                    look_alikes=None if self.confusion is None else self.confusion.look_alikes,
                                     confidence=_cal.confidence_model(self.calibration))
 
     def verifier_for(self, verify: bool | None, *, resources: Resources | None = None,

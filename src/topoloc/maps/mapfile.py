@@ -29,6 +29,14 @@ JSON header holds:
 ``calibration``
     ``null``, or the score threshold above which a localisation is accepted
     and how it was chosen (``topoloc map calibrate``).
+``confusion``
+    ``null``, or how the map's look-alike places were learned
+    (:meth:`topoloc.maps.confusion.Confusion.record`): the values are the
+    array ``verification/confusion`` (one per place), and which places reached
+    them the arrays ``verification/look_alikes`` (place rows, shape
+    (n_places, k), -1 for an empty slot) and ``verification/look_alike_support``
+    (float32, the same shape); maps written before either was kept have none,
+    and are verified without it.
 ``created``, ``modified``, ``topoloc_version``
 
 Arrays: ``places/ids`` (sorted place ids, the rows of ``S``),

@@ -37,7 +37,7 @@ from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
 from topoloc.resources import CachedResources, Resources
 from topoloc.spec.parts import VerificationSpec, VocabularySpec
-from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, Verifier, default_candidates
+from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, LookAlikes, Verifier, default_candidates
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import VOCAB_SCHEMA
 
@@ -244,7 +244,8 @@ def unverifiable(tours: Sequence[Traverse]) -> str:
 
 def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequence[Traverse],
                    resources: Resources, *, what: str = "the map", sequence: int = 0,
-                   confusable: np.ndarray | None = None, confidence: ConfidenceModel | None = None) -> Verifier:
+                   confusable: np.ndarray | None = None, look_alikes: LookAlikes | None = None,
+                   confidence: ConfidenceModel | None = None) -> Verifier:
     """The verification stage of a run (:mod:`topoloc.verification`) over the map's tours.
 
     Whether a run verifies is decided before (:func:`topoloc.spec.parts.choose_verify`);
@@ -268,6 +269,8 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
         number of candidates (:func:`topoloc.verification.default_candidates`).
     confusable : ndarray, shape (n_places,), optional
         The map's confusion of each place (:mod:`topoloc.maps.confusion`).
+    look_alikes : LookAlikes, optional
+        Which places reached it (:mod:`topoloc.maps.confusion`).
     confidence : ConfidenceModel, optional
         Default :data:`topoloc.verification.DEFAULT_CONFIDENCE`.
 
@@ -311,7 +314,7 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     cap = getattr(getattr(extractor, "config", None), "max_features", None)
     candidates = spec.candidates if spec.candidates is not None else default_candidates(sequence)
     return Verifier(place_images, candidates=candidates, rule=spec.rule(cap), confusable=confusable,
-                    confidence=confidence or DEFAULT_CONFIDENCE, image_names=image_names)
+                    look_alikes=look_alikes, confidence=confidence or DEFAULT_CONFIDENCE, image_names=image_names)
 
 
 __all__ = ["build_method", "build_verifier", "make_resources", "tours_vocabulary", "unverifiable"]

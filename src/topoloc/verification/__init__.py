@@ -15,9 +15,12 @@ from topoloc.verification.decision import (
     DEFAULT_MAX_ITERS,
     MIN_SUPPORT,
     ConfidenceModel,
+    LookAlikes,
     VerificationRule,
+    query_confusion,
     strength,
     support_floor,
+    tells_apart,
     verified,
 )
 from topoloc.verification.pairs import (
@@ -47,6 +50,7 @@ __all__ = [
     "MIN_SUPPORT",
     "SEQUENCE_CANDIDATES",
     "ConfidenceModel",
+    "LookAlikes",
     "PairCheck",
     "VerificationRule",
     "VerifiedBlock",
@@ -63,9 +67,11 @@ __all__ = [
     "inlier_threshold",
     "mutual_matches",
     "prepare_descriptors",
+    "query_confusion",
     "squash",
     "strength",
     "support_floor",
+    "tells_apart",
     "verified",
     "verified_scores",
 ]

@@ -53,6 +53,7 @@ from __future__ import annotations
 import numpy as np
 
 from topoloc.confidence import peak_extent
+from topoloc.verification.decision import tells_apart
 
 
 def squash(S: np.ndarray) -> np.ndarray:
@@ -130,7 +131,7 @@ def choose_winner(rows: np.ndarray, support: np.ndarray) -> np.ndarray:
     w = n.argmax(axis=1)  # ties: the earlier peak
     q = np.arange(len(n))
     nw, n0 = n[q, w], n[:, 0]
-    keep = (rows[:, 0] >= 0) & (nw - n0 <= np.sqrt(np.maximum(nw + n0, 0.0)))
+    keep = (rows[:, 0] >= 0) & ~tells_apart(nw, n0)
     return np.where(keep, 0, w).astype(np.int64)
 
 

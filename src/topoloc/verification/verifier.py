@@ -13,7 +13,10 @@ For each query column it takes the candidates (the best places of the
 
 then it chooses the answer (:func:`~topoloc.verification.rerank.choose_winner`, by
 inliers), follows the support along the route to its peak (the answer's route
-neighbours are checked the same way) and decides (:func:`~topoloc.verification.decision.verified`).
+neighbours are checked the same way), checks the query against the answer's
+look-alikes where the map's confusion alone would refuse it
+(:func:`~topoloc.verification.decision.query_confusion`) and decides
+(:func:`~topoloc.verification.decision.verified`).
 """
 
 from __future__ import annotations
@@ -31,7 +34,9 @@ from topoloc.verification.decision import (
     DEFAULT_CONFIDENCE,
     DEFAULT_MAX_ITERS,
     ConfidenceModel,
+    LookAlikes,
     VerificationRule,
+    query_confusion,
     strength,
     verified,
 )
@@ -120,7 +125,7 @@ class VerifiedBlock:
     support : ndarray of int64, shape (n_queries,)
         The support of each answer (distinctive inliers).
     strength : ndarray of float64, shape (n_queries,)
-        ``support / max(n_min, c_p + 1)``.
+        ``support / max(n_min, c_q + 1)`` (``c_q``: the confusion for that query, decision step 2).
     confidence : ndarray of float64, shape (n_queries,)
         The estimated probability that each answer is right.
     candidates : ndarray of int64, shape (n_queries, k)
@@ -186,6 +191,9 @@ class Verifier:
         The decision's settings.
     confusable : ndarray, shape (n_places,), optional
         The map's confusion ``c_p`` of each place row (:mod:`topoloc.maps.confusion`); zeros when not given.
+    look_alikes : LookAlikes, optional
+        Which places reached each place's confusion (:mod:`topoloc.maps.confusion`); without them the map's
+        confusion is taken as it is (``c_q = c_p``).
     confidence : ConfidenceModel
         Turns an answer's strength into its confidence.
     image_names : callable, optional
@@ -199,7 +207,8 @@ class Verifier:
 
     def __init__(self, place_images: Callable[[int], Sequence[HasFeatures]], *,
                  candidates: int = DEFAULT_CANDIDATES, rule: VerificationRule | None = None,
-                 confusable: np.ndarray | None = None, confidence: ConfidenceModel = DEFAULT_CONFIDENCE,
+                 confusable: np.ndarray | None = None, look_alikes: LookAlikes | None = None,
+                 confidence: ConfidenceModel = DEFAULT_CONFIDENCE,
                  image_names: Callable[[int], Sequence[str]] | None = None, threads: int = 2) -> None:
         if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
             raise ValueError(f"candidates must be a whole number >= 1, got {candidates!r}")
@@ -207,6 +216,7 @@ class Verifier:
         self.candidates = candidates
         self.rule = rule if rule is not None else VerificationRule()
         self.confusable = None if confusable is None else np.asarray(confusable, np.float64)
+        self.look_alikes = look_alikes
         self.confidence_model = confidence
         self.image_names = image_names
         self.threads = threads
@@ -247,9 +257,28 @@ class Verifier:
 
     def is_verified(self, query: HasFeatures, row: int) -> bool:
         """The decision for one query and one place, fixed (no candidates, no route neighbours): steps 1 and 2."""
-        c, _ = self.check(query, row)
-        return bool(verified(np.array([c.support]), np.array([self.confusion(row)]), np.array([True]),
-                             self.rule.min_support)[0])
+        xy_q, dq = _prepared(query)
+        seen = {row: self._check(xy_q, dq, row)}
+        n = seen[row][0].support
+        return bool(verified(np.array([n]), np.array([self._query_confusion(xy_q, dq, row, n, seen)]),
+                             np.array([True]), self.rule.min_support)[0])
+
+    def _query_confusion(self, xy_q: np.ndarray, dq: np.ndarray, row: int, n: int, seen: dict[int, Check]) -> float:
+        """``c_q`` at place row ``row`` for a query of support ``n`` there (decision step 2).
+
+        Only where the map's confusion alone would refuse an answer the floor admits are its look-alikes
+        checked (those whose support reaches ``n``; ``seen`` holds checks already made and takes the new ones).
+        """
+        c_p = self.confusion(row)
+        alikes = self.look_alikes
+        if alikes is None or not self.rule.min_support <= n <= c_p:
+            return c_p
+        rows, sup = alikes.rows[row], np.asarray(alikes.support[row], np.float64)
+        ask = [int(r) for r, v in zip(rows, sup, strict=True) if r >= 0 and v >= n]
+        new = [r for r in ask if r not in seen]
+        seen.update(zip(new, self._checks(xy_q, dq, new), strict=True))
+        got = np.array([seen[int(r)][0].support if r >= 0 and int(r) in seen else -1 for r in rows], np.float64)
+        return query_confusion(c_p, sup, got, n)
 
     def _check(self, xy_q: np.ndarray, dq: np.ndarray, row: int, bar: int = -1) -> Check:
         """The check of place row ``row`` against its best-matching image.
@@ -315,6 +344,8 @@ class Verifier:
             raise ValueError(f"S of shape {S.shape} needs one column per query; {len(queries)} queries given")
         if self.confusable is not None and len(self.confusable) != S.shape[0]:
             raise ValueError(f"the map's confusion has {len(self.confusable)} places, S {S.shape[0]} rows")
+        if self.look_alikes is not None and len(self.look_alikes) != S.shape[0]:
+            raise ValueError(f"the map's look-alikes have {len(self.look_alikes)} places, S {S.shape[0]} rows")
         with _one_blas_thread():
             return self._verify(S, queries)
 
@@ -368,17 +399,22 @@ class Verifier:
             row = int(rows[j, w])
             if row >= 0:
                 n = int(sup[j, w])
-                ok = (self.rule.climb > 0 and n >= self.rule.climb_from and n > self.confusion(row))
+                # Climbs where it may be verified: past the map's confusion, or past the floor where the query's own
+                # look-alike checks may set that confusion aside (decision step 2).
+                may = n > self.confusion(row) or (self.look_alikes is not None and n >= self.rule.min_support)
+                ok = self.rule.climb > 0 and n >= self.rule.climb_from and may
                 end, is_peak = self._climb(S, j, row, n, seen, xy_q, dq) if ok else (row, True)
                 # The answer is that candidate (moved to the peak of its support where it climbed), verified or
                 # not: checking the candidates reranks them; only a verified one is raised above every unverified.
-                passes = bool(verified(np.array([seen[end][0].support]), np.array([self.confusion(end)]),
-                                       np.array([is_peak]), self.rule.min_support)[0])
+                n_end = seen[end][0].support
+                c_q = self._query_confusion(xy_q, dq, end, n_end, seen) if is_peak else self.confusion(end)
+                passes = bool(verified(np.array([n_end]), np.array([c_q]), np.array([is_peak]),
+                                       self.rule.min_support)[0])
                 answer[j], is_v[j] = end, passes
                 # The answer's neighbourhood: as far as its candidate's peak reaches on either side.
                 reach[j] = max(end - lo[j, w], hi[j, w] - 1 - end, 0)
                 check, k = seen[end]
-                support[j], confusion[j] = check.support, self.confusion(end)
+                support[j], confusion[j] = check.support, c_q
                 matches[j], images[j] = check.pairs, (k if k >= 0 else None)
                 if k >= 0:
                     shapes[j] = (*q.image_shape, *self._images(end)[k][2])
