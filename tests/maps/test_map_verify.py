@@ -144,6 +144,7 @@ def test_a_map_records_its_images_and_confusion_and_a_crafted_image_name_is_refu
     alikes = m.confusion.look_alikes
     assert alikes is not None and alikes.rows.shape == (len(m.place_ids), 3)
     has = alikes.rows[:, 0] >= 0
+    assert has.any()
     assert np.array_equal(alikes.support[has, 0], m.confusion.values[has])
     built = Map.build(method="bow", tours=[tiny_route["map"]], vocabulary=tiny_route["vocabulary"],
                       cache_dir=tmp_path / "cache")
@@ -172,6 +173,12 @@ def test_a_map_records_its_images_and_confusion_and_a_crafted_image_name_is_refu
     write_container(tmp_path / "crafted.tlm", MAP_KIND, MAP_VERSION, crafted, meta)
     with pytest.raises(TopolocError, match=r"malformed.*finite.*crafted.tlm"):
         Map.load(tmp_path / "crafted.tlm")
+    # One of the two arrays, or look-alike rows that are not whole numbers: refused when opened.
+    for bad in ({k: v for k, v in arrays.items() if k != "verification/look_alike_support"},
+                {**arrays, "verification/look_alikes": np.asarray(arrays["verification/look_alikes"], np.float64)}):
+        write_container(tmp_path / "crafted.tlm", MAP_KIND, MAP_VERSION, bad, meta)
+        with pytest.raises(TopolocError, match=r"inconsistent.*look-alike.*crafted.tlm"):
+            Map.load(tmp_path / "crafted.tlm")
     # A map saved with its confusion but before look-alikes were kept: the confusion counts as it is.
     older = {k: v for k, v in arrays.items() if "look_alike" not in k}
     write_container(tmp_path / "older.tlm", MAP_KIND, MAP_VERSION, older, meta)

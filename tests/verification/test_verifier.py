@@ -143,6 +143,26 @@ def test_a_look_alike_the_query_tells_apart_does_not_refuse_it() -> None:
         verifier(places, look_alikes=alikes(3, 0, [1], [9])).verify(column(5, 2), [q])
 
 
+def test_a_look_alike_that_cannot_be_checked_or_was_checked_short_still_counts() -> None:
+    confusable = np.array([0, 0, 0, 300, 300, 0, 0], np.float32)
+    q, places = route([8, 8, 8, 200, 182, 8, 8], seed=3)
+    # Place 3's look-alike is its route neighbour 4 (a map with gaps in its place ids): the climb checks 4 only
+    # as far as it could beat 3 (its distinctive matches, under 200, cannot: a check cut short, no support); the
+    # look-alike check fits it in full, and 182 is as good as 200.
+    v = verifier(places, confusable=confusable, look_alikes=alikes(7, 3, [4], [300]))
+    assert v.check(q, 4)[0].distinctive <= v.check(q, 3)[0].support
+    b = v.verify(column(7, 3), [q])
+    assert b.answer.tolist() == [3] and b.verified.tolist() == [False]
+    # A look-alike whose images were left out (changed or gone since the build) cannot be told apart.
+    q, places = route([8, 8, 8, 50, 8, 8, 12], seed=3)
+    gone = Verifier(lambda r: [] if r == 6 else [places[r]],  # type: ignore[arg-type, return-value]
+                    confusable=np.array([0, 0, 0, 70, 0, 0, 70], np.float32), look_alikes=alikes(7, 3, [6], [70]))
+    assert gone.verify(column(7, 3), [q]).verified.tolist() == [False]
+    present = verifier(places, confusable=np.array([0, 0, 0, 70, 0, 0, 70], np.float32),
+                       look_alikes=alikes(7, 3, [6], [70]))
+    assert present.verify(column(7, 3), [q]).verified.tolist() == [True]
+
+
 def test_a_distinct_peak_with_clearly_more_support_wins() -> None:
     support = [8] * 20
     support[3], support[15] = 25, 90

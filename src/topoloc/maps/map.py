@@ -460,16 +460,21 @@ class Map:
                     tour["images"] = images
             confusion = None
             if meta.get("confusion") is not None and CONFUSION_ARRAY in arrays:
-                alikes = None
-                if all(k in arrays for k in LOOK_ALIKE_ARRAYS):  # maps written before they were kept have none
-                    rows, sup = (np.array(arrays[k]) for k in LOOK_ALIKE_ARRAYS)
-                    if rows.ndim != 2 or len(rows) != len(place_ids) or ((rows < -1) | (rows >= len(place_ids))).any():
-                        raise input_error("map file is inconsistent (its look-alike places are not places of it)", path)
-                    alikes = LookAlikes(rows.astype(np.int64), sup.astype(np.float32))
-                confusion = Confusion.from_record(np.array(arrays[CONFUSION_ARRAY]), meta["confusion"], alikes)
-                if len(confusion.values) != len(place_ids):
+                values = np.array(arrays[CONFUSION_ARRAY])
+                if len(values) != len(place_ids):
                     raise input_error("map file is inconsistent (its confusion does not have one value per place)",
                                       path)
+                alikes = None
+                kept = [k in arrays for k in LOOK_ALIKE_ARRAYS]
+                if any(kept) and not all(kept):
+                    raise input_error("map file is inconsistent (it has one of its two look-alike arrays)", path)
+                if all(kept):  # maps written before they were kept have none
+                    rows, sup = (np.array(arrays[k]) for k in LOOK_ALIKE_ARRAYS)
+                    if (rows.dtype.kind not in "iu" or rows.ndim != 2 or len(rows) != len(place_ids)
+                            or ((rows < -1) | (rows >= len(place_ids))).any()):
+                        raise input_error("map file is inconsistent (its look-alike places are not places of it)", path)
+                    alikes = LookAlikes(rows.astype(np.int64), sup.astype(np.float32))
+                confusion = Confusion.from_record(values, meta["confusion"], alikes)
             return cls(rec, features=features, vocabulary=voc, tours=tours,
                        xy_sums=np.array(arrays["places/xy_sums"]),
                        calibration=_cal.json_calibration(meta.get("calibration")),
