@@ -141,8 +141,7 @@ def fit_run(method_name: str, maps: Sequence[Path | Traverse], query: Path | Tra
         S = apply_sequence(S, sequence)[0].astype(np.float32)
     gt = GroundTruthSpec(tolerance=tolerance).make(method.place_ids_, q, maps=tours)
     v = build_verifier(spec or VerificationSpec(), method.place_ids_, tours, res, sequence=sequence)
-    confusion = learn_confusion(method, tours, res, v)
-    v.confusable, v.look_alikes = confusion.values, confusion.look_alikes
+    learn_confusion(method, tours, res, v).install(v)
     return Run(method, res, v, S, gt, res.features(q, timed=False), q)
 
 

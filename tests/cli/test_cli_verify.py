@@ -35,6 +35,7 @@ def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: 
     v = m["verification"]
     assert v["candidates"] == 3 and 0.5 <= v["verified_fraction"] <= 1 and v["ms_per_query"] > 0
     assert v["min_support"] == MIN_SUPPORT and v["confusion"] is True and v["confidence_model"]["on"] == "strength"
+    assert v["look_alikes"] is True  # learned from the tours with the confusion (Confusion.install)
     z = np.load(tmp_path / "v" / "verification.npz")
     S = np.load(tmp_path / "v" / "S.npy")
     assert z["verified"].shape == (S.shape[1],) and z["candidates"].shape == (S.shape[1], 3)

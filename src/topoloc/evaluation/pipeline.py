@@ -328,8 +328,7 @@ def _verifier(spec: EvaluateSpec, method: PlaceRecognizer, maps: Sequence[Traver
 
     verifier = build_verifier(spec.verification, method.place_ids_, maps, resources, sequence=spec.sequence.length)
     with progress_stage(progress, "learn the map's look-alike places"):
-        confusion = learn_confusion(method, maps, resources, verifier, progress=progress)
-        verifier.confusable, verifier.look_alikes = confusion.values, confusion.look_alikes
+        learn_confusion(method, maps, resources, verifier, progress=progress).install(verifier)
     return verifier
 
 

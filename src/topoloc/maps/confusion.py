@@ -97,6 +97,10 @@ class Confusion:
                 "max": float(v.max()) if len(v) else 0.0,
                 "look_alikes": 0 if self.look_alikes is None else int(self.look_alikes.rows.shape[1])}
 
+    def install(self, verifier: Verifier) -> None:
+        """Give ``verifier`` this confusion and its look-alikes (the one way a map's confusion reaches a verifier)."""
+        verifier.confusable, verifier.look_alikes = self.values, self.look_alikes
+
     @classmethod
     def from_record(cls, values: np.ndarray, record: dict[str, Any], look_alikes: LookAlikes | None = None
                     ) -> Confusion:

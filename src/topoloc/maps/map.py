@@ -626,11 +626,11 @@ class Map:
         vspec = spec or VerificationSpec()
         if candidates is not None:
             vspec = dataclasses.replace(vspec, candidates=candidates)
-        return _policy.map_verifier(self.tours, self.place_ids, res, where=self.where, spec=vspec,
-                                    sequence=sequence,
-                                    confusable=None if self.confusion is None else self.confusion.values,
-                                    look_alikes=None if self.confusion is None else self.confusion.look_alikes,
-                                    confidence=_cal.confidence_model(self.calibration))
+        v = _policy.map_verifier(self.tours, self.place_ids, res, where=self.where, spec=vspec, sequence=sequence,
+                                 confidence=_cal.confidence_model(self.calibration))
+        if self.confusion is not None:
+            self.confusion.install(v)
+        return v
 
     def verifier_for(self, verify: bool | None, *, resources: Resources | None = None,
                      cache_dir: str | Path | None = None, sequence: int = 0, spec: VerificationSpec | None = None,

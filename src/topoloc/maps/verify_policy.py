@@ -29,7 +29,7 @@ from topoloc.resources import Resources
 from topoloc.spec import VerificationSpec
 from topoloc.spec.parts import VerifyChoice, choose_verify
 from topoloc.spec.setup import build_verifier
-from topoloc.verification import ConfidenceModel, LookAlikes, Verifier
+from topoloc.verification import ConfidenceModel, Verifier
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,6 @@ def settle(choice: VerifyChoice, why_not: str, *, where: str) -> bool:
 
 def map_verifier(tours: Sequence[dict[str, Any]], place_ids: np.ndarray, resources: Resources, *,
                  where: str, spec: VerificationSpec | None = None, sequence: int = 0,
-                 confusable: np.ndarray | None = None, look_alikes: LookAlikes | None = None,
                  confidence: ConfidenceModel | None = None) -> Verifier:
     """The verification stage against a map of these tour records (:func:`verification_tours`).
 
@@ -166,8 +165,7 @@ def map_verifier(tours: Sequence[dict[str, Any]], place_ids: np.ndarray, resourc
         One line when no image of the map can be used.
     """
     return build_verifier(spec or VerificationSpec(), place_ids, verification_tours(tours, where=where), resources,
-                          what=where, sequence=sequence, confusable=confusable, look_alikes=look_alikes,
-                          confidence=confidence)
+                          what=where, sequence=sequence, confidence=confidence)
 
 
 def verification_info(tours: Sequence[dict[str, Any]], features: FeatureConfig,

@@ -37,7 +37,7 @@ from topoloc.methods.base import PlaceRecognizer, parse_param
 from topoloc.progress import ProgressFactory
 from topoloc.resources import CachedResources, Resources
 from topoloc.spec.parts import VerificationSpec, VocabularySpec
-from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, LookAlikes, Verifier, default_candidates
+from topoloc.verification import DEFAULT_CONFIDENCE, ConfidenceModel, Verifier, default_candidates
 from topoloc.vocabulary import Vocabulary
 from topoloc.vocabulary.vocab import VOCAB_SCHEMA
 
@@ -244,7 +244,6 @@ def unverifiable(tours: Sequence[Traverse]) -> str:
 
 def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequence[Traverse],
                    resources: Resources, *, what: str = "the map", sequence: int = 0,
-                   confusable: np.ndarray | None = None, look_alikes: LookAlikes | None = None,
                    confidence: ConfidenceModel | None = None) -> Verifier:
     """The verification stage of a run (:mod:`topoloc.verification`) over the map's tours.
 
@@ -267,10 +266,6 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     sequence : int
         The run's ``--sequence N`` (0: single images), which sets the default
         number of candidates (:func:`topoloc.verification.default_candidates`).
-    confusable : ndarray, shape (n_places,), optional
-        The map's confusion of each place (:mod:`topoloc.maps.confusion`).
-    look_alikes : LookAlikes, optional
-        Which places reached it (:mod:`topoloc.maps.confusion`).
     confidence : ConfidenceModel, optional
         Default :data:`topoloc.verification.DEFAULT_CONFIDENCE`.
 
@@ -313,8 +308,8 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     extractor = getattr(resources, "extractor", None)
     cap = getattr(getattr(extractor, "config", None), "max_features", None)
     candidates = spec.candidates if spec.candidates is not None else default_candidates(sequence)
-    return Verifier(place_images, candidates=candidates, rule=spec.rule(cap), confusable=confusable,
-                    look_alikes=look_alikes, confidence=confidence or DEFAULT_CONFIDENCE, image_names=image_names)
+    return Verifier(place_images, candidates=candidates, rule=spec.rule(cap),
+                    confidence=confidence or DEFAULT_CONFIDENCE, image_names=image_names)
 
 
 __all__ = ["build_method", "build_verifier", "make_resources", "tours_vocabulary", "unverifiable"]

@@ -403,9 +403,7 @@ class Verifier:
             if row >= 0:
                 n = int(sup[j, w])
                 # Climbs where it may be verified: past the map's confusion, or past the floor where the map keeps
-                # look-alikes, which the query's own checks may set aside (decision step 2).  Climbing from half the
-                # floor there too verified one more hard negative (voting, gp_day; bench_verification part quality
-                # run with that variant, not on the page).
+                # look-alikes, which the query's own checks may set aside (decision step 2).
                 may = n > self.confusion(row) or (self.look_alikes is not None and n >= self.rule.min_support)
                 ok = self.rule.climb > 0 and n >= self.rule.climb_from and may
                 end, is_peak = self._climb(S, j, row, n, seen, xy_q, dq) if ok else (row, True)
