@@ -100,7 +100,13 @@ ROWS: dict[str, tuple[list[Path], Path, str, int, str, tuple[str, ...]]] = {
                  ("coocmap", "bow")),
     "crowded": ([], GP, "0:8", 0, "crowded map (gardens_point day_left among 831 places of other routes) -> "
                 "night_right", ("coocmap", "bow")),
+    "crowded_alone": ([GP / "day_left"], GP / "night_right", "0:8", 0,
+                      "gardens_point day_left alone -> night_right: the crowded map's own places and queries, without "
+                      "the other routes' places (what the crowding costs)", ("coocmap", "bow")),
 }
+#: Rows that repeat another's queries (as a sequence, or on part of its map): left out of the confidence's fit
+#: and of the floor table, which would count their answers twice.
+REPEATS = ("gp_night_seq10", "crowded_alone")
 OUT_MD = RESULTS / "verification.md"
 OUT_JSON = RESULTS / "verification.json"
 OUT_PNG = RESULTS / "verification_pr.png"
@@ -367,7 +373,7 @@ def offmap(tmp: Path, pooled: dict[str, list[dict[str, np.ndarray]]]) -> dict[st
 def floor(rows: Sequence[str], tmp: Path) -> dict[str, Any]:
     """Cooc-Map's verified-right, wrong and hard negatives verified, and off-map frames verified, by the floor."""
     out: dict[str, Any] = {}
-    base: dict[str, list[Run]] = {row: runs_of(row, "coocmap", tmp) for row in rows if row != "gp_night_seq10"}
+    base: dict[str, list[Run]] = {row: runs_of(row, "coocmap", tmp) for row in rows if row not in REPEATS}
     foreign = foreign_sets("gp")
     gp_run = fit_run("coocmap", [GP / "day_left"], GP / "night_right", "0:8")
     foreign_S = {k: (np.asarray(gp_run.method.score(gp_run.method.encode(t, resources=gp_run.resources)),
@@ -404,7 +410,7 @@ def confidence(pooled: dict[str, list[dict[str, np.ndarray]]]) -> dict[str, Any]
         return (np.concatenate([p["strength"] for p in parts]), np.concatenate([p["verified"] for p in parts]),
                 np.concatenate([p["right"] for p in parts]))
 
-    rows = [r for r in pooled if r != "gp_night_seq10"]
+    rows = [r for r in pooled if r not in REPEATS]
     x, v, y = stack(rows)
     model = ConfidenceModel.fit(np.log(np.maximum(x, 1e-3)), v, y, source="development data (verification.md)")
     c = model(np.log(np.maximum(x, 1e-3)), v)

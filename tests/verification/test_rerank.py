@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from topoloc.verification import candidate_rows, choose_winner, squash, verified_scores
+from topoloc.verification.rerank import rival_wins
 
 
 def _bumps(n: int, centres: list[tuple[int, float]]) -> np.ndarray:
@@ -72,3 +73,10 @@ def test_the_methods_answer_stands_against_an_as_good_as_equal_rival() -> None:
     assert choose_winner(np.array([[10, -1]]), np.array([[0, 90]])).tolist() == [0]
     with pytest.raises(ValueError):
         choose_winner(rows, np.array([[1]]))
+
+
+def test_a_rival_wins_only_above_the_floor_and_clearly_ahead() -> None:
+    assert rival_wins(82, 69, 25)  # 13 > sqrt(151) = 12.3
+    assert not rival_wins(80, 69, 25)  # 11 <= sqrt(149) = 12.2: as good
+    assert not rival_wins(24, 12, 25)  # clearly ahead, but below the floor
+    assert rival_wins(25, 12, 25)

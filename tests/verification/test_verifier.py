@@ -172,6 +172,25 @@ def test_a_distinct_peak_with_clearly_more_support_wins() -> None:
     assert b.answer.tolist() == [15] and b.verified.tolist() == [True] and int(b.S[:, 0].argmax()) == 15
 
 
+def test_a_rival_as_good_as_the_answer_takes_it_where_its_peak_clearly_has_more_support() -> None:
+    """The method's best place and a rival have as good as the same inliers; the rival's neighbour has far more."""
+    def answer(s_rival_peak: int, s_best: int = 50, s_rival: int = 48) -> tuple[int, bool]:
+        support = [8] * 20
+        support[3], support[15], support[16] = s_best, s_rival, s_rival_peak
+        q, places = route(support, seed=11)
+        b = verifier(places).verify(column(20, 3, 15), [q])
+        assert b.candidates[0, :2].tolist() == [3, 15]
+        return int(b.answer[0]), bool(b.verified[0])
+
+    assert answer(75) == (16, True)  # 75 - 50 > sqrt(125): the rival's peak is the answer
+    assert answer(55) == (3, True)  # 55 - 50 <= sqrt(105): as good; the method's best place stands
+    # Below the floor one standard deviation is no evidence: a rival's peak of 24 against 12 moves nothing.
+    floor = VerificationRule().min_support
+    assert answer(floor - 1, s_best=16, s_rival=20) == (3, False)
+    # A rival the answer tells apart (far fewer inliers) is not followed at all.
+    assert answer(75, s_rival=20) == (3, True)
+
+
 def test_a_query_or_a_place_without_features_is_an_answer_never_an_error() -> None:
     q, places = route([30, 30, 30], seed=5)
     empty = FeatureSet(keypoints=np.zeros((0, 5), np.float32), descriptors=np.zeros((0, 32), np.float32),

@@ -81,8 +81,8 @@ FLOOR_FEATURES: Final = 1000
 #: Steps an answer may move along the route to the peak of the evidence (decision step 3).
 CLIMB: Final = 3
 
-#: RANSAC iterations per candidate: they bound the stage's time on wrong pairs, which run all of them
-#: (verification.md, part ``knobs``).
+#: RANSAC iterations per candidate: they bound the stage's time on wrong pairs, which run all of them (each
+#: candidate is fitted in full: ``docs/protocol.md``, "Verification", step 4).
 DEFAULT_MAX_ITERS: Final = 1000
 
 
@@ -325,7 +325,7 @@ class ConfidenceModel:
 #: Fitted on the development data's Cooc-Map answers, every set pooled (gardens_point day and night, the webcams,
 #: michigan_seasons, the crowded map, and frames of no mapped place against a gardens_point and a webcam map:
 #: 2,422 answers; verification.md, part ``confidence``, which also scores it leaving each set out).
-DEFAULT_CONFIDENCE = ConfidenceModel(a=3.699, b=3.03, c=2.616, on="strength",
+DEFAULT_CONFIDENCE = ConfidenceModel(a=3.649, b=3.047, c=2.495, on="strength",
                                      source="development data (verification.md)")
 
 

@@ -13,7 +13,8 @@ For each query column it takes the candidates (the best places of the
 
 then it chooses the answer (:func:`~topoloc.verification.rerank.choose_winner`, by
 inliers), follows the support along the route to its peak (the answer's route
-neighbours are checked the same way), checks the query against the answer's
+neighbours are checked the same way), as it follows a rival as good as the answer
+(:func:`~topoloc.verification.rerank.rival_wins`), checks the query against the answer's
 look-alikes where the map's confusion alone would refuse it
 (:func:`~topoloc.verification.decision.query_confusion`) and decides
 (:func:`~topoloc.verification.decision.verified`).
@@ -38,6 +39,7 @@ from topoloc.verification.decision import (
     VerificationRule,
     query_confusion,
     strength,
+    tells_apart,
     verified,
 )
 from topoloc.verification.pairs import (
@@ -48,7 +50,7 @@ from topoloc.verification.pairs import (
     mutual_matches,
     prepare_descriptors,
 )
-from topoloc.verification.rerank import candidate_rows, choose_winner, verified_scores
+from topoloc.verification.rerank import candidate_rows, choose_winner, rival_wins, verified_scores
 
 #: Places seen by more tours than this choose the image to check from the query's strongest features first.
 FULL_MATCH_IMAGES = 1
@@ -352,6 +354,16 @@ class Verifier:
         with _one_blas_thread():
             return self._verify(S, queries)
 
+    def _settle(self, S: np.ndarray, j: int, row: int, n: int, seen: dict[int, Check], xy_q: np.ndarray,
+                dq: np.ndarray) -> tuple[int, bool]:
+        """Candidate ``row`` of support ``n`` followed to the peak of its support where it may be verified there."""
+        # Climbs where it may be verified: past the map's confusion, or past the floor where the map keeps
+        # look-alikes, which the query's own checks may set aside (decision step 2).
+        may = n > self.confusion(row) or (self.look_alikes is not None and n >= self.rule.min_support)
+        if self.rule.climb > 0 and n >= self.rule.climb_from and may:
+            return self._climb(S, j, row, n, seen, xy_q, dq)
+        return row, True
+
     def _climb(self, S: np.ndarray, j: int, row: int, n: int, seen: dict[int, Check],
                xy_q: np.ndarray, dq: np.ndarray) -> tuple[int, bool]:
         """The answer followed along the route to the peak of its support: (row, whether it is a peak)."""
@@ -401,12 +413,16 @@ class Verifier:
             w = int(choose_winner(rows[j:j + 1], inl[None, :])[0])
             row = int(rows[j, w])
             if row >= 0:
-                n = int(sup[j, w])
-                # Climbs where it may be verified: past the map's confusion, or past the floor where the map keeps
-                # look-alikes, which the query's own checks may set aside (decision step 2).
-                may = n > self.confusion(row) or (self.look_alikes is not None and n >= self.rule.min_support)
-                ok = self.rule.climb > 0 and n >= self.rule.climb_from and may
-                end, is_peak = self._climb(S, j, row, n, seen, xy_q, dq) if ok else (row, True)
+                end, is_peak = self._settle(S, j, row, int(sup[j, w]), seen, xy_q, dq)
+                # A rival as good as the winner is followed to the peak of its support too (rerank, "the winner").
+                first = w
+                for c, r in enumerate(rows[j]):
+                    if (c == first or r < 0 or sup[j, c] < self.rule.climb_from
+                            or tells_apart(float(inl[first]), float(inl[c]))):
+                        continue
+                    e, p = self._settle(S, j, int(r), int(sup[j, c]), seen, xy_q, dq)
+                    if rival_wins(seen[e][0].support, seen[end][0].support, self.rule.min_support):
+                        end, is_peak, w = e, p, c
                 # The answer is that candidate (moved to the peak of its support where it climbed), verified or
                 # not: checking the candidates reranks them; only a verified one is raised above every unverified.
                 n_end = seen[end][0].support
