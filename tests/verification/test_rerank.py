@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from topoloc.verification import candidate_rows, choose_winner, squash, verified_scores
-from topoloc.verification.rerank import rival_wins
+from topoloc.verification.rerank import rival_wins, rivals
 
 
 def _bumps(n: int, centres: list[tuple[int, float]]) -> np.ndarray:
@@ -80,3 +80,13 @@ def test_a_rival_wins_only_above_the_floor_and_clearly_ahead() -> None:
     assert not rival_wins(80, 69, 25)  # 11 <= sqrt(149) = 12.2: as good
     assert not rival_wins(24, 12, 25)  # clearly ahead, but below the floor
     assert rival_wins(25, 12, 25)
+
+
+def test_rivals_are_the_other_candidates_as_good_in_inliers_with_support_to_climb() -> None:
+    rows = np.array([40, 12, 77, -1])
+    inliers = np.array([108, 107, 60, -1])
+    support = np.array([69, 70, 30, 0])
+    assert rivals(rows, inliers, support, 0, 12) == [1]  # 77: 48 fewer inliers, told apart
+    assert rivals(rows, inliers, np.array([69, 11, 30, 0]), 0, 12) == []  # support below climb_from
+    assert rivals(rows, inliers, support, 1, 12) == [0]  # relative to whichever candidate won
+    assert rivals(rows, np.array([50, 48, 45, 47]), support, 0, 12) == [1, 2]  # row -1 is never a rival

@@ -20,16 +20,14 @@ The winner (:func:`choose_winner`)
     candidates; whether it is verified is the decision's, on distinctive ones.  The answer may then move
     along the route to the peak of the support (:mod:`topoloc.verification.decision`).  A candidate the
     winner does not tell apart (a *rival*, ``n_w - n_c <= sqrt(n_w + n_c)`` in inliers) whose support
-    reaches half the floor is followed to the peak of its own support too, and takes the answer where its
-    peak's support ``m_c`` reaches the floor and clearly exceeds the answer's ``m_w``
+    reaches half the floor (:func:`rivals`) is followed to the peak of its own support too, and takes the
+    answer where its peak's support ``m_c`` reaches the floor and clearly exceeds the answer's ``m_w``
     (:func:`rival_wins`: ``m_c - m_w > sqrt(m_c + m_w)``): the candidates are places the method ranked
-    best, and the place the query shares most with may lie a step or two beside any of them (on
-    gardens_point by day, bag of words: the method's best place, 7 from the query, has 108 inliers and
-    its rival 107, but the rival's neighbour, the query's own place, has 82 distinctive inliers against
-    69; AUC / R@100P / R@1 with verification 0.968 / 0.80 / 0.97 on ``docs/results/verification.md`` as of
-    commit ddb24280, 0.990 / 0.99 / 0.99 now, part ``quality``).  Rivals whose peak stays below the floor
-    do not move the answer: among counts that small one standard deviation is no evidence (letting them
-    move it moved some webcam answers to wrong places).
+    best, and the place the query shares most with may lie a step or two beside any of them (gardens_point
+    by day, bag of words: AUC / R@100P / R@1 with verification 0.968 / 0.80 / 0.97 on
+    ``docs/results/verification.md`` as of commit ddb24280, 0.990 / 0.99 / 0.99 now, part ``quality``).
+    A rival whose peak stays below the floor does not move the answer: between counts that small one
+    standard deviation is no evidence.
 
 Verified scores (``docs/protocol.md``, "Verification")
     With ``g(s) = 1/2 + arctan(s)/pi`` a map of any real score into (0, 1) that
@@ -146,6 +144,32 @@ def choose_winner(rows: np.ndarray, support: np.ndarray) -> np.ndarray:
     return np.where(keep, 0, w).astype(np.int64)
 
 
+def rivals(rows: np.ndarray, inliers: np.ndarray, support: np.ndarray, winner: int, climb_from: int) -> list[int]:
+    """The candidates of one query that are the winner's rivals (module docstring, "the winner").
+
+    Parameters
+    ----------
+    rows : ndarray of int64, shape (k,)
+        The query's candidates (:func:`candidate_rows`; row -1 = none).
+    inliers, support : ndarray of int, shape (k,)
+        Each candidate's inliers and support (distinctive inliers).
+    winner : int
+        The index of the winner (:func:`choose_winner`).
+    climb_from : int
+        The support from which a candidate climbs (:attr:`topoloc.verification.VerificationRule.climb_from`).
+
+    Returns
+    -------
+    list of int
+        Indices in ``0..k-1``, in candidate order: every other candidate the winner does not tell apart in
+        inliers whose support reaches ``climb_from``.
+    """
+    n = np.asarray(inliers, np.float64)
+    ok = ((np.asarray(rows) >= 0) & (np.asarray(support) >= climb_from) & ~tells_apart(n[winner], n)
+          & (np.arange(len(n)) != winner))
+    return [int(c) for c in np.flatnonzero(ok)]
+
+
 def rival_wins(n_rival: int, n_answer: int, floor: int) -> bool:
     """Whether a rival's peak takes the answer (module docstring, "the winner").
 
@@ -209,4 +233,4 @@ def verified_scores(S: np.ndarray, answer: np.ndarray, is_verified: np.ndarray, 
     return out.astype(np.float32)
 
 
-__all__ = ["REACH", "candidate_rows", "choose_winner", "rival_wins", "squash", "verified_scores"]
+__all__ = ["REACH", "candidate_rows", "choose_winner", "rival_wins", "rivals", "squash", "verified_scores"]

@@ -39,7 +39,6 @@ from topoloc.verification.decision import (
     VerificationRule,
     query_confusion,
     strength,
-    tells_apart,
     verified,
 )
 from topoloc.verification.pairs import (
@@ -50,7 +49,7 @@ from topoloc.verification.pairs import (
     mutual_matches,
     prepare_descriptors,
 )
-from topoloc.verification.rerank import candidate_rows, choose_winner, rival_wins, verified_scores
+from topoloc.verification.rerank import candidate_rows, choose_winner, rival_wins, rivals, verified_scores
 
 #: Places seen by more tours than this choose the image to check from the query's strongest features first.
 FULL_MATCH_IMAGES = 1
@@ -415,12 +414,8 @@ class Verifier:
             if row >= 0:
                 end, is_peak = self._settle(S, j, row, int(sup[j, w]), seen, xy_q, dq)
                 # A rival as good as the winner is followed to the peak of its support too (rerank, "the winner").
-                first = w
-                for c, r in enumerate(rows[j]):
-                    if (c == first or r < 0 or sup[j, c] < self.rule.climb_from
-                            or tells_apart(float(inl[first]), float(inl[c]))):
-                        continue
-                    e, p = self._settle(S, j, int(r), int(sup[j, c]), seen, xy_q, dq)
+                for c in rivals(rows[j], inl, sup[j], w, self.rule.climb_from):
+                    e, p = self._settle(S, j, int(rows[j, c]), int(sup[j, c]), seen, xy_q, dq)
                     if rival_wins(seen[e][0].support, seen[end][0].support, self.rule.min_support):
                         end, is_peak, w = e, p, c
                 # The answer is that candidate (moved to the peak of its support where it climbed), verified or
