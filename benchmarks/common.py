@@ -54,9 +54,26 @@ PAIRS: dict[str, tuple[list[Path], Path, list[Path], str]] = {
 }
 
 
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The processor's model name (Linux's ``/proc/cpuinfo``), or the platform's processor string, or ""."""
+    with contextlib.suppress(OSError):
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and value.strip():
+                return value.strip()
+    return platform.processor()
+
+
 def machine_line() -> str:
-    """The machine a result was measured on, as results pages name it: architecture, cores, Python."""
-    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    """The machine a result was measured on, as results pages name it: architecture and processor, cores, Python.
+
+    The processor is named because the same benchmark differs by more than its noise between machines of one
+    architecture (an AMD EPYC without AVX-512 ran the verification stage 1.4x slower than the machine before it:
+    verification.md, part ``speed``, on each).
+    """
+    model = cpu_model()
+    arch = f"{platform.machine()} ({model})" if model else platform.machine()
+    return f"{arch}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def write_results(md: Path, js: Path, res: dict[str, Any], text: str) -> None:

@@ -144,3 +144,17 @@ def test_write_results_writes_the_page_and_its_measurements(common: ModuleType, 
     assert json.loads((tmp_path / "page.json").read_text()) == res
     assert (tmp_path / "page.md").read_text() == "# page\n\nbody\n"
     assert "page.md" in capsys.readouterr().out
+
+
+def test_the_machine_line_names_the_processor_model_from_cpuinfo(common: ModuleType, tmp_path: Path) -> None:
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 7B13\n\n"
+                    "processor\t: 1\nmodel name\t: AMD EPYC 7B13\n")
+    assert common.cpu_model(info) == "AMD EPYC 7B13"
+    info.write_text("processor\t: 0\nmodel name\t:   \n")  # an empty model name is no model name
+    assert common.cpu_model(info) == common.platform.processor()
+    assert common.cpu_model(tmp_path / "missing") == common.platform.processor()
+    line = common.machine_line()
+    assert line.startswith(common.platform.machine()) and "cores, Python" in line
+    model = common.cpu_model()
+    assert (f"({model})" in line) == bool(model)

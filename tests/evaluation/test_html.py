@@ -245,6 +245,11 @@ def open_page(html_path: Path, profile: Path, screenshot: Path, browser: str, n_
         seen["opened_counts"] = [js(f"document.querySelector('#run{k} .counts').textContent") for k in range(n_runs)]
         seen["slider_max"] = js("Number(document.querySelector('#run0 input.thr').max)")
         seen["cards_before"] = js("document.querySelectorAll('#cards0 .card').length")
+        # Cards whose pictures run past their border (into the next card), and the most pictures a card holds.
+        seen["cards_overflowing"] = js("Array.from(document.querySelectorAll('.card'))"
+                                       ".filter(c => c.scrollWidth > c.clientWidth + 1).length")
+        seen["most_figures"] = js("Math.max(...Array.from(document.querySelectorAll('.card'))"
+                                  ".map(c => c.querySelectorAll('figure').length))")
         seen["images"] = js("Array.from(document.images).filter(i => i.naturalWidth > 0).length")
         js("(() => { const s = document.querySelector('#run0 input.thr'); s.value = s.max;"
            " s.dispatchEvent(new Event('input', {bubbles: true})); })()")
@@ -326,6 +331,9 @@ def test_page_in_headless_chromium(runs: tuple[Path, Path, Path], tmp_path: Path
     assert seen["ready"] == "1"
     assert seen["images"] > 10  # thumbnails and the matrix decoded
     assert seen["cards_before"] > 0
+    # Every card holds its pictures, four included (the method's top answer in the ignored band).
+    assert seen["most_figures"] == 4, seen["most_figures"]
+    assert seen["cards_overflowing"] == 0, seen["cards_overflowing"]
     # Moving the threshold changes what is counted: nothing accepted at the top, everything at the bottom.
     assert seen["at_max"] != seen["at_min"] != seen["before"] or seen["at_max"] != seen["at_min"]
     n = len(np.load(a / "queries.npy"))
