@@ -1,6 +1,6 @@
 """Regenerate docs/results/verification.md (+ .json, verification_pr.png): what `verified` means, measured.
 
-    .venv/bin/python -m benchmarks.bench_verification [--parts quality,offmap,floor,confidence,speed,localize,slam]
+    .venv/bin/python -m benchmarks.bench_verification [--parts quality,offmap,floor,caps,confidence,speed,localize,slam]
         [--rows gp_day,...] [--methods coocmap,...]
 
 Every setting is a default (XFeat features, the vocabulary trained on the map's tours, verification's own
@@ -27,6 +27,9 @@ Parts:
   ``localize`` as it runs by default).
 - ``floor``: the support floor (``--min-support``; the default 25 was chosen here) swept, Cooc-Map:
   verified-right, wrong and hard negatives verified per set, off-map frames verified.
+- ``caps``: the same at 500, 1000 and 2000 features per image (``--max-features``) on gardens_point by day, at
+  night (two day tours, and the one day tour of the crowded map), with the floor a cap-proportional rule
+  would give: whether the floor should follow the feature cap.
 - ``confidence``: the confidence model fitted on every set's answers pooled, the frames of no mapped
   place among them (all wrong; the defaults in ``topoloc.verification.decision``), its reliability
   (confidence against the fraction right, by bins), and the same fitted leaving each set out, scored on
@@ -44,6 +47,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -81,6 +85,7 @@ from topoloc.resources import Resources
 from topoloc.spec import FeatureSpec, GroundTruthSpec, VerificationSpec, VocabularySpec
 from topoloc.spec.setup import build_method, build_verifier, make_resources
 from topoloc.verification import DEFAULT_CANDIDATES, ConfidenceModel, VerifiedBlock, Verifier, decision
+from topoloc.verification.pairs import MIN_SAMPLE
 
 FEATURES = "xfeat"
 SEQUENCE = 10
@@ -134,12 +139,15 @@ class Run:
 
 
 def fit_run(method_name: str, maps: Sequence[Path | Traverse], query: Path | Traverse, tolerance: str,
-            sequence: int = 0, spec: VerificationSpec | None = None) -> Run:
-    """As ``topoloc evaluate --verify`` with defaults: fit, score, the verification stage with the map's confusion."""
+            sequence: int = 0, spec: VerificationSpec | None = None, max_features: int | None = None) -> Run:
+    """As ``topoloc evaluate --verify`` with defaults (``--max-features`` where given): fit, score, the verification
+    stage with the map's confusion."""
     tours = [m if isinstance(m, Traverse) else load_traverse(m) for m in maps]
     q = query if isinstance(query, Traverse) else load_traverse(query)
     method = build_method(method_name, {})
-    res, _ = make_resources(FeatureSpec(method=FEATURES).config(), VocabularySpec(),
+    features = FeatureSpec(method=FEATURES) if max_features is None else FeatureSpec(method=FEATURES,
+                                                                                     max_features=max_features)
+    res, _ = make_resources(features.config(), VocabularySpec(),
                             needs_vocabulary=f"method {method_name!r}" if method.uses_vocabulary else "", tours=tours)
     method.fit(tours, resources=res)
     S = np.asarray(method.score(method.encode(q, resources=res)), np.float32)
@@ -159,15 +167,21 @@ def _only(S: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
+def judge_answers(run: Run) -> tuple[VerifiedBlock, VerifiedBlock, np.ndarray]:
+    """A run's answers verified, its hard negatives verified (each query against its best place outside the
+    tolerance), and whether each answer lies within the tolerance."""
+    S, gt, v, qf = run.S, run.gt, run.verifier, run.features
+    block = v.verify(S, qf)
+    hard = v.verify(np.where(gt.soft, -np.inf, S), qf)
+    return block, hard, gt.soft[block.answer, np.arange(S.shape[1])]
+
+
 def judge(run: Run) -> dict[str, Any]:
     """Verification of a run: its answers, its hard negatives and the fixed pairs GV-Bench scores."""
     S, gt, v, qf = run.S, run.gt, run.verifier, run.features
-    block = v.verify(S, qf)
+    block, hard, within = judge_answers(run)
     cols = np.arange(S.shape[1])
-    within = gt.soft[block.answer, cols]
     has = gt.hard.any(axis=0)
-    hard_S = np.where(gt.soft, -np.inf, S)
-    hard = v.verify(hard_S, qf)
     best = S.argmax(axis=0)
     outside = np.where(gt.soft, -np.inf, S).argmax(axis=0)
     fixed_best = v.verify(_only(S, best), qf)
@@ -239,15 +253,16 @@ def crowded(tmp: Path) -> tuple[Path, Path]:
     return d / "map", d / "q"
 
 
-def runs_of(row: str, method: str, tmp: Path, spec: VerificationSpec | None = None) -> list[Run]:
+def runs_of(row: str, method: str, tmp: Path, spec: VerificationSpec | None = None,
+            max_features: int | None = None) -> list[Run]:
     maps, query, tol, seq, _, _ = ROWS[row]
     if row == "michigan":
         visits = sorted(p for p in MICHIGAN.glob("m*") if p.is_dir())
-        return [fit_run(method, [v for v in visits if v != q], q, tol, 0, spec) for q in visits]
+        return [fit_run(method, [v for v in visits if v != q], q, tol, 0, spec, max_features) for q in visits]
     if row == "crowded":
         cmap, cq = crowded(tmp)
-        return [fit_run(method, [cmap], cq, tol, 0, spec)]
-    return [fit_run(method, maps, query, tol, seq, spec)]
+        return [fit_run(method, [cmap], cq, tol, 0, spec, max_features)]
+    return [fit_run(method, maps, query, tol, seq, spec, max_features)]
 
 
 def quality(rows: Sequence[str], methods: Sequence[str], tmp: Path,
@@ -370,32 +385,69 @@ def offmap(tmp: Path, pooled: dict[str, list[dict[str, np.ndarray]]]) -> dict[st
 
 
 # ------------------------------------------------------------------------------------------------ the floor
+def _floor_cells(base: dict[str, list[Run]], offmap_run: Run, foreign_S: dict[str, tuple[np.ndarray, list[Any]]],
+                 value: int) -> dict[str, Any]:
+    """Verified-right, wrong and hard negatives verified per row, and off-map frames verified, at the floor
+    ``value`` (the runs' confusion kept: only the rule changes)."""
+    rule = VerificationSpec(min_support=value).rule()
+    cells: dict[str, Any] = {}
+    for row, runs in base.items():
+        vr = wrong = hard = n = 0
+        for r in runs:
+            r.verifier.rule = rule
+            b, h, within = judge_answers(r)
+            vr += int((b.verified & within).sum())
+            wrong += int((b.verified & ~within).sum())
+            hard += int(h.verified.sum())
+            n += b.S.shape[1]
+        cells[row] = {"verified_right": round(vr / n, 3), "wrong": wrong, "hard": hard}
+    offmap_run.verifier.rule = rule
+    cells["offmap"] = sum(int(offmap_run.verifier.verify(S, f).verified.sum()) for S, f in foreign_S.values())
+    return cells
+
+
+def _foreign_scores(run: Run) -> dict[str, tuple[np.ndarray, list[Any]]]:
+    """The frames of no place of a gardens_point map (:func:`foreign_sets`) scored by ``run``'s method, with their
+    features."""
+    return {k: (np.asarray(run.method.score(run.method.encode(t, resources=run.resources)), np.float32),
+                run.resources.features(t, timed=False)) for k, t in foreign_sets("gp").items()}
+
+
 def floor(rows: Sequence[str], tmp: Path) -> dict[str, Any]:
     """Cooc-Map's verified-right, wrong and hard negatives verified, and off-map frames verified, by the floor."""
     out: dict[str, Any] = {}
     base: dict[str, list[Run]] = {row: runs_of(row, "coocmap", tmp) for row in rows if row not in REPEATS}
-    foreign = foreign_sets("gp")
     gp_run = fit_run("coocmap", [GP / "day_left"], GP / "night_right", "0:8")
-    foreign_S = {k: (np.asarray(gp_run.method.score(gp_run.method.encode(t, resources=gp_run.resources)),
-                                np.float32), gp_run.resources.features(t, timed=False)) for k, t in foreign.items()}
+    foreign_S = _foreign_scores(gp_run)
     for value in FLOORS:
-        rule = VerificationSpec(min_support=value).rule(1000)
-        cells: dict[str, Any] = {}
-        for row, runs in base.items():
-            vr = wrong = hard = n = 0
-            for r in runs:
-                r.verifier.rule = rule
-                j = judge(r)
-                b = j["block"]
-                vr += int((b.verified & j["within"]).sum())
-                wrong += int((b.verified & ~j["within"]).sum())
-                hard += int(j["hard"].verified.sum())
-                n += b.S.shape[1]
-            cells[row] = {"verified_right": round(vr / n, 3), "wrong": wrong, "hard": hard}
-        gp_run.verifier.rule = rule
-        cells["offmap"] = sum(int(gp_run.verifier.verify(S, f).verified.sum()) for S, f in foreign_S.values())
-        out[str(value)] = cells
-        print(f"floor {value}: {cells}", flush=True)
+        out[str(value)] = _floor_cells(base, gp_run, foreign_S, value)
+        print(f"floor {value}: {out[str(value)]}", flush=True)
+    return out
+
+
+#: Features per image (``--max-features``) the floor is measured at in part ``caps``, and the rows measured.
+CAPS = (500, 1000, 2000)
+CAP_ROWS = ("gp_day", "gp_night", "crowded_alone")
+#: ... and the floors (beside the one in proportion to the cap).
+CAP_FLOORS = (20, 25, 30)
+
+
+def caps(tmp: Path) -> dict[str, Any]:
+    """The floor table at other feature caps: whether the support chance reaches follows ``--max-features``.
+
+    At each cap every method's input changes (features, the vocabulary trained on them, the map's confusion);
+    the floors are :data:`CAP_FLOORS` and the one a floor in proportion to the cap would give (25 x cap / 1000).
+    Off-map frames are checked against the map of ``crowded_alone`` (gardens_point day_left).
+    """
+    out: dict[str, Any] = {}
+    for cap in CAPS:
+        base = {row: runs_of(row, "coocmap", tmp, max_features=cap) for row in CAP_ROWS}
+        offmap_run = base["crowded_alone"][0]
+        foreign_S = _foreign_scores(offmap_run)
+        proportional = max(MIN_SAMPLE + 1, math.ceil(decision.MIN_SUPPORT * cap / 1000))
+        cells = {str(v): _floor_cells(base, offmap_run, foreign_S, v) for v in sorted({*CAP_FLOORS, proportional})}
+        out[str(cap)] = {"proportional": proportional, "floors": cells}
+        print(f"features {cap}: {cells}", flush=True)
     return out
 
 
@@ -554,7 +606,8 @@ def render(res: dict[str, Any]) -> str:
         "look-alike the query itself has clearly less support at does not count), "
         "and no route neighbour has more (`docs/protocol.md`, \"Verification\"). Every setting is a default "
         "and the features are XFeat; the data are the development split (`../shared/data`), on which every "
-        f"default was chosen: the floor of {decision.MIN_SUPPORT} (part `floor`), the distinctive-match "
+        f"default was chosen: the floor of {decision.MIN_SUPPORT} (part `floor`) at any feature cap (part "
+        "`caps`), the distinctive-match "
         f"ratio {decision.RATIO}, {DEFAULT_CANDIDATES} candidates, the climb from half the floor (on part "
         "`quality`'s verified-right, against this page as of commit 857fafc3, which climbed from the "
         "floor), the look-alikes the query is checked against (on part `quality`'s verified-right, against "
@@ -626,6 +679,24 @@ def render(res: dict[str, Any]) -> str:
                 f"{cells[s]['verified_right']:.2f} / {cells[s]['wrong']} / {cells[s]['hard']}" for s in sets)
                 + f" | {cells['offmap']} |")
         lines.append("")
+    ca = res.get("caps")
+    if ca:
+        sets = list(CAP_ROWS)
+        lines += ["## The floor and the feature cap (Cooc-Map)", "",
+                  "The floor table at 500, 1000 and 2000 features per image (`--max-features`; every input follows: "
+                  "the features, the vocabulary trained on them, the map's confusion): verified-right / wrong "
+                  "verified / hard negatives verified per set, and off-map frames verified against the map of "
+                  "`crowded_alone`. *proportional*: the floor a rule in proportion to the cap gives "
+                  "(25 x features / 1000).", "",
+                  "| features | floor | " + " | ".join(sets) + " | off-map verified |",
+                  "| --- | --- |" + " --- |" * (len(sets) + 1)]
+        for cap, c in ca.items():
+            for value, cells in c["floors"].items():
+                tag = " (proportional)" if int(value) == c["proportional"] else ""
+                lines.append(f"| {cap} | {value}{tag} | " + " | ".join(
+                    f"{cells[s]['verified_right']:.2f} / {cells[s]['wrong']} / {cells[s]['hard']}" for s in sets)
+                    + f" | {cells['offmap']} |")
+        lines.append("")
     co = res.get("confidence")
     if co:
         f = co["fitted"]
@@ -675,7 +746,7 @@ def render(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-PARTS = ("quality", "offmap", "floor", "confidence", "speed", "localize", "slam")
+PARTS = ("quality", "offmap", "floor", "caps", "confidence", "speed", "localize", "slam")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -720,6 +791,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             res["confidence"] = confidence(pooled)
         if "floor" in parts:
             res["floor"] = floor(rows, tmp)
+        if "caps" in parts:
+            res["caps"] = caps(tmp)
         if "speed" in parts:
             res["speed"] = speed(tmp)
         if "localize" in parts:

@@ -26,6 +26,14 @@ def test_the_command_lines_floor_is_the_libraries() -> None:
     assert DEFAULT_MIN_SUPPORT == MIN_SUPPORT
 
 
+def test_the_floor_is_the_same_at_any_feature_cap(cli: Cli, rf: dict[str, Path], tmp_path: Path) -> None:
+    # The support chance reaches does not follow --max-features (verification.md, part caps): a floor in proportion
+    # to the cap would be 8 here at 200 features and 200 at 2000.
+    for cap in (200, 2000):
+        m = _evaluate(cli, rf, tmp_path / f"cap{cap}", "--verify", "--max-features", str(cap), "--min-support", "100")
+        assert m["verification"]["min_support"] == 100, cap
+
+
 def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: Cli, rf: dict[str, Path],
                                                                            tmp_path: Path) -> None:
     m = _evaluate(cli, rf, tmp_path / "v", "--verify")
@@ -168,6 +176,27 @@ def test_topoloc_verify_comes_before_the_maps_record_and_after_the_option(value:
         assert sum("calibrated without verification" in r.getMessage() for r in caplog.records) == 1
     code, _, lines = _localize(rf, tlm, tmp_path / "o.jsonl", "--no-verify")
     assert code == 0 and "verified" not in lines[0]  # the option first
+
+
+def test_localize_says_when_its_floor_is_not_the_one_the_threshold_was_calibrated_with(
+        cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    tlm, _ = _map(cli, rf, tmp_path)
+    cal = json.loads(cli.ok(["map", "calibrate", str(tlm), "--query", str(rf["morning"]), "--verify", "--sequence",
+                             "0", "-q"]))
+    assert cal["verify"] is True and cal["min_support"] == MIN_SUPPORT
+    said = "calibrated on answers verified with --min-support"
+    caplog.clear()
+    code, err, _ = _localize(rf, tlm, tmp_path / "same.jsonl")
+    assert code == 0 and not any(said in r.getMessage() for r in caplog.records), err
+    caplog.clear()
+    code, err, lines = _localize(rf, tlm, tmp_path / "other.jsonl", "--min-support", str(MIN_SUPPORT + 5))
+    assert code == 0 and lines, err
+    assert sum(said in r.getMessage() for r in caplog.records) == 1
+    caplog.clear()  # unverified, the floor plays no part
+    code, err, _ = _localize(rf, tlm, tmp_path / "plain.jsonl", "--no-verify", "--min-support", str(MIN_SUPPORT + 5))
+    assert code == 0 and not any(said in r.getMessage() for r in caplog.records), err
 
 
 @pytest.mark.parametrize("command", ["localize", "evaluate", "calibrate", "slam"])

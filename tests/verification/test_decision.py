@@ -13,7 +13,6 @@ from topoloc.verification import (
     VerificationRule,
     query_confusion,
     strength,
-    support_floor,
     tells_apart,
     verified,
 )
@@ -61,9 +60,8 @@ def test_look_alikes_are_checked_for_shape_and_slots() -> None:
         LookAlikes(np.array([[1, -1]]), np.array([[np.nan, 0.0]], np.float32))
 
 
-def test_the_floor_follows_the_feature_cap() -> None:
-    assert support_floor(20, 1000) == 20 and support_floor(20, 2000) == 40 and support_floor(20, 500) == 10
-    assert support_floor(20, 100) == 8 and support_floor(20, None) == 20  # never below the minimal sample + 1
+def test_the_rule_refuses_a_floor_below_the_minimal_sample_and_a_ratio_above_one() -> None:
+    assert VerificationRule(min_support=8).min_support == 8
     with pytest.raises(ValueError):
         VerificationRule(min_support=3)
     with pytest.raises(ValueError):

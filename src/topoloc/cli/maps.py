@@ -348,7 +348,8 @@ def localize(
     # The map file is memory-mapped while the lines are written: truncating it would kill the run.
     spec.check_outputs()
     # After the inputs are checked, so that an input error stays the only line.
-    warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
+    warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled,
+                           spec.verification.min_support)
     loc = m.localizer_for(spec)
     # Written line by line: a run that is stopped keeps every frame done so far.
     # ``--out -``: the lines on standard output (the Unix convention, for `| jq`), the summary on standard error.
@@ -408,7 +409,8 @@ def _localize_live(spec: LocalizeSpec, m: Map) -> None:
         raise TopolocError(f"{'/'.join(given)} does not apply to a camera or stream: {spec.stream}")
     spec.check_outputs()
     source = LiveSource(spec.stream)
-    warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled)
+    warn_before_localizing(m, spec.map_file, spec.sequence, spec.verification.enabled,
+                           spec.verification.min_support)
     loc = m.localizer_for(spec)
     stopped_by: list[str] = []
 

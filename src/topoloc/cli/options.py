@@ -76,9 +76,8 @@ VerifyOption = Annotated[bool | None, typer.Option(
 #: starts fast; tests/cli/test_cli_verify.py holds the two equal).
 DEFAULT_MIN_SUPPORT = 25
 MinSupportOption = Annotated[int, typer.Option(
-    "--min-support", help="Support (inliers that are distinctive matches) a verified answer needs, at 1000 features "
-                          "per image (scaled to --max-features); chosen on the development data (docs/protocol.md, "
-                          "Verification).")]
+    "--min-support", help="Support (inliers that are distinctive matches) a verified answer needs, at any "
+                          "--max-features; chosen on the development data (docs/protocol.md, Verification).")]
 ConfirmOption = Annotated[bool, typer.Option(
     "--confirm/--no-confirm", help="Temporal consistency: an answer the previous frame's does not confirm ranks below "
                                    "every confirmed one (docs/protocol.md, Verification; off by default).")]

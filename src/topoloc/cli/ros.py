@@ -66,8 +66,8 @@ def node_command(
     verify_candidates: Annotated[int | None, typer.Option(
         help="Distinct peaks verified per frame (default: as localize).")] = None,
     min_support: Annotated[int | None, typer.Option(
-        "--min-support", help="Support a verified answer needs at 1000 features per image (default: as "
-                              "localize).")] = None,
+        "--min-support", help="Support (inliers that are distinctive matches) a verified answer needs "
+                              "(default: as localize).")] = None,
     confirm: Annotated[bool | None, typer.Option(
         "--confirm/--no-confirm", help="Temporal consistency of the answers (default off).")] = None,
     config: ConfigOption = None,

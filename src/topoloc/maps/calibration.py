@@ -47,6 +47,12 @@ def calibrated_verify(calibration: dict[str, Any] | None) -> bool | None:
     return bool(cal["verify"]) if "verify" in cal else None
 
 
+def calibrated_min_support(calibration: dict[str, Any] | None) -> int | None:
+    """The support floor the calibration's answers were verified with (None: not recorded, or not verified)."""
+    value = (calibration or {}).get("min_support")
+    return int(value) if isinstance(value, int) and not isinstance(value, bool) else None
+
+
 def is_stale(calibration: dict[str, Any] | None) -> bool:
     """Whether tours were added after the calibration (its threshold was chosen on other scores)."""
     return bool(calibration and calibration.get("stale"))
@@ -104,7 +110,7 @@ def _sweep(values: np.ndarray, right: np.ndarray, counted: np.ndarray, n_pos: in
 def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99, query: str = "",
                      ground_truth: str = "", tolerance: str = "", sequence: SequenceSpec | None = None,
                      verified: VerifiedBlock | None = None, confidence: ConfidenceModel | None = None,
-                     verify: bool | None = None) -> dict[str, Any]:
+                     verify: bool | None = None, min_support: int | None = None) -> dict[str, Any]:
     """The calibration record of a labelled tour's scores (:meth:`topoloc.maps.Map.calibrate` documents it).
 
     Without ``verified``, each query's answer is the best place of ``S`` and the
@@ -114,12 +120,13 @@ def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
     tour (:meth:`~topoloc.verification.ConfidenceModel.fit`, from ``confidence``'s
     slope where the tour has too few wrong answers to fit one) and the
     threshold is on that confidence (``threshold_on: "confidence"``).
-    ``verify`` records whether the tour's answers were verified (None: not recorded).
+    ``verify`` records whether the tour's answers were verified (None: not recorded), ``min_support`` the support
+    floor they were verified with (recorded with ``verified`` only: the confidence, and so the threshold, follow it).
 
     The record's keys (the ``calibration`` of a map file's header): ``threshold`` (null: none reached),
     ``threshold_on``, ``precision_asked``, ``precision``, ``recall``, ``query``, ``ground_truth``,
     ``tolerance``, ``n_queries``, ``n_with_right_place``, ``sequence`` (``length``, ``mode``),
-    ``confidence_model``, ``recall_of``, ``date``, ``verify``; :func:`mark_stale` adds ``stale``,
+    ``confidence_model``, ``recall_of``, ``date``, ``verify``, ``min_support``; :func:`mark_stale` adds ``stale``,
     ``stale_since`` and ``tours_added_since``.  Every reader goes through this module.
     """
     check_precision(precision)
@@ -163,6 +170,7 @@ def choose_threshold(S: np.ndarray, gt: GroundTruth, *, precision: float = 0.99,
         "recall_of": "queries with a right place in the map (n_with_right_place)",
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         **({} if verify is None else {"verify": bool(verify)}),
+        **({} if verified is None or min_support is None else {"min_support": int(min_support)}),
     }
 
 
@@ -210,6 +218,7 @@ def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: flo
 
 __all__ = [
     "accepts",
+    "calibrated_min_support",
     "calibrated_sequence",
     "calibrated_verify",
     "check_precision",

@@ -856,7 +856,8 @@ class Map:
         self.calibration = _cal.choose_threshold(
             S, gt, precision=precision, tolerance=spec.words(), sequence=sequence,
             query=label or (str(q.root) if q.kind == "files" else q.name), verified=block,
-            confidence=None if verifier is None else verifier.confidence_model, verify=verify)
+            confidence=None if verifier is None else verifier.confidence_model, verify=verify,
+            min_support=None if verifier is None else verifier.rule.min_support)
         return self.calibration
 
     def check_compatible(self, *, features: FeatureSpec | None = None, vocabulary: Vocabulary | None = None) -> None:

@@ -187,7 +187,8 @@ class NodeCore:
         assert spec.map_file is not None
         if m is None:
             m = Map.load(spec.map_file)
-        warn_before_localizing(m, spec.map_file, spec.sequence or m.calibrated_sequence, spec.verification.enabled)
+        warn_before_localizing(m, spec.map_file, spec.sequence or m.calibrated_sequence, spec.verification.enabled,
+                               spec.verification.min_support)
         return m, m.localizer_for(spec)
 
     def warm_up(self) -> None:

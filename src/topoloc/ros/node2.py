@@ -74,7 +74,7 @@ DESCRIPTIONS = {
     "sequence_mode": "constant or acceleration (with sequence).",
     "verify": "Verify each answer geometrically (unset: as localize decides).",
     "verify_candidates": "Distinct peaks verified per frame (unset: as localize).",
-    "min_support": "Support a verified answer needs at 1000 features per image.",
+    "min_support": "Support (inliers that are distinctive matches) a verified answer needs.",
     "confirm": "Temporal consistency of the answers.",
 }
 

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from topoloc.errors import ParameterError, TopolocError
-from topoloc.verification.decision import MIN_SUPPORT, VerificationRule, support_floor
+from topoloc.verification.decision import MIN_SUPPORT, VerificationRule
 
 log = logging.getLogger(__name__)
 
@@ -665,8 +665,8 @@ class VerificationSpec:
         (``docs/results/verification.md``, part ``consistency``).
     min_support : int
         The support (inliers that are distinctive matches) a verified answer
-        needs with 1000 features per image; scaled to the run's feature cap
-        (:func:`topoloc.verification.support_floor`).  Default
+        needs, at any feature cap (``docs/results/verification.md``, part
+        ``caps``).  Default
         :data:`topoloc.verification.MIN_SUPPORT`, chosen on the development data
         (``docs/results/verification.md``, part ``floor``); ``--min-support``.
     """
@@ -687,9 +687,9 @@ class VerificationSpec:
         if isinstance(self.min_support, bool) or not isinstance(self.min_support, int) or self.min_support < 8:
             raise ParameterError("verification.min_support", f"must be a whole number >= 8, got {self.min_support!r}")
 
-    def rule(self, max_features: int | None = None) -> VerificationRule:
-        """The decision's settings for images of at most ``max_features`` features."""
-        return VerificationRule(min_support=support_floor(self.min_support, max_features))
+    def rule(self) -> VerificationRule:
+        """The decision's settings."""
+        return VerificationRule(min_support=self.min_support)
 
 
 PARTS: dict[str, type] = {

@@ -259,8 +259,7 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     tours : sequence of Traverse
         The map's tours: the images of each place.
     resources : Resources
-        Where their local features come from (the run's feature settings and cache); the
-        feature cap scales the support floor (:func:`topoloc.verification.support_floor`).
+        Where their local features come from (the run's feature settings and cache).
     what : str
         Named in the error.
     sequence : int
@@ -305,10 +304,8 @@ def build_verifier(spec: VerificationSpec, place_ids: np.ndarray, tours: Sequenc
     def image_names(r: int) -> list[str]:
         return [str(tours[ti].images[k]) for ti, k in images_of(r)]
 
-    extractor = getattr(resources, "extractor", None)
-    cap = getattr(getattr(extractor, "config", None), "max_features", None)
     candidates = spec.candidates if spec.candidates is not None else default_candidates(sequence)
-    return Verifier(place_images, candidates=candidates, rule=spec.rule(cap),
+    return Verifier(place_images, candidates=candidates, rule=spec.rule(),
                     confidence=confidence or DEFAULT_CONFIDENCE, image_names=image_names)
 
 

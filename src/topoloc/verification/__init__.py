@@ -19,7 +19,6 @@ from topoloc.verification.decision import (
     VerificationRule,
     query_confusion,
     strength,
-    support_floor,
     tells_apart,
     verified,
 )
@@ -70,7 +69,6 @@ __all__ = [
     "query_confusion",
     "squash",
     "strength",
-    "support_floor",
     "tells_apart",
     "verified",
     "verified_scores",

@@ -178,7 +178,7 @@ def rival_wins(n_rival: int, n_answer: int, floor: int) -> bool:
     n_rival, n_answer : int
         The support at the rival's peak and at the answer's (distinctive inliers).
     floor : int
-        The decision's floor ``n_min`` (:func:`topoloc.verification.decision.support_floor`).
+        The decision's floor ``n_min`` (:data:`topoloc.verification.decision.MIN_SUPPORT` by default).
     """
     return n_rival >= floor and bool(tells_apart(float(n_rival), float(n_answer)))
 
