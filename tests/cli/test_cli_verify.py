@@ -39,7 +39,7 @@ def test_evaluate_verify_writes_the_stage_and_ranks_verified_answers_first(cli: 
     m = _evaluate(cli, rf, tmp_path / "v", "--verify")
     assert m["params"]["verify"] is True
     assert m["run"]["spec"]["verification"] == {"enabled": True, "candidates": None, "confirm": False,
-                                                "min_support": MIN_SUPPORT}
+                                                "min_support": None}
     v = m["verification"]
     assert v["candidates"] == 3 and 0.5 <= v["verified_fraction"] <= 1 and v["ms_per_query"] > 0
     assert v["min_support"] == MIN_SUPPORT and v["confusion"] is True and v["confidence_model"]["on"] == "strength"
@@ -178,24 +178,37 @@ def test_topoloc_verify_comes_before_the_maps_record_and_after_the_option(value:
     assert code == 0 and "verified" not in lines[0]  # the option first
 
 
-def test_localize_says_when_its_floor_is_not_the_one_the_threshold_was_calibrated_with(
+def test_the_floor_is_the_runs_else_the_calibrations_else_the_builds_and_another_is_said(
         cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture,
         monkeypatch: pytest.MonkeyPatch) -> None:
+    from topoloc.maps import Map
+
     monkeypatch.delenv("TOPOLOC_VERIFY")
-    tlm, _ = _map(cli, rf, tmp_path)
-    cal = json.loads(cli.ok(["map", "calibrate", str(tlm), "--query", str(rf["morning"]), "--verify", "--sequence",
+    tlm, tour = _map(cli, rf, tmp_path)
+    assert Map.load(tlm).verifier_for(None).rule.min_support == MIN_SUPPORT  # nothing recorded: the default
+    built = tmp_path / "b.tlm"
+    cli.ok(["map", "build", "--method", "bow", "--map", str(tour), "--vocab", str(rf["vocab"]), "--cache-dir",
+            str(rf["cache"]), "--out", str(built), "--min-support", "40", "-q"])
+    assert Map.load(built).verifier_for(None).rule.min_support == 40  # the build's
+    cal = json.loads(cli.ok(["map", "calibrate", str(built), "--query", str(rf["morning"]), "--verify", "--sequence",
                              "0", "-q"]))
-    assert cal["verify"] is True and cal["min_support"] == MIN_SUPPORT
+    assert cal["verify"] is True and cal["min_support"] == 40  # calibrated at the build's floor, recorded
+    m = Map.load(built)
+    m.spec = None  # the calibration's record alone
+    assert m.verifier_for(None).rule.min_support == 40
+    from topoloc.spec import VerificationSpec
+
+    assert m.verifier_for(None, spec=VerificationSpec(min_support=30)).rule.min_support == 30  # the run's first
     said = "calibrated on answers verified with --min-support"
     caplog.clear()
-    code, err, _ = _localize(rf, tlm, tmp_path / "same.jsonl")
+    code, err, _ = _localize(rf, built, tmp_path / "same.jsonl")
     assert code == 0 and not any(said in r.getMessage() for r in caplog.records), err
     caplog.clear()
-    code, err, lines = _localize(rf, tlm, tmp_path / "other.jsonl", "--min-support", str(MIN_SUPPORT + 5))
+    code, err, lines = _localize(rf, built, tmp_path / "other.jsonl", "--min-support", str(MIN_SUPPORT))
     assert code == 0 and lines, err
     assert sum(said in r.getMessage() for r in caplog.records) == 1
     caplog.clear()  # unverified, the floor plays no part
-    code, err, _ = _localize(rf, tlm, tmp_path / "plain.jsonl", "--no-verify", "--min-support", str(MIN_SUPPORT + 5))
+    code, err, _ = _localize(rf, built, tmp_path / "plain.jsonl", "--no-verify", "--min-support", str(MIN_SUPPORT))
     assert code == 0 and not any(said in r.getMessage() for r in caplog.records), err
 
 

@@ -12,7 +12,6 @@ import typer
 
 from topoloc.cli.app import app, bench_app, handle_errors, needs, vocab_app
 from topoloc.cli.options import (
-    DEFAULT_MIN_SUPPORT,
     CacheDirOption,
     ConfigOption,
     ConfirmOption,
@@ -74,7 +73,7 @@ def evaluate(
     sequence: SequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
-    min_support: MinSupportOption = DEFAULT_MIN_SUPPORT,
+    min_support: MinSupportOption = None,
     confirm: ConfirmOption = False,
     recall_at: Annotated[
         str, typer.Option(help="R@N to report, e.g. 1,5,10,20 (recall_at_N in metrics.json).")

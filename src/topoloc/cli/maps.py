@@ -18,7 +18,6 @@ import typer
 
 from topoloc.cli.app import app, command_group, handle_errors, needs
 from topoloc.cli.options import (
-    DEFAULT_MIN_SUPPORT,
     CacheDirOption,
     CalibrateSequenceOption,
     ConfigOption,
@@ -89,7 +88,7 @@ def map_build(
         help="Build the map as this many partial models of place ranges, one task each, merged into the "
              "same map as a one-piece build (docs/map_shards.md).")] = 1,
     verify: VerifyOption = None,
-    min_support: MinSupportOption = DEFAULT_MIN_SUPPORT,
+    min_support: MinSupportOption = None,
     scheduler: SchedulerOption = None,
     scheduler_timeout: SchedulerTimeoutOption = None,
     config: ConfigOption = None,
@@ -302,7 +301,7 @@ def localize(
     sequence: LocalizeSequenceOption = None,
     sequence_mode: SequenceModeOption = "constant",
     verify: VerifyOption = None,
-    min_support: MinSupportOption = DEFAULT_MIN_SUPPORT,
+    min_support: MinSupportOption = None,
     confirm: ConfirmOption = False,
     quiet: QuietOption = False,
     topic: TopicOption = None,

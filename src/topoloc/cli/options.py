@@ -75,9 +75,11 @@ VerifyOption = Annotated[bool | None, typer.Option(
 #: ``--min-support``'s default: :data:`topoloc.verification.MIN_SUPPORT` (not imported here, where the command line
 #: starts fast; tests/cli/test_cli_verify.py holds the two equal).
 DEFAULT_MIN_SUPPORT = 25
-MinSupportOption = Annotated[int, typer.Option(
-    "--min-support", help="Support (inliers that are distinctive matches) a verified answer needs, at any "
-                          "--max-features; chosen on the development data (docs/protocol.md, Verification).")]
+MinSupportOption = Annotated[int | None, typer.Option(
+    "--min-support", help=f"Support (inliers that are distinctive matches) a verified answer needs, at any "
+                          f"--max-features (default {DEFAULT_MIN_SUPPORT}, chosen on the development data; against "
+                          "a saved map, the floor its calibration, else its build, recorded: docs/protocol.md, "
+                          "Verification).", show_default=False)]
 ConfirmOption = Annotated[bool, typer.Option(
     "--confirm/--no-confirm", help="Temporal consistency: an answer the previous frame's does not confirm ranks below "
                                    "every confirmed one (docs/protocol.md, Verification; off by default).")]

@@ -12,6 +12,7 @@ verification stage over its tours.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,7 +23,7 @@ import numpy as np
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureConfig
-from topoloc.maps.calibration import calibrated_verify
+from topoloc.maps.calibration import calibrated_min_support, calibrated_verify
 from topoloc.maps.tour_images import TourImages, read_again
 from topoloc.maps.tours import reload_tour
 from topoloc.resources import Resources
@@ -130,6 +131,26 @@ def choice_for(asked: bool | None, *, calibration: dict[str, Any] | None, spec: 
     return choose_verify(asked, calibrated=calibrated, built=built, legacy=legacy, checks_geometry=verifies_geometry)
 
 
+def with_map_floor(spec: VerificationSpec, *, calibration: dict[str, Any] | None,
+                   built: dict[str, Any] | None) -> VerificationSpec:
+    """``spec`` with the map's support floor where the run gives none: the one precedence of the floor.
+
+    In order: the run's (``--min-support``, the ROS node's ``min_support``, a
+    configuration file's ``[verification] min_support``); the floor the
+    calibration's answers were verified with (its threshold holds for that
+    floor only: the confidence follows it); the build's (``map build
+    --min-support``); else :data:`topoloc.verification.MIN_SUPPORT`
+    (:meth:`VerificationSpec.rule`).
+    """
+    if spec.min_support is not None:
+        return spec
+    floor = calibrated_min_support(calibration)
+    if floor is None:
+        value = ((built or {}).get("verification") or {}).get("min_support")
+        floor = value if isinstance(value, int) and not isinstance(value, bool) else None
+    return spec if floor is None else dataclasses.replace(spec, min_support=floor)
+
+
 def settle(choice: VerifyChoice, why_not: str, *, where: str) -> bool:
     """Whether a run verifies, given the choice and why the map cannot (""): one rule for every caller.
 
@@ -191,4 +212,5 @@ __all__ = [
     "verification_blocker",
     "verification_info",
     "verification_tours",
+    "with_map_floor",
 ]

@@ -663,10 +663,12 @@ class VerificationSpec:
         an answer not confirmed by the previous frame's ranks below every
         confirmed one.  Off by default: it did not pay on the development data
         (``docs/results/verification.md``, part ``consistency``).
-    min_support : int
+    min_support : int or None
         The support (inliers that are distinctive matches) a verified answer
         needs, at any feature cap (``docs/results/verification.md``, part
-        ``caps``).  Default
+        ``caps``).  None (default): against a saved map, the floor its
+        calibration's answers were verified with, else the one it was built
+        with (:func:`topoloc.maps.verify_policy.with_map_floor`), else
         :data:`topoloc.verification.MIN_SUPPORT`, chosen on the development data
         (``docs/results/verification.md``, part ``floor``); ``--min-support``.
     """
@@ -674,7 +676,7 @@ class VerificationSpec:
     enabled: bool | None = None
     candidates: int | None = None
     confirm: bool = False
-    min_support: int = MIN_SUPPORT
+    min_support: int | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.confirm, bool):
@@ -684,12 +686,13 @@ class VerificationSpec:
         if self.candidates is not None and (isinstance(self.candidates, bool) or not isinstance(self.candidates, int)
                                             or self.candidates < 1):
             raise ParameterError("verification.candidates", f"must be a whole number >= 1, got {self.candidates!r}")
-        if isinstance(self.min_support, bool) or not isinstance(self.min_support, int) or self.min_support < 8:
+        if self.min_support is not None and (isinstance(self.min_support, bool) or not isinstance(self.min_support, int)
+                                             or self.min_support < 8):
             raise ParameterError("verification.min_support", f"must be a whole number >= 8, got {self.min_support!r}")
 
     def rule(self) -> VerificationRule:
-        """The decision's settings."""
-        return VerificationRule(min_support=self.min_support)
+        """The decision's settings (a floor not given: :data:`~topoloc.verification.MIN_SUPPORT`)."""
+        return VerificationRule(min_support=MIN_SUPPORT if self.min_support is None else self.min_support)
 
 
 PARTS: dict[str, type] = {
