@@ -145,8 +145,7 @@ def fit_run(method_name: str, maps: Sequence[Path | Traverse], query: Path | Tra
     tours = [m if isinstance(m, Traverse) else load_traverse(m) for m in maps]
     q = query if isinstance(query, Traverse) else load_traverse(query)
     method = build_method(method_name, {})
-    features = FeatureSpec(method=FEATURES) if max_features is None else FeatureSpec(method=FEATURES,
-                                                                                     max_features=max_features)
+    features = FeatureSpec(method=FEATURES, **({} if max_features is None else {"max_features": max_features}))
     res, _ = make_resources(features.config(), VocabularySpec(),
                             needs_vocabulary=f"method {method_name!r}" if method.uses_vocabulary else "", tours=tours)
     method.fit(tours, resources=res)
@@ -594,6 +593,12 @@ def pr_figure(q: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def _floor_row(cells: dict[str, Any], sets: Sequence[str]) -> str:
+    """One row of a floor table: verified-right / wrong / hard negatives per set, then off-map frames verified."""
+    return " | ".join([*(f"{cells[s]['verified_right']:.2f} / {cells[s]['wrong']} / {cells[s]['hard']}" for s in sets),
+                       str(cells["offmap"])])
+
+
 def render(res: dict[str, Any]) -> str:
     lines = [
         "# Verified answers: what `verified` means, measured",
@@ -675,27 +680,23 @@ def render(res: dict[str, Any]) -> str:
                   "| floor | " + " | ".join(sets) + " | off-map verified |",
                   "| --- |" + " --- |" * (len(sets) + 1)]
         for value, cells in fl.items():
-            lines.append(f"| {value} | " + " | ".join(
-                f"{cells[s]['verified_right']:.2f} / {cells[s]['wrong']} / {cells[s]['hard']}" for s in sets)
-                + f" | {cells['offmap']} |")
+            lines.append(f"| {value} | {_floor_row(cells, sets)} |")
         lines.append("")
     ca = res.get("caps")
     if ca:
         sets = list(CAP_ROWS)
         lines += ["## The floor and the feature cap (Cooc-Map)", "",
-                  "The floor table at 500, 1000 and 2000 features per image (`--max-features`; every input follows: "
-                  "the features, the vocabulary trained on them, the map's confusion): verified-right / wrong "
-                  "verified / hard negatives verified per set, and off-map frames verified against the map of "
-                  "`crowded_alone`. *proportional*: the floor a rule in proportion to the cap gives "
-                  "(25 x features / 1000).", "",
+                  f"The floor table at {', '.join(list(ca)[:-1])} and {list(ca)[-1]} features per image "
+                  "(`--max-features`; every input follows: the features, the vocabulary trained on them, the map's "
+                  "confusion): verified-right / wrong verified / hard negatives verified per set, and off-map frames "
+                  "verified against the map of `crowded_alone`. *proportional*: the floor a rule in proportion to "
+                  f"the cap gives ({decision.MIN_SUPPORT} x features / 1000).", "",
                   "| features | floor | " + " | ".join(sets) + " | off-map verified |",
                   "| --- | --- |" + " --- |" * (len(sets) + 1)]
         for cap, c in ca.items():
             for value, cells in c["floors"].items():
                 tag = " (proportional)" if int(value) == c["proportional"] else ""
-                lines.append(f"| {cap} | {value}{tag} | " + " | ".join(
-                    f"{cells[s]['verified_right']:.2f} / {cells[s]['wrong']} / {cells[s]['hard']}" for s in sets)
-                    + f" | {cells['offmap']} |")
+                lines.append(f"| {cap} | {value}{tag} | {_floor_row(cells, sets)} |")
         lines.append("")
     co = res.get("confidence")
     if co:

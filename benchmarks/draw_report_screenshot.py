@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 
 from benchmarks.common import GP, RESULTS, TOPOLOC, require_data
+from topoloc.io.container import atomic_write_bytes
 
 OUT = RESULTS / "html_report_gardens_point.jpg"
 WINDOW = (1400, 2300)
@@ -82,9 +83,7 @@ def main() -> None:
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
         if not ok:
             raise SystemExit(f"could not encode {png} as JPEG")
-        tmp_out = OUT.with_suffix(".jpg.tmp")
-        tmp_out.write_bytes(buf.tobytes())
-        tmp_out.replace(OUT)
+        atomic_write_bytes(OUT, buf.tobytes())
         print(f"wrote {OUT} ({img.shape[1]} x {img.shape[0]} px, {len(buf) / 1e3:.0f} kB)")
 
 

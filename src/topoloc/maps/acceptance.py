@@ -27,7 +27,7 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
     (None: not given; the map's record and ``$TOPOLOC_VERIFY`` decide), ``min_support``
     the floor it verifies with (None: not known).
     """
-    from topoloc.maps.calibration import calibrated_min_support, calibrated_verify, threshold_kind, tours_added_since
+    from topoloc.maps.calibration import calibrated_verify, recorded_min_support, threshold_kind, tours_added_since
 
     choice = m.verify_choice(verify)
     verifies = choice.enabled is not False and not m.verification_blocker()
@@ -59,7 +59,7 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
         log.warning("%s: the threshold was calibrated %s verification, and this run matches %s (%s): its precision "
                     "does not hold; run `topoloc map calibrate` with the same --verify/--no-verify", map_file,
                     "with" if recorded else "without", "with" if choice.enabled else "without", choice.source)
-    floor = calibrated_min_support(m.calibration)
+    floor = recorded_min_support(m.calibration)
     if verifies and floor is not None and min_support is not None and min_support != floor:
         # The confidence, and so the threshold on it, follows the floor (docs/protocol.md, Verification, step 6).
         log.warning("%s: the threshold was calibrated on answers verified with --min-support %d, and this run "

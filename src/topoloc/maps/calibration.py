@@ -47,9 +47,10 @@ def calibrated_verify(calibration: dict[str, Any] | None) -> bool | None:
     return bool(cal["verify"]) if "verify" in cal else None
 
 
-def calibrated_min_support(calibration: dict[str, Any] | None) -> int | None:
-    """The support floor the calibration's answers were verified with (None: not recorded, or not verified)."""
-    value = (calibration or {}).get("min_support")
+def recorded_min_support(record: dict[str, Any] | None) -> int | None:
+    """The support floor a map's record holds under ``min_support``: a calibration's (the floor its answers were
+    verified with) or a build's verification settings (``map build --min-support``); None: none recorded."""
+    value = (record or {}).get("min_support")
     return int(value) if isinstance(value, int) and not isinstance(value, bool) else None
 
 
@@ -218,7 +219,6 @@ def accepts(calibration: dict[str, Any] | None, *, score: float, confidence: flo
 
 __all__ = [
     "accepts",
-    "calibrated_min_support",
     "calibrated_sequence",
     "calibrated_verify",
     "check_precision",
@@ -227,6 +227,7 @@ __all__ = [
     "is_stale",
     "json_calibration",
     "mark_stale",
+    "recorded_min_support",
     "threshold_kind",
     "threshold_of",
     "tours_added_since",

@@ -23,7 +23,7 @@ import numpy as np
 from topoloc.datasets.traverse import Traverse
 from topoloc.errors import TopolocError
 from topoloc.features import FeatureConfig
-from topoloc.maps.calibration import calibrated_min_support, calibrated_verify
+from topoloc.maps.calibration import calibrated_verify, recorded_min_support
 from topoloc.maps.tour_images import TourImages, read_again
 from topoloc.maps.tours import reload_tour
 from topoloc.resources import Resources
@@ -100,6 +100,11 @@ def verification_tours(tours: Sequence[dict[str, Any]], *, where: str = "the map
     return out
 
 
+def _built_verification(spec: dict[str, Any] | None) -> dict[str, Any]:
+    """The verification settings a map's build recorded (``map build --verify``, ``--min-support``; {}: none)."""
+    return (spec or {}).get("verification") or {}
+
+
 def recorded_verify(calibration: dict[str, Any] | None, spec: dict[str, Any] | None) -> bool | None:
     """What a map records of verification: as its threshold was calibrated, else as it was built.
 
@@ -113,7 +118,7 @@ def recorded_verify(calibration: dict[str, Any] | None, spec: dict[str, Any] | N
         return calibrated
     if calibration is not None or not spec or "verification" not in spec:
         return False
-    return (spec.get("verification") or {}).get("enabled")
+    return _built_verification(spec).get("enabled")
 
 
 def choice_for(asked: bool | None, *, calibration: dict[str, Any] | None, spec: dict[str, Any] | None,
@@ -126,7 +131,7 @@ def choice_for(asked: bool | None, *, calibration: dict[str, Any] | None, spec: 
     """
     calibrated = calibrated_verify(calibration)
     recorded = bool(spec) and "verification" in (spec or {})
-    built = ((spec or {}).get("verification") or {}).get("enabled") if recorded else None
+    built = _built_verification(spec).get("enabled")
     legacy = calibrated is None and (calibration is not None or not recorded)
     return choose_verify(asked, calibrated=calibrated, built=built, legacy=legacy, checks_geometry=verifies_geometry)
 
@@ -144,10 +149,9 @@ def with_map_floor(spec: VerificationSpec, *, calibration: dict[str, Any] | None
     """
     if spec.min_support is not None:
         return spec
-    floor = calibrated_min_support(calibration)
+    floor = recorded_min_support(calibration)
     if floor is None:
-        value = ((built or {}).get("verification") or {}).get("min_support")
-        floor = value if isinstance(value, int) and not isinstance(value, bool) else None
+        floor = recorded_min_support(_built_verification(built))
     return spec if floor is None else dataclasses.replace(spec, min_support=floor)
 
 
