@@ -15,6 +15,7 @@ from topoloc.errors import TopolocError
 from topoloc.maps import Map
 from topoloc.maps.batch import localize_on
 from topoloc.sequence import sequence_similarity
+from topoloc.spec import VerificationSpec
 
 
 def _saved(route: dict[str, Any], tmp_path: Path, method: str = "bow", tour: Path | None = None) -> Map:
@@ -232,3 +233,21 @@ def test_a_large_maps_confusion_is_scored_in_blocks_with_the_same_values(tiny_ro
     assert max(widths) == 2 and sum(widths) == whole.images == blocks.images
     np.testing.assert_array_equal(blocks.values, whole.values)
     assert (whole.values > 0).any()
+
+
+@pytest.mark.parametrize("record", ["calibration", "build"])
+@pytest.mark.parametrize("value", [3, "25", True, 2.5])
+def test_a_recorded_floor_verification_cannot_use_is_one_line_naming_the_map(record: str, value: Any,
+                                                                             tiny_route: dict[str, Any],
+                                                                             tmp_path: Path) -> None:
+    m = _saved(tiny_route, tmp_path)
+    if record == "calibration":
+        m.calibration = {"verify": True, "min_support": value}
+    else:
+        m.spec = {"verification": {"enabled": True, "min_support": value}}
+    path = m.save(tmp_path / "edited.tlm")
+    with pytest.raises(TopolocError, match=r"edited\.tlm records a support floor it cannot verify with") as err:
+        Map.load(path).verifier_for(True)
+    assert "\n" not in str(err.value)
+    # A run's own floor comes first: the record is not read.
+    assert Map.load(path).verifier_for(True, spec=VerificationSpec(min_support=30)).rule.min_support == 30

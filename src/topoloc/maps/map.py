@@ -623,7 +623,8 @@ class Map:
         if why:  # before any resource is made
             raise TopolocError(f"{self.where} cannot verify answers: {why} (use --no-verify)")
         res = resources if resources is not None else self.resources(cache_dir=cache_dir)
-        vspec = _policy.with_map_floor(spec or VerificationSpec(), calibration=self.calibration, built=self.spec)
+        vspec = _policy.with_map_floor(spec or VerificationSpec(), calibration=self.calibration, built=self.spec,
+                                       where=self.where)
         if candidates is not None:
             vspec = dataclasses.replace(vspec, candidates=candidates)
         v = _policy.map_verifier(self.tours, self.place_ids, res, where=self.where, spec=vspec, sequence=sequence,

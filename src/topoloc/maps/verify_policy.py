@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from topoloc.datasets.traverse import Traverse
-from topoloc.errors import TopolocError
+from topoloc.errors import ParameterError, TopolocError
 from topoloc.features import FeatureConfig
-from topoloc.maps.calibration import calibrated_verify, recorded_min_support
+from topoloc.maps.calibration import calibrated_verify
 from topoloc.maps.tour_images import TourImages, read_again
 from topoloc.maps.tours import reload_tour
 from topoloc.resources import Resources
@@ -137,7 +137,7 @@ def choice_for(asked: bool | None, *, calibration: dict[str, Any] | None, spec: 
 
 
 def with_map_floor(spec: VerificationSpec, *, calibration: dict[str, Any] | None,
-                   built: dict[str, Any] | None) -> VerificationSpec:
+                   built: dict[str, Any] | None, where: str = "the map") -> VerificationSpec:
     """``spec`` with the map's support floor where the run gives none: the one precedence of the floor.
 
     In order: the run's (``--min-support``, the ROS node's ``min_support``, a
@@ -146,13 +146,23 @@ def with_map_floor(spec: VerificationSpec, *, calibration: dict[str, Any] | None
     floor only: the confidence follows it); the build's (``map build
     --min-support``); else :data:`topoloc.verification.MIN_SUPPORT`
     (:meth:`VerificationSpec.rule`).
+
+    Raises
+    ------
+    TopolocError
+        One line naming ``where`` when the floor it records is not one :class:`VerificationSpec` takes.
     """
     if spec.min_support is not None:
         return spec
-    floor = recorded_min_support(calibration)
+    cal = calibration or {}
+    floor = cal["min_support"] if "min_support" in cal else _built_verification(built).get("min_support")
     if floor is None:
-        floor = recorded_min_support(_built_verification(built))
-    return spec if floor is None else dataclasses.replace(spec, min_support=floor)
+        return spec
+    try:
+        return dataclasses.replace(spec, min_support=floor)
+    except ParameterError as exc:  # written by other code: the header's CRC says it is intact, not that it is sensible
+        raise TopolocError(f"{where} records a support floor it cannot verify with: {exc}; build or calibrate it "
+                           "again") from None
 
 
 def settle(choice: VerifyChoice, why_not: str, *, where: str) -> bool:
