@@ -1,6 +1,7 @@
 """Regenerate docs/results/verification.md (+ .json, verification_pr.png): what `verified` means, measured.
 
-    .venv/bin/python -m benchmarks.bench_verification [--parts quality,offmap,floor,caps,confidence,speed,localize,slam]
+    .venv/bin/python -m benchmarks.bench_verification
+        [--parts quality,offmap,floor,caps,evidence,confidence,speed,localize,slam]
         [--rows gp_day,...] [--methods coocmap,...]
 
 Every setting is a default (XFeat features, the vocabulary trained on the map's tours, verification's own
@@ -30,6 +31,11 @@ Parts:
 - ``caps``: the same at 500, 1000 and 2000 features per image (``--max-features``) on gardens_point by day, at
   night (two day tours, and the one day tour of the crowded map), with the floor a cap-proportional rule
   would give: whether the floor should follow the feature cap.
+- ``evidence``: whether anything beside the support tells right answers from wrong ones where the floor
+  refuses them: Cooc-Map's answers, hard negatives and off-map frames verified at the lowest floor of part
+  ``floor`` but below the default one, with the spread of their supporting matches over the query image,
+  the share of them one homography explains, and whether the frame before confirms the answer; for each, the
+  right answers past the bar every wrong one stays behind.
 - ``confidence``: the confidence model fitted on every set's answers pooled, the frames of no mapped
   place among them (all wrong; the defaults in ``topoloc.verification.decision``), its reliability
   (confidence against the fraction right, by bins), and the same fitted leaving each set out, scored on
@@ -84,8 +90,8 @@ from topoloc.methods.base import PlaceRecognizer
 from topoloc.resources import Resources
 from topoloc.spec import FeatureSpec, GroundTruthSpec, VerificationSpec, VocabularySpec
 from topoloc.spec.setup import build_method, build_verifier, make_resources
-from topoloc.verification import DEFAULT_CANDIDATES, ConfidenceModel, VerifiedBlock, Verifier, decision
-from topoloc.verification.pairs import MIN_SAMPLE
+from topoloc.verification import DEFAULT_CANDIDATES, ConfidenceModel, VerifiedBlock, Verifier, confirmed, decision
+from topoloc.verification.pairs import MIN_SAMPLE, inlier_threshold
 
 FEATURES = "xfeat"
 SEQUENCE = 10
@@ -450,6 +456,96 @@ def caps(tmp: Path) -> dict[str, Any]:
     return out
 
 
+# ------------------------------------------------------------------------------------------------ evidence
+#: Cells per side of the grid over the query image that part ``evidence`` counts supporting matches in.
+GRID = 6
+#: Evidence part ``evidence`` measures, and whether more of it speaks for a right answer.
+EVIDENCE = {"cells": True, "homography": False, "confirmed": True}
+
+
+def pair_evidence(pairs: np.ndarray, shapes: np.ndarray) -> dict[str, float]:
+    """How a pair's supporting matches lie: what a rule could add to their number.
+
+    Parameters
+    ----------
+    pairs : ndarray, shape (n, 4)
+        The supporting matches: query x, y, map image x, y (pixels; ``VerifiedBlock.matches``).
+    shapes : ndarray, shape (4,)
+        The query's and the map image's (height, width).
+
+    Returns
+    -------
+    dict
+        ``cells``: the fraction of a ``GRID`` x ``GRID`` grid over the query image holding a supporting match
+        (their spread); ``homography``: the fraction of them one homography explains (RANSAC, twice the
+        epipolar tolerance of :func:`topoloc.verification.pairs.inlier_threshold`; COLMAP calls a pair whose
+        homography explains most of its inliers planar, a degenerate geometry).
+    """
+    hq, wq = int(shapes[0]), int(shapes[1])
+    n = len(pairs)
+    cx = np.clip((pairs[:, 0] / max(wq, 1) * GRID).astype(int), 0, GRID - 1)
+    cy = np.clip((pairs[:, 1] / max(hq, 1) * GRID).astype(int), 0, GRID - 1)
+    cells = len(set(zip(cx.tolist(), cy.tolist(), strict=True))) / GRID ** 2
+    share = 1.0
+    if n >= 5:
+        t = 2 * inlier_threshold((int(shapes[2]), int(shapes[3])))
+        _, mask = cv2.findHomography(pairs[:, :2].astype(np.float64), pairs[:, 2:].astype(np.float64), cv2.RANSAC,
+                                     t, maxIters=2000)
+        share = float(mask.sum()) / n if mask is not None else 0.0
+    return {"cells": round(cells, 4), "homography": round(share, 4)}
+
+
+def _band(block: VerifiedBlock, right: np.ndarray, kind: str, row: str) -> list[dict[str, Any]]:
+    """The answers of ``block`` verified at the lowest floor but below the default one, with their evidence."""
+    ok = confirmed(block.S)
+    return [{"set": row, "kind": kind, "right": bool(right[j]), "support": int(block.support[j]),
+             "confirmed": float(ok[j]), **pair_evidence(block.matches[j], block.match_shapes[j])}
+            for j in np.flatnonzero(block.verified & (block.support < decision.MIN_SUPPORT))]
+
+
+def evidence_rules(items: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Per piece of evidence (:data:`EVIDENCE`): the bar every wrong item stays behind, and the right items past it
+    per set (what a rule adding that evidence would verify with no wrong one)."""
+    wrong = [x for x in items if not x["right"]]
+    right = [x for x in items if x["right"]]
+    out: dict[str, Any] = {}
+    for name, more_is_right in EVIDENCE.items():
+        values = [x[name] for x in wrong]
+        bar = (max(values) if more_is_right else min(values)) if values else None
+        passes = [x for x in right if bar is None or (x[name] > bar if more_is_right else x[name] < bar)]
+        out[name] = {"bar": bar, "more_is_right": more_is_right,
+                     "gained": {row: sum(1 for x in passes if x["set"] == row) for row in ROWS}}
+    return out
+
+
+def evidence(tmp: Path) -> dict[str, Any]:
+    """Whether evidence beside the support tells right answers from wrong ones in the band the floor refuses.
+
+    Cooc-Map's answers and hard negatives of every development set, and frames of no place of a gardens_point
+    map, verified at the lowest floor of part ``floor`` (the rest of the rule as it is); of those with support
+    below the default floor: the spread of the supporting matches over the query image, the share of them one
+    homography explains, and whether the frame before confirms the answer (``--confirm``'s test,
+    :func:`topoloc.verification.confirmed`).
+    """
+    rule = VerificationSpec(min_support=FLOORS[0]).rule()
+    items: list[dict[str, Any]] = []
+    for row in (r for r in ROWS if r not in REPEATS and r != "gp_night_seq10"):
+        for r in runs_of(row, "coocmap", tmp):
+            r.verifier.rule = rule
+            b, h, within = judge_answers(r)
+            items += _band(b, within, "answer", row) + _band(h, np.zeros(len(within), bool), "hard", row)
+    gp_run = fit_run("coocmap", [GP / "day_left"], GP / "night_right", "0:8")
+    gp_run.verifier.rule = rule
+    for S, f in _foreign_scores(gp_run).values():
+        b = gp_run.verifier.verify(S, f)
+        items += _band(b, np.zeros(S.shape[1], bool), "offmap", "offmap")
+    out: dict[str, Any] = {"floor": FLOORS[0], "items": items, "rules": evidence_rules(items)}
+    print(f"evidence: {sum(x['right'] for x in items)} right, {sum(not x['right'] for x in items)} wrong; " +
+          ", ".join(f"{k} bar {v['bar']} gains {sum(v['gained'].values())}" for k, v in out["rules"].items()),
+          flush=True)
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ confidence
 BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0)
 
@@ -698,6 +794,39 @@ def render(res: dict[str, Any]) -> str:
                 tag = " (proportional)" if int(value) == c["proportional"] else ""
                 lines.append(f"| {cap} | {value}{tag} | {_floor_row(cells, sets)} |")
         lines.append("")
+    ev = res.get("evidence")
+    if ev:
+        items = ev["items"]
+        n_right = {row: sum(1 for x in items if x["right"] and x["set"] == row) for row in ROWS}
+        kinds = {k: sum(1 for x in items if not x["right"] and x["kind"] == k) for k in ("answer", "hard", "offmap")}
+        sets = [row for row in ROWS if n_right.get(row)]
+        labels = {"cells": f"spread: the fraction of a {GRID} x {GRID} grid over the query image holding a "
+                           "supporting match (more speaks for right)",
+                  "homography": "planarity: the share of the supporting matches one homography explains (less "
+                                "speaks for right; COLMAP's degeneracy test)",
+                  "confirmed": "the frame before confirms the answer (1) or not (0) (`--confirm`'s test)"}
+        lines += ["## Evidence beside the support (part `evidence`, Cooc-Map)", "",
+                  f"Answers verified at the floor {ev['floor']} but below the default {decision.MIN_SUPPORT} (the "
+                  "band the floor refuses; the rest of the rule as it is): "
+                  f"{sum(n_right.values())} right answers, and {kinds['answer']} wrong answers, {kinds['hard']} hard "
+                  f"negatives and {kinds['offmap']} frames of no place of a gardens_point map. For each piece of "
+                  "evidence: the bar every wrong one of the band stays behind, and the right answers of the band "
+                  "past it, per set (of the right answers in the band), which a rule adding it at this floor would "
+                  "verify with no wrong one. The bar is the development data's own extreme: these counts bound "
+                  "from above what each could add on data it was not fitted to.", "",
+                  "| evidence | wrong ones: min / median / max | right ones: min / median / max | bar | "
+                  + " | ".join(sets) + " |",
+                  "| --- | --- | --- | --- | " + " | ".join("---" for _ in sets) + " |"]
+
+        def spread(name: str, right: bool) -> str:
+            v = [x[name] for x in items if x["right"] == right]
+            return " / ".join(f"{q:.2f}" for q in np.percentile(v, [0, 50, 100])) if v else "-"
+
+        for name, rule in ev["rules"].items():
+            bar = "-" if rule["bar"] is None else f"{'>' if rule['more_is_right'] else '<'} {rule['bar']:g}"
+            lines.append(f"| {labels.get(name, name)} | {spread(name, False)} | {spread(name, True)} | {bar} | " +
+                         " | ".join(f"{rule['gained'].get(row, 0)} of {n_right[row]}" for row in sets) + " |")
+        lines.append("")
     co = res.get("confidence")
     if co:
         f = co["fitted"]
@@ -747,7 +876,7 @@ def render(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-PARTS = ("quality", "offmap", "floor", "caps", "confidence", "speed", "localize", "slam")
+PARTS = ("quality", "offmap", "floor", "caps", "evidence", "confidence", "speed", "localize", "slam")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -794,6 +923,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             res["floor"] = floor(rows, tmp)
         if "caps" in parts:
             res["caps"] = caps(tmp)
+        if "evidence" in parts:
+            res["evidence"] = evidence(tmp)
         if "speed" in parts:
             res["speed"] = speed(tmp)
         if "localize" in parts:
