@@ -212,6 +212,37 @@ def test_the_floor_is_the_runs_else_the_calibrations_else_the_builds_and_another
     assert code == 0 and not any(said in r.getMessage() for r in caplog.records), err
 
 
+def test_a_calibration_that_predates_the_recorded_floor_is_said_where_its_floor_was_another(
+        cli: Cli, rf: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before calibrations recorded their floor it followed the feature cap (13 at 500 features): such a map's
+    threshold was chosen at that floor, which this run no longer verifies with."""
+    import dataclasses
+
+    from topoloc.maps import Map
+    from topoloc.maps.acceptance import floor_before_it_was_recorded, warn_before_localizing
+
+    monkeypatch.delenv("TOPOLOC_VERIFY")
+    tlm, _ = _map(cli, rf, tmp_path)
+    cli.ok(["map", "calibrate", str(tlm), "--query", str(rf["morning"]), "--verify", "--sequence", "0", "-q"])
+    said = "before maps recorded their support floor"
+
+    def warned(max_features: int, *, record: bool = False, min_support: int | None = None) -> list[str]:
+        m = Map.load(tlm)
+        m.features = dataclasses.replace(m.features, max_features=max_features)
+        if not record:
+            m.calibration = {k: v for k, v in (m.calibration or {}).items() if k != "min_support"}
+        caplog.clear()
+        warn_before_localizing(m, tlm, m.calibrated_sequence, None, min_support)
+        return [r.getMessage() for r in caplog.records if said in r.getMessage()]
+
+    assert floor_before_it_was_recorded(500) == 13 and floor_before_it_was_recorded(1000) == MIN_SUPPORT
+    got = warned(500)
+    assert len(got) == 1 and f"(13 at 500 features), and this run verifies with {MIN_SUPPORT}" in got[0]
+    assert warned(1000) == [] and warned(500, min_support=13) == []  # the same floor as then
+    assert warned(500, record=True) == []  # a recorded floor is the one the calibration used
+
+
 @pytest.mark.parametrize("command", ["localize", "evaluate", "calibrate", "slam"])
 def test_a_bad_topoloc_verify_is_refused_by_every_command(command: str, cli: Cli, rf: dict[str, Path],
                                                           tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

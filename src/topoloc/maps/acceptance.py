@@ -7,8 +7,14 @@ on the top layer: here, below both, neither imports the other (issue #41).
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from topoloc.maps.verify_policy import with_map_floor
+from topoloc.spec import VerificationSpec
+from topoloc.verification import MIN_SUPPORT
+from topoloc.verification.pairs import MIN_SAMPLE
 
 if TYPE_CHECKING:
     from topoloc.maps.map import Map
@@ -65,10 +71,31 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
         log.warning("%s: the threshold was calibrated on answers verified with --min-support %d, and this run "
                     "verifies with %d: its precision does not hold; run `topoloc map calibrate` again or localise "
                     "with --min-support %d", map_file, floor, min_support, floor)
+    elif verifies and floor is None and recorded:
+        # Calibrated with verification before calibrations recorded their floor, when it followed the feature cap.
+        cap = int(m.features.max_features)
+        then = floor_before_it_was_recorded(cap)
+        now = with_map_floor(VerificationSpec(min_support=min_support), calibration=None, built=m.spec,
+                             where=str(map_file)).min_support or MIN_SUPPORT
+        if then != now:
+            log.warning("%s: the threshold was calibrated before maps recorded their support floor, on answers "
+                        "verified with the floor of that time (%d at %d features), and this run verifies with %d: its "
+                        "precision does not hold; run `topoloc map calibrate` again", map_file, then, cap, now)
+
+
+#: Features per image at which the floor was :data:`topoloc.verification.MIN_SUPPORT` when it followed the cap
+#: (before commit 10409dd; verification.md, part ``caps``, measured why it no longer does).
+_FLOOR_FEATURES_BEFORE = 1000
+
+
+def floor_before_it_was_recorded(max_features: int) -> int:
+    """The support floor a calibration verified its answers with before calibrations recorded it: the default
+    floor in proportion to the feature cap, as verification then chose it."""
+    return max(MIN_SAMPLE + 1, math.ceil(MIN_SUPPORT * max_features / _FLOOR_FEATURES_BEFORE))
 
 
 def _sequence_words(length: int, mode: str) -> str:
     return f"sequences of {length + 1} frames ({mode})" if length else "single images"
 
 
-__all__ = ["warn_before_localizing"]
+__all__ = ["floor_before_it_was_recorded", "warn_before_localizing"]
