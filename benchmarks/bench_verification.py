@@ -53,7 +53,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import math
 import os
 import shutil
 import subprocess
@@ -85,13 +84,14 @@ from topoloc.datasets.groundtruth import GroundTruth
 from topoloc.datasets.traverse import Traverse, load_traverse
 from topoloc.evaluation.metrics import compute_metrics
 from topoloc.evaluation.timing import apply_sequence
+from topoloc.maps.acceptance import floor_before_it_was_recorded
 from topoloc.maps.confusion import learn_confusion
 from topoloc.methods.base import PlaceRecognizer
 from topoloc.resources import Resources
 from topoloc.spec import FeatureSpec, GroundTruthSpec, VerificationSpec, VocabularySpec
 from topoloc.spec.setup import build_method, build_verifier, make_resources
 from topoloc.verification import DEFAULT_CANDIDATES, ConfidenceModel, VerifiedBlock, Verifier, confirmed, decision
-from topoloc.verification.pairs import MIN_SAMPLE, inlier_threshold
+from topoloc.verification.pairs import inlier_threshold
 
 FEATURES = "xfeat"
 SEQUENCE = 10
@@ -449,7 +449,7 @@ def caps(tmp: Path) -> dict[str, Any]:
         base = {row: runs_of(row, "coocmap", tmp, max_features=cap) for row in CAP_ROWS}
         offmap_run = base["crowded_alone"][0]
         foreign_S = _foreign_scores(offmap_run)
-        proportional = max(MIN_SAMPLE + 1, math.ceil(decision.MIN_SUPPORT * cap / 1000))
+        proportional = floor_before_it_was_recorded(cap)  # the rule the floor followed before this part
         cells = {str(v): _floor_cells(base, offmap_run, foreign_S, v) for v in sorted({*CAP_FLOORS, proportional})}
         out[str(cap)] = {"proportional": proportional, "floors": cells}
         print(f"features {cap}: {cells}", flush=True)
@@ -485,7 +485,7 @@ def pair_evidence(pairs: np.ndarray, shapes: np.ndarray) -> dict[str, float]:
     n = len(pairs)
     cx = np.clip((pairs[:, 0] / max(wq, 1) * GRID).astype(int), 0, GRID - 1)
     cy = np.clip((pairs[:, 1] / max(hq, 1) * GRID).astype(int), 0, GRID - 1)
-    cells = len(set(zip(cx.tolist(), cy.tolist(), strict=True))) / GRID ** 2
+    cells = len(np.unique(cy * GRID + cx)) / GRID ** 2
     share = 1.0
     if n >= 5:
         t = 2 * inlier_threshold((int(shapes[2]), int(shapes[3])))
@@ -529,7 +529,7 @@ def evidence(tmp: Path) -> dict[str, Any]:
     """
     rule = VerificationSpec(min_support=FLOORS[0]).rule()
     items: list[dict[str, Any]] = []
-    for row in (r for r in ROWS if r not in REPEATS and r != "gp_night_seq10"):
+    for row in (r for r in ROWS if r not in REPEATS):
         for r in runs_of(row, "coocmap", tmp):
             r.verifier.rule = rule
             b, h, within = judge_answers(r)

@@ -10,6 +10,7 @@ import contextlib
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -62,6 +63,15 @@ def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
             if key.strip() == "model name" and value.strip():
                 return value.strip()
     return platform.processor()
+
+
+#: Headless browsers the HTML report is drawn and tested with (Debian's ``chromium`` first).
+BROWSERS = ("chromium", "chromium-browser", "google-chrome")
+
+
+def find_browser() -> str | None:
+    """The path of the first of :data:`BROWSERS` on the PATH, or None."""
+    return next((path for path in map(shutil.which, BROWSERS) if path), None)
 
 
 def machine_line() -> str:

@@ -23,29 +23,26 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import subprocess
 import tempfile
 from pathlib import Path
 
 import cv2
 
-from benchmarks.common import GP, RESULTS, TOPOLOC, require_data
+from benchmarks.common import GP, RESULTS, TOPOLOC, find_browser, require_data
 from topoloc.io.container import atomic_write_bytes
 
 OUT = RESULTS / "html_report_gardens_point.jpg"
 WINDOW = (1400, 2300)
-BROWSERS = ("chromium", "chromium-browser", "google-chrome")
 #: Milliseconds of the page's own time the browser lets pass before the screenshot (its scripts draw the canvases).
 VIRTUAL_TIME_MS = 10_000
 
 
 def _browser() -> str:
-    for name in BROWSERS:
-        path = shutil.which(name)
-        if path:
-            return path
-    raise SystemExit("no chromium on the PATH (apt-get install chromium)")
+    path = find_browser()
+    if path is None:
+        raise SystemExit("no chromium on the PATH (apt-get install chromium)")
+    return path
 
 
 def _run(cmd: list[str]) -> None:

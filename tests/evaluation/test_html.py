@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from benchmarks.common import find_browser as _find_browser
 from typer.testing import CliRunner
 
 from topoloc.cli.main import app
@@ -31,8 +32,6 @@ from topoloc.evaluation.columns import distinct_labels, markdown_table, run_colu
 from topoloc.evaluation.html import build_html_report, render_html
 from topoloc.evaluation.pipeline import evaluate
 from topoloc.synth import RouteConfig, generate_route
-
-BROWSERS = ("chromium", "chromium-browser", "google-chrome")
 
 
 @pytest.fixture(scope="module")
@@ -123,14 +122,6 @@ def test_cli_report_html_and_columns(runs: tuple[Path, Path, Path], tmp_path: Pa
     assert run_columns(ma)["ground_truth"] != run_columns(mb)["ground_truth"]
     assert len(set(distinct_labels([ma, mb], ["x", "x"]))) == 2
     assert "| ground truth |" in markdown_table([ma, mb])
-
-
-def _find_browser() -> str | None:
-    for name in BROWSERS:
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
 
 
 class _Pipe:

@@ -76,7 +76,7 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
         cap = int(m.features.max_features)
         then = floor_before_it_was_recorded(cap)
         now = with_map_floor(VerificationSpec(min_support=min_support), calibration=None, built=m.spec,
-                             where=str(map_file)).min_support or MIN_SUPPORT
+                             where=str(map_file)).rule().min_support
         if then != now:
             log.warning("%s: the threshold was calibrated before maps recorded their support floor, on answers "
                         "verified with the floor of that time (%d at %d features), and this run verifies with %d: its "
