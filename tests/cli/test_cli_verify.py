@@ -227,11 +227,13 @@ def test_a_calibration_that_predates_the_recorded_floor_is_said_where_its_floor_
     cli.ok(["map", "calibrate", str(tlm), "--query", str(rf["morning"]), "--verify", "--sequence", "0", "-q"])
     said = "before maps recorded their support floor"
 
-    def warned(max_features: int, *, record: bool = False, min_support: int | None = None) -> list[str]:
+    def warned(max_features: int, *, record: bool = False, min_support: int | None = None,
+               edit: dict | None = None) -> list[str]:
         m = Map.load(tlm)
         m.features = dataclasses.replace(m.features, max_features=max_features)
         if not record:
             m.calibration = {k: v for k, v in (m.calibration or {}).items() if k != "min_support"}
+        m.calibration = {**(m.calibration or {}), **(edit or {})}
         caplog.clear()
         warn_before_localizing(m, tlm, m.calibrated_sequence, None, min_support)
         return [r.getMessage() for r in caplog.records if said in r.getMessage()]
@@ -241,6 +243,8 @@ def test_a_calibration_that_predates_the_recorded_floor_is_said_where_its_floor_
     assert len(got) == 1 and f"(13 at 500 features), and this run verifies with {MIN_SUPPORT}" in got[0]
     assert warned(1000) == [] and warned(500, min_support=13) == []  # the same floor as then
     assert warned(500, record=True) == []  # a recorded floor is the one the calibration used
+    # A floor recorded but unusable is not a calibration from before the record (the localiser says what it is).
+    assert warned(500, edit={"min_support": "25"}) == [] and warned(500, edit={"min_support": 2.5}) == []
 
 
 @pytest.mark.parametrize("command", ["localize", "evaluate", "calibrate", "slam"])

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from topoloc.errors import TopolocError
 from topoloc.maps.verify_policy import with_map_floor
 from topoloc.spec import VerificationSpec
 from topoloc.verification import MIN_SUPPORT
@@ -71,12 +72,16 @@ def warn_before_localizing(m: Map, map_file: str | Path | None, sequence: Sequen
         log.warning("%s: the threshold was calibrated on answers verified with --min-support %d, and this run "
                     "verifies with %d: its precision does not hold; run `topoloc map calibrate` again or localise "
                     "with --min-support %d", map_file, floor, min_support, floor)
-    elif verifies and floor is None and recorded:
+    elif verifies and recorded and "min_support" not in (m.calibration or {}):
         # Calibrated with verification before calibrations recorded their floor, when it followed the feature cap.
+        # (A floor recorded but unusable is the localiser's one line to say: verify_policy.with_map_floor.)
         cap = int(m.features.max_features)
         then = floor_before_it_was_recorded(cap)
-        now = with_map_floor(VerificationSpec(min_support=min_support), calibration=None, built=m.spec,
-                             where=str(map_file)).rule().min_support
+        try:
+            now = with_map_floor(VerificationSpec(min_support=min_support), calibration=None, built=m.spec,
+                                 where=str(map_file)).rule().min_support
+        except TopolocError:
+            return
         if then != now:
             log.warning("%s: the threshold was calibrated before maps recorded their support floor, on answers "
                         "verified with the floor of that time (%d at %d features), and this run verifies with %d: its "
